@@ -1,0 +1,1 @@
+"""Turning fitted fields into decisions: scores, calibrated thresholds, reports."""

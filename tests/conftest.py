@@ -1,0 +1,15 @@
+"""Shared pytest fixtures."""
+import os
+from pathlib import Path
+
+import pytest
+
+SHARED_MESHES = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
+
+
+@pytest.fixture
+def shared_meshes():
+    """Folder of the real meshes (fandisk, bunny); skips the test when it is absent (e.g. a bare clone)."""
+    if not SHARED_MESHES.is_dir():
+        pytest.skip(f"{SHARED_MESHES} not present: this test needs the shared real meshes")
+    return SHARED_MESHES
