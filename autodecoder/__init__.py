@@ -1,1 +1,20 @@
-"""The model: neural stochastic screened Poisson reconstruction (Sellán & Jacobson 2023) and its latent space."""
+"""The model: neural stochastic screened Poisson reconstruction (Sellán & Jacobson 2023) and its latent space.
+
+Public names are imported lazily so that ``import autodecoder`` (and ``--help`` of the command lines) stays fast.
+"""
+import importlib
+
+_EXPORTS = {
+    "fit_cloud": "autodecoder.fit",
+    "FitOptions": "autodecoder.fit",
+    "StochasticField": "autodecoder.field",
+    "GPPosterior": "autodecoder.gp_targets",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'autodecoder' has no attribute {name!r}")

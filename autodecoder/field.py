@@ -1,0 +1,195 @@
+"""StochasticField: the fitted stochastic implicit surface f(x) ~ N(g(x), c(x, x)) and its queries.
+
+All public queries take and return coordinates and values in the cloud's own ("world") frame; internally the
+networks work in the unit-cube model frame (see :class:`autodecoder.frame.Normalization`). Convention: f < 0
+inside, f > 0 outside; f is a length (its gradient is the unit outward normal on the surface).
+"""
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .checkpoint_io import atomic_torch_save, load_torch_file
+from .frame import Normalization
+from .networks import build_networks
+from .validation import check_points
+
+FIELD_FORMAT = "nsspr-field"
+FIELD_VERSION = 1
+_CHUNK = 65536
+_MIN_VARIANCE = 1e-20
+
+
+class StochasticField:
+    """A Gaussian process f over space given by a mean net g and a covariance net c (optionally with a code z).
+
+    Parameters
+    ----------
+    mean_net, cov_net : torch.nn.Module
+        :class:`MeanNet` and a covariance net (:class:`FeatureCovarianceNet` or :class:`PairCovarianceNet`).
+    normalization : Normalization
+        World -> model frame.
+    config : dict
+        Network configuration (see :func:`autodecoder.networks.build_networks`) plus ``lengthscale`` and the
+        box ``box_lo``/``box_hi`` (model frame).
+    code : (L,) tensor, optional
+        Latent code the nets are conditioned on (None for a single-cloud field).
+    noise : float
+        Default measurement noise (world units) added to the variance in :meth:`nll`.
+    info : dict, optional
+        Free-form provenance (fit time, losses); plain Python values only.
+    """
+
+    def __init__(self, mean_net, cov_net, normalization, config, code=None, noise=0.0, info=None):
+        self.mean_net = mean_net.eval()
+        self.cov_net = cov_net.eval()
+        self.normalization = normalization
+        self.config = dict(config)
+        self.code = None if code is None else code.detach().float().reshape(-1)
+        self.noise = float(noise)
+        self.info = dict(info or {})
+
+    # ----------------------------------------------------------------------------------- torch, differentiable
+    def _model_x(self, x):
+        c = torch.as_tensor(self.normalization.center, dtype=x.dtype, device=x.device)
+        return (x - c) * self.normalization.scale
+
+    def _code_for(self, x):
+        return None if self.code is None else self.code.to(x.dtype)
+
+    def torch_mean(self, x):
+        """E f(x) for world points x (m, 3) tensor -> (m,), differentiable with respect to x."""
+        return self.mean_net(self._model_x(x), self._code_for(x)) / self.normalization.scale
+
+    def torch_covariance(self, x1, x2):
+        """Cov(f(x1_i), f(x2_i)) for world points taken row by row: (m, 3), (m, 3) -> (m,)."""
+        s2 = self.normalization.scale**2
+        return self.cov_net.covariance(self._model_x(x1), self._model_x(x2), self._code_for(x1)) / s2
+
+    def torch_variance(self, x):
+        """Var f(x) for world points (m, 3) -> (m,)."""
+        return self.cov_net.variance(self._model_x(x), self._code_for(x)) / self.normalization.scale**2
+
+    @property
+    def bounds(self):
+        """(2, 3) array: the integration box (min, max corners) in world coordinates."""
+        return self.normalization.to_world(np.stack([self.config["box_lo"], self.config["box_hi"]]))
+
+    # ------------------------------------------------------------------------------------------ numpy queries
+    def _evaluate(self, fn, *arrays):
+        arrays = [check_points(a, "query points") if a.ndim == 2 else a for a in map(np.asarray, arrays)]
+        n = len(arrays[0])
+        out = np.empty(n, dtype=np.float64)
+        with torch.no_grad():
+            for start in range(0, n, _CHUNK):
+                chunk = [torch.as_tensor(a[start:start + _CHUNK], dtype=torch.float32) for a in arrays]
+                out[start:start + _CHUNK] = fn(*chunk).double().numpy()
+        return out
+
+    def mean(self, x):
+        """E f(x) at world points x (m, 3) -> (m,) array (world length units)."""
+        return self._evaluate(self.torch_mean, x)
+
+    def variance(self, x):
+        """Var f(x) at world points x (m, 3) -> (m,) array (world units squared)."""
+        return self._evaluate(self.torch_variance, x)
+
+    def covariance(self, x1, x2):
+        """Cov(f(x1_i), f(x2_i)) for pairs of world points row by row: (m, 3), (m, 3) -> (m,)."""
+        x1, x2 = np.asarray(x1), np.asarray(x2)
+        if x1.shape != x2.shape:
+            raise ValueError(f"x1 and x2 must have the same shape, got {x1.shape} and {x2.shape}")
+        return self._evaluate(self.torch_covariance, x1, x2)
+
+    def prob_inside(self, x):
+        """P(f(x) <= 0) at world points x (m, 3) -> (m,) array in [0, 1]."""
+        mean, var = self.mean(x), self.variance(x)
+        return 0.5 * torch.special.erfc(torch.as_tensor(mean / np.sqrt(2 * np.maximum(var, _MIN_VARIANCE)))).numpy()
+
+    def nll(self, points, noise=None):
+        """Per-point negative log likelihood of f(p) = 0 under N(mean(p), variance(p) + noise^2).
+
+        Parameters
+        ----------
+        points : (m, 3) array
+            World points (e.g. a scan that should lie on the surface).
+        noise : float, optional
+            Measurement noise standard deviation in world units (default: ``self.noise``).
+
+        Returns
+        -------
+        (m,) array
+        """
+        noise = self.noise if noise is None else float(noise)
+        if noise < 0:
+            raise ValueError(f"noise must be >= 0, got {noise}")
+        mean, var = self.mean(points), self.variance(points)
+        total = np.maximum(var + noise**2, _MIN_VARIANCE)
+        return 0.5 * (mean**2 / total + np.log(2 * math.pi * total))
+
+    def mesh(self, resolution=128):
+        """The mean's zero level set, extracted by marching cubes over the integration box.
+
+        Parameters
+        ----------
+        resolution : int
+            Grid samples along each side of the (cubic) box.
+
+        Returns
+        -------
+        trimesh.Trimesh in world coordinates, faces oriented outward (f > 0 outside).
+        """
+        import trimesh
+        from skimage.measure import marching_cubes
+
+        if resolution < 8:
+            raise ValueError(f"resolution must be >= 8, got {resolution}")
+        lo, hi = np.asarray(self.config["box_lo"]), np.asarray(self.config["box_hi"])
+        axes = [np.linspace(lo[d], hi[d], resolution) for d in range(3)]
+        grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        values = self.mean(self.normalization.to_world(grid)).reshape((resolution,) * 3)
+        if not (values.min() < 0 < values.max()):
+            raise ValueError("the mean field has no zero crossing in its box: there is no surface to mesh")
+        spacing = tuple((hi - lo) / (resolution - 1))
+        # 'ascent': the object is where values are below the level (f < 0 inside), so faces point outward
+        verts, faces, _, _ = marching_cubes(values, level=0.0, spacing=spacing, gradient_direction="ascent")
+        return trimesh.Trimesh(self.normalization.to_world(verts + lo), faces, process=False)
+
+    # ----------------------------------------------------------------------------------------------- files
+    def state(self):
+        """Everything needed to rebuild the field, as tensors and plain Python values."""
+        return {
+            "format": FIELD_FORMAT,
+            "version": FIELD_VERSION,
+            "config": self.config,
+            "mean_state": self.mean_net.state_dict(),
+            "cov_state": self.cov_net.state_dict(),
+            "code": self.code,
+            "normalization": self.normalization.as_dict(),
+            "noise": self.noise,
+            "info": self.info,
+        }
+
+    def save(self, path):
+        """Write the field to ``path`` atomically (a temporary file renamed into place)."""
+        atomic_torch_save(self.state(), path)
+
+    @classmethod
+    def from_state(cls, state, source="<state>"):
+        if not isinstance(state, dict) or state.get("format") != FIELD_FORMAT:
+            raise ValueError(f"{source}: not a stochastic field file (format tag {FIELD_FORMAT!r} missing)")
+        if state.get("version") != FIELD_VERSION:
+            raise ValueError(f"{source}: field file version {state.get('version')} is not supported "
+                             f"(this toolkit reads version {FIELD_VERSION})")
+        mean_net, cov_net = build_networks(state["config"])
+        mean_net.load_state_dict(state["mean_state"])
+        cov_net.load_state_dict(state["cov_state"])
+        return cls(mean_net, cov_net, Normalization.from_dict(state["normalization"]), state["config"],
+                   code=state["code"], noise=state["noise"], info=state.get("info"))
+
+    @classmethod
+    def load(cls, path):
+        """Read a field written by :meth:`save` (``torch.load(weights_only=True)``)."""
+        return cls.from_state(load_torch_file(path, what="stochastic field"), source=os.fspath(Path(path)))

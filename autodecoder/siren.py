@@ -1,0 +1,143 @@
+"""SIREN MLPs that carry their spatial derivatives forward through the layers (no double backward).
+
+A SIREN (Sitzmann et al. 2020) maps u -> sin(w0 (W u + b)) layer after layer. Because every layer is an affine map
+followed by an elementwise sine, the derivatives of the activations with respect to the input coordinates can be
+carried forward alongside the values ("jets"): an affine map acts on every derivative channel the same way (the
+bias only on the value), and the sine's chain rule is elementwise. The value and all derivative channels of a layer
+go through ONE matrix multiply, laid out as (batch, channels, width), which is what a CPU does fastest. Training then
+backpropagates through this forward computation once, instead of differentiating a backward pass again.
+
+Two jets are provided:
+
+* order 1 (value + 3 first derivatives): the gradient of the mean net g(x, z), and the Jacobian of the covariance
+  feature map phi(x, z);
+* the mixed jet of a pair network h(a, b, z) (value, d/da, d/db, d2/da_k db_l: 16 channels), for the paper's
+  pairwise covariance net c(a, b), whose D operator is the 3 x 3 block of mixed second derivatives.
+
+Shapes follow PyTorch3D's habit of inline comments: B batch, W width, L latent dimension, K output features.
+"""
+import math
+
+import torch
+from torch import nn
+
+
+class Siren(nn.Module):
+    """A SIREN MLP f(x, z) with spatial input x (B, in_dim) and an optional latent code z (B, L).
+
+    Parameters
+    ----------
+    in_dim : int
+        Number of spatial input coordinates that are differentiated (3 for g(x), 6 for h(a, b)).
+    out_dim : int
+        Number of outputs.
+    width : int
+        Hidden width.
+    depth : int
+        Number of hidden (sine) layers, >= 1.
+    latent_dim : int, optional
+        Dimension of the latent code concatenated to the input (0: none).
+    omega0 : float, optional
+        Frequency of the first layer (SIREN's w0); hidden layers use ``omega``.
+    omega : float, optional
+        Frequency of the hidden layers.
+    """
+
+    def __init__(self, in_dim, out_dim, width, depth, latent_dim=0, omega0=30.0, omega=30.0):
+        super().__init__()
+        if depth < 1 or width < 1:
+            raise ValueError(f"depth and width must be >= 1, got depth={depth}, width={width}")
+        self.in_dim, self.out_dim, self.width, self.depth = in_dim, out_dim, width, depth
+        self.latent_dim = latent_dim
+        self.omega0, self.omega = float(omega0), float(omega)
+        self.first_x = nn.Parameter(torch.empty(width, in_dim))
+        self.first_z = nn.Parameter(torch.empty(width, latent_dim)) if latent_dim > 0 else None
+        self.first_b = nn.Parameter(torch.empty(width))
+        self.hidden = nn.ModuleList(nn.Linear(width, width) for _ in range(depth - 1))
+        self.last = nn.Linear(width, out_dim)
+        self.reset_parameters()
+
+    @torch.no_grad()
+    def reset_parameters(self):
+        # SIREN initialisation: first layer U(-1/fan_in, 1/fan_in) so that w0 sets its frequencies; the spatial and
+        # latent parts get their own fan-in so that a long code does not dilute the spatial frequencies.
+        self.first_x.uniform_(-1 / self.in_dim, 1 / self.in_dim)
+        if self.first_z is not None:
+            self.first_z.uniform_(-1 / self.latent_dim, 1 / self.latent_dim)
+        self.first_b.uniform_(-1 / self.in_dim, 1 / self.in_dim)
+        for lin in list(self.hidden) + [self.last]:
+            bound = math.sqrt(6 / lin.in_features) / self.omega
+            lin.weight.uniform_(-bound, bound)
+            lin.bias.uniform_(-bound, bound)
+
+    def _first_preactivation(self, x, z):
+        pre = x @ self.first_x.T + self.first_b  # (B, W)
+        if self.first_z is not None:
+            if z is None:
+                raise ValueError(f"this network expects a latent code of dimension {self.latent_dim}")
+            pre = pre + z @ self.first_z.T  # z (B, L) or (L,) broadcasts
+        return pre
+
+    def forward(self, x, z=None):
+        """Values only: x (B, in_dim), z (B, L) or (L,) -> (B, out_dim)."""
+        y = torch.sin(self.omega0 * self._first_preactivation(x, z))
+        for lin in self.hidden:
+            y = torch.sin(self.omega * lin(y))
+        return self.last(y)
+
+    def forward_jet1(self, x, z=None):
+        """Values and first derivatives with respect to x, carried forward.
+
+        Parameters
+        ----------
+        x : (B, in_dim) tensor
+        z : (B, L) or (L,) tensor, optional
+
+        Returns
+        -------
+        value : (B, out_dim) tensor
+        jacobian : (B, in_dim, out_dim) tensor
+            ``jacobian[b, k, o]`` = d value[b, o] / d x[b, k].
+        """
+        pre = self.omega0 * self._first_preactivation(x, z)  # (B, W)
+        y = torch.sin(pre)
+        # d pre / dx_k = w0 * first_x[:, k], the same for every sample
+        jac = (self.omega0 * torch.cos(pre)).unsqueeze(1) * self.first_x.T.unsqueeze(0)  # (B, in, W)
+        for lin in self.hidden:
+            stacked = torch.cat([y.unsqueeze(1), jac], dim=1) @ lin.weight.T  # (B, 1+in, W): one matmul
+            pre = self.omega * (stacked[:, 0] + lin.bias)
+            y = torch.sin(pre)
+            jac = (self.omega * torch.cos(pre)).unsqueeze(1) * stacked[:, 1:]
+        value = self.last(y)
+        return value, jac @ self.last.weight.T
+
+    def forward_mixed_jet(self, x, z=None):
+        """Value, first and mixed second derivatives of a pair network h(a, b), with x = [a, b] (B, 6).
+
+        Returns
+        -------
+        value : (B, out_dim)
+        grad_a, grad_b : (B, 3, out_dim)
+        mixed : (B, 3, 3, out_dim)
+            ``mixed[b, k, l, o]`` = d2 value[b, o] / d a_k d b_l.
+        """
+        if self.in_dim != 6:
+            raise ValueError(f"the mixed jet needs a pair network with 6 spatial inputs, this one has {self.in_dim}")
+        bsz = x.shape[0]
+        pre = self.omega0 * self._first_preactivation(x, z)  # (B, W)
+        w0x = self.omega0 * self.first_x.T  # (6, W): d pre / d(a, b)
+        y, c = torch.sin(pre), torch.cos(pre)
+        ga = c.unsqueeze(1) * w0x[:3].unsqueeze(0)  # (B, 3, W)
+        gb = c.unsqueeze(1) * w0x[3:].unsqueeze(0)  # (B, 3, W)
+        # the first pre-activation is affine in (a, b), so only the sine's curvature contributes here
+        mixed = -(y.unsqueeze(1).unsqueeze(1) * w0x[:3, None, :] * w0x[None, 3:, :])  # (B, 3, 3, W)
+        for lin in self.hidden:
+            stacked = torch.cat([y.unsqueeze(1), ga, gb, mixed.reshape(bsz, 9, -1)], dim=1) @ lin.weight.T
+            pre_v = self.omega * (stacked[:, 0] + lin.bias)  # (B, W)
+            pa, pb = self.omega * stacked[:, 1:4], self.omega * stacked[:, 4:7]  # (B, 3, W)
+            pab = self.omega * stacked[:, 7:].reshape(bsz, 3, 3, -1)
+            y, c = torch.sin(pre_v), torch.cos(pre_v)
+            ga, gb = c.unsqueeze(1) * pa, c.unsqueeze(1) * pb
+            mixed = c[:, None, None, :] * pab - y[:, None, None, :] * pa.unsqueeze(2) * pb.unsqueeze(1)
+        wl = self.last.weight.T  # (W, out)
+        return self.last(y), ga @ wl, gb @ wl, mixed @ wl

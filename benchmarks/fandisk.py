@@ -1,0 +1,137 @@
+"""Fit NSSPR to fandisk (20k oriented points): time, Chamfer vs open3d screened Poisson, variance vs gpytoolbox SPSR.
+
+Run by hand (not a test):
+
+    .venv/bin/python benchmarks/fandisk.py [--steps N] [--out results/fandisk]
+
+Prints the fit time, the symmetric Chamfer distance of the mean surface to the true mesh next to open3d's screened
+Poisson reconstruction (depth 8) of the same cloud, the Spearman rank correlation of our variance with gpytoolbox's
+stochastic Poisson variance on its grid, and writes a PNG of a mid-slice of mean, variance and P(inside).
+"""
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+from scipy.stats import spearmanr
+
+from autodecoder import fit_cloud
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
+
+
+def chamfer(mesh_a, mesh_b, n=100_000, seed=0):
+    """Symmetric Chamfer distance: mean of the two one-sided mean nearest-neighbour distances between n samples."""
+    a = trimesh.sample.sample_surface(mesh_a, n, seed=seed)[0]
+    b = trimesh.sample.sample_surface(mesh_b, n, seed=seed + 1)[0]
+    return 0.5 * (cKDTree(b).query(a)[0].mean() + cKDTree(a).query(b)[0].mean())
+
+
+def open3d_poisson(points, normals, depth=8):
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    pcd.normals = o3d.utility.Vector3dVector(normals)
+    mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pcd, depth=depth)
+    # open3d's Poisson closes the surface far beyond the data; trim the lowest-density 1% as is customary
+    density = np.asarray(density)
+    mesh.remove_vertices_by_mask(density < np.quantile(density, 0.01))
+    return trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.triangles), process=False)
+
+
+def gpytoolbox_variance_correlation(field, points, normals, grid=32):
+    """Spearman correlation of our variance with gpytoolbox SPSR's on its grid (both over the same box)."""
+    from gpytoolbox import stochastic_poisson_surface_reconstruction
+
+    lo, hi = field.bounds
+    gs = np.array([grid] * 3)
+    h = (hi - lo) / (gs - 1)
+    t0 = time.perf_counter()
+    _, var, verts = stochastic_poisson_surface_reconstruction(points, normals, gs=gs, h=h, corner=lo,
+                                                               output_variance=True, solve_subspace_dim=0)
+    seconds = time.perf_counter() - t0
+    # gpytoolbox orders its flattened grid with the first coordinate fastest (Fortran order)
+    grid_points = np.stack([v.ravel(order="F") if v.ndim > 1 else v for v in verts], -1) if isinstance(verts, list) \
+        else np.asarray(verts)
+    ours = field.variance(grid_points)
+    theirs = np.asarray(var).ravel(order="F") if np.asarray(var).ndim > 1 else np.asarray(var)
+    return spearmanr(ours, theirs).statistic, seconds
+
+
+def slice_png(field, path, resolution=200):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    lo, hi = field.bounds
+    mid = 0.5 * (lo + hi)
+    u = np.linspace(lo[0], hi[0], resolution)
+    v = np.linspace(lo[1], hi[1], resolution)
+    uu, vv = np.meshgrid(u, v, indexing="xy")
+    x = np.stack([uu.ravel(), vv.ravel(), np.full(uu.size, mid[2])], -1)
+    panels = [("mean g(x)", field.mean(x), "RdBu_r"), ("variance c(x, x)", field.variance(x), "viridis"),
+              ("P(f(x) <= 0)", field.prob_inside(x), "magma")]
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.6))
+    for ax, (title, values, cmap) in zip(axes, panels):
+        img = values.reshape(resolution, resolution)
+        kwargs = {}
+        if title.startswith("mean"):
+            lim = np.abs(img).max()
+            kwargs = {"vmin": -lim, "vmax": lim}
+        im = ax.imshow(img, origin="lower", extent=(lo[0], hi[0], lo[1], hi[1]), cmap=cmap, **kwargs)
+        ax.contour(u, v, field.mean(x).reshape(resolution, resolution), levels=[0], colors="k", linewidths=0.8)
+        ax.set_title(title + f"   (z = {mid[2]:.3g})")
+        fig.colorbar(im, ax=ax, fraction=0.046)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--mesh", default=str(SHARED / "fandisk.obj"))
+    parser.add_argument("--points", type=int, default=20_000)
+    parser.add_argument("--steps", type=int, default=None, help="Adam steps (default: fit_cloud's)")
+    parser.add_argument("--resolution", type=int, default=192, help="marching-cubes grid of the mean surface")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--no-gpytoolbox", action="store_true")
+    parser.add_argument("--out", default="results/fandisk")
+    args = parser.parse_args(argv)
+
+    mesh = trimesh.load(args.mesh, force="mesh")
+    points, faces = trimesh.sample.sample_surface(mesh, args.points, seed=args.seed)
+    normals = mesh.face_normals[faces]
+    diag = float(np.linalg.norm(mesh.extents))
+    print(f"{Path(args.mesh).name}: {len(mesh.faces)} faces, bounding-box diagonal {diag:.4g}, {len(points)} points")
+
+    extra = {} if args.steps is None else {"steps": args.steps}
+    t0 = time.perf_counter()
+    field = fit_cloud(points, normals, seed=args.seed, **extra)
+    fit_seconds = time.perf_counter() - t0
+    ours = field.mesh(args.resolution)
+    cd_ours = chamfer(ours, mesh)
+
+    t0 = time.perf_counter()
+    o3d_mesh = open3d_poisson(points, normals)
+    o3d_seconds = time.perf_counter() - t0
+    cd_o3d = chamfer(o3d_mesh, mesh)
+
+    print(f"NSSPR fit        : {fit_seconds:7.1f} s ({field.info['steps']} steps), "
+          f"Chamfer {cd_ours:.5f} ({cd_ours / diag:.2e} of the diagonal)")
+    print(f"open3d Poisson d8: {o3d_seconds:7.1f} s, Chamfer {cd_o3d:.5f} ({cd_o3d / diag:.2e} of the diagonal)")
+    print(f"Chamfer ratio NSSPR / open3d: {cd_ours / cd_o3d:.2f}  (target <= 1.5)")
+    if not args.no_gpytoolbox:
+        rho, seconds = gpytoolbox_variance_correlation(field, points, normals)
+        print(f"Spearman(variance, gpytoolbox SPSR variance on its 32^3 grid): {rho:.3f}  (SPSR took {seconds:.1f} s)")
+    out = Path(args.out)
+    slice_png(field, out / "slice.png")
+    ours.export(out / "mean_surface.ply")
+    print(f"wrote {out / 'slice.png'} and {out / 'mean_surface.ply'}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,467 @@
+"""The HDF5 scan collection: many scans in one versioned, chunked, compressed file (schema: docs/collection_format.md).
+
+Layout in one paragraph: all scans' points are concatenated into ``/points`` (P, 3) (likewise ``/normals`` and
+``/point_labels``), and scan ``i`` owns rows ``offsets[i]:offsets[i + 1]``; per-scan metadata lives in ``/scans/*``
+arrays of length S; the collection's frame and provenance are root attributes. Reading one scan reads one slice.
+"""
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from .frame import Frame
+from .scan import LABELS, SPLITS, Scan
+
+FORMAT_NAME = "nsspr-scan-collection"
+FORMAT_VERSION = 1
+
+# 4096 rows * 3 * 4 B = 48 KiB per points chunk: a 20k-point scan touches 5-6 chunks, so a random read decompresses
+# little beyond its own rows (16384-row chunks cost ~1.5x the CPU per read for the same file size). gzip level 1 +
+# shuffle: same size as level 4 at half the write time, and unlike lzf every HDF5 build can read it (lzf is
+# h5py-only). Numbers from benchmarks/collection_io.py in docs/collection_format.md. Per-scan arrays: 4096 rows.
+POINT_CHUNK_ROWS = 4096
+SCAN_CHUNK_ROWS = 4096
+DEFAULT_COMPRESSION = ("gzip", 1)
+# points buffered before a write, so chunks are written whole instead of re-compressed once per scan
+_WRITE_BATCH_POINTS = 1 << 20
+
+_STRING_FIELDS = ("name", "split", "label", "defect", "part_id")
+
+
+def _toolkit_version():
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("nsspr-inspect")
+    except PackageNotFoundError:
+        return "0+unknown"
+
+
+def _content_hash(points, normals, point_labels):
+    """sha256 hex over one scan's arrays exactly as stored (little-endian float32 / uint8)."""
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(points, dtype="<f4").tobytes())
+    h.update(np.ascontiguousarray(normals, dtype="<f4").tobytes())
+    if point_labels is not None:
+        h.update(np.ascontiguousarray(point_labels, dtype="u1").tobytes())
+    return h.hexdigest()
+
+
+def _check_scan(scan, where):
+    if not isinstance(scan, Scan):
+        raise TypeError(f"{where}: expected a Scan, got {type(scan).__name__}")
+    if not isinstance(scan.name, str) or not scan.name:
+        raise ValueError(f"{where}: scan name must be a non-empty string, got {scan.name!r}")
+    if not np.all(np.isfinite(scan.points)) or not np.all(np.isfinite(scan.normals)):
+        raise ValueError(f"{where}: scan {scan.name!r} has non-finite points or normals; drop them before storing")
+    if scan.split not in SPLITS or scan.label not in LABELS:  # Scan checks this too, unless fields were reassigned
+        raise ValueError(f"{where}: scan {scan.name!r} has split {scan.split!r} / label {scan.label!r}")
+
+
+def _tmp_path_beside(path):
+    """A fresh, closed temporary file in ``path``'s folder (same file system, so os.replace is atomic)."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    # mkstemp makes the file 0600; give the final file the permissions a plain open() would
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)
+    return Path(tmp)
+
+
+def _new_file_layout(h5, frame, provenance, compression):
+    """Create the empty datasets and root attributes of a version-1 collection in the open h5py file ``h5``."""
+    import h5py
+
+    comp, level = compression if isinstance(compression, tuple) else (compression, None)
+    # track_times=False everywhere: HDF5 otherwise stamps each dataset with its creation time, and the same inputs
+    # must give a byte-identical file.
+    big = dict(compression=comp, compression_opts=level, shuffle=comp is not None, track_times=False)
+    small = dict(compression="gzip" if comp else None, shuffle=False, track_times=False)
+    h5.create_dataset("points", shape=(0, 3), maxshape=(None, 3), dtype="<f4", chunks=(POINT_CHUNK_ROWS, 3), **big)
+    h5.create_dataset("normals", shape=(0, 3), maxshape=(None, 3), dtype="<f4", chunks=(POINT_CHUNK_ROWS, 3), **big)
+    h5.create_dataset("point_labels", shape=(0,), maxshape=(None,), dtype="u1", chunks=(POINT_CHUNK_ROWS,), **big)
+    g = h5.create_group("scans")
+    for key in _STRING_FIELDS:
+        g.create_dataset(key, shape=(0,), maxshape=(None,), dtype=h5py.string_dtype("utf-8"),
+                         chunks=(SCAN_CHUNK_ROWS,), **small)
+    g.create_dataset("n_points", shape=(0,), maxshape=(None,), dtype="<i8", chunks=(SCAN_CHUNK_ROWS,), **small)
+    g.create_dataset("offsets", data=np.zeros(1, "<i8"), maxshape=(None,), chunks=(SCAN_CHUNK_ROWS,), **small)
+    g.create_dataset("has_labels", shape=(0,), maxshape=(None,), dtype="u1", chunks=(SCAN_CHUNK_ROWS,), **small)
+    g.create_dataset("sensor_origin", shape=(0, 3), maxshape=(None, 3), dtype="<f4", chunks=(SCAN_CHUNK_ROWS, 3),
+                     **small)
+    g.create_dataset("content_sha256", shape=(0,), maxshape=(None,), dtype="S64", chunks=(SCAN_CHUNK_ROWS,), **small)
+    h5.attrs["format"] = FORMAT_NAME
+    h5.attrs["format_version"] = np.int64(FORMAT_VERSION)
+    h5.attrs["frame_center"] = np.asarray(frame.center, dtype="<f8")
+    h5.attrs["frame_scale"] = np.float64(frame.scale)
+    h5.attrs["provenance"] = json.dumps(provenance or {}, sort_keys=True)
+    h5.attrs["toolkit_version"] = _toolkit_version()
+
+
+class _Appender:
+    """Appends scans to an open collection file, buffering ~1M points so each chunk is compressed once."""
+
+    def __init__(self, h5, where):
+        self.h5, self.where = h5, where
+        self.names = set(h5["scans/name"].asstr()[()].tolist())
+        self.buf = []
+        self.buf_points = 0
+
+    def add(self, scan):
+        _check_scan(scan, self.where)
+        if scan.name in self.names:
+            raise ValueError(f"{self.where}: duplicate scan name {scan.name!r}")
+        self.names.add(scan.name)
+        self.buf.append(scan)
+        self.buf_points += len(scan)
+        if self.buf_points >= _WRITE_BATCH_POINTS:
+            self.flush()
+
+    def flush(self):
+        if not self.buf:
+            return
+        h5, scans = self.h5, self.buf
+        g = h5["scans"]
+        p0, s0 = h5["points"].shape[0], g["n_points"].shape[0]
+        counts = np.array([len(s) for s in scans], dtype="<i8")
+        p1, s1 = p0 + int(counts.sum()), s0 + len(scans)
+
+        def grow(ds, n):
+            ds.resize(n, axis=0)
+
+        for key in ("points", "normals", "point_labels"):
+            grow(h5[key], p1)
+        h5["points"][p0:p1] = np.concatenate([s.points for s in scans])
+        h5["normals"][p0:p1] = np.concatenate([s.normals for s in scans])
+        h5["point_labels"][p0:p1] = np.concatenate(
+            [s.point_labels if s.point_labels is not None else np.zeros(len(s), "u1") for s in scans])
+        for key in (*_STRING_FIELDS, "n_points", "has_labels", "sensor_origin", "content_sha256"):
+            grow(g[key], s1)
+        for key in _STRING_FIELDS:
+            g[key][s0:s1] = np.array([getattr(s, key) for s in scans], dtype=object)
+        g["n_points"][s0:s1] = counts
+        g["has_labels"][s0:s1] = np.array([s.point_labels is not None for s in scans], dtype="u1")
+        g["sensor_origin"][s0:s1] = np.array(
+            [s.sensor_origin if s.sensor_origin is not None else np.full(3, np.nan) for s in scans], dtype="<f4")
+        g["content_sha256"][s0:s1] = np.array(
+            [_content_hash(s.points, s.normals, s.point_labels).encode() for s in scans], dtype="S64")
+        offsets = g["offsets"]
+        grow(offsets, s1 + 1)
+        offsets[s0 + 1:s1 + 1] = p0 + np.cumsum(counts)
+        self.buf, self.buf_points = [], 0
+
+
+def _atomic_write(path, fill, copy_from=None):
+    """Write ``path`` through a temporary file beside it: ``fill(h5)`` fills the open file, then os.replace.
+
+    Any exception leaves ``path`` as it was and removes the temporary file.
+    """
+    import h5py
+
+    tmp = _tmp_path_beside(path)
+    try:
+        if copy_from is not None:
+            shutil.copyfile(copy_from, tmp)
+        with h5py.File(tmp, "r+" if copy_from is not None else "w") as h5:
+            fill(h5)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def _open_h5(path):
+    """Open ``path`` read-only as a version-1 collection, or raise one ValueError that names it and the problem."""
+    import h5py
+
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such scan collection")
+    if path.is_dir():
+        raise ValueError(f"{path}: is a folder, not a scan collection file")
+    try:
+        h5 = h5py.File(path, "r")
+    except OSError as e:
+        msg = str(e)
+        if "signature" in msg:
+            why = "not an HDF5 file"
+        elif "truncated" in msg:
+            why = "truncated HDF5 file (was a write interrupted?)"
+        else:
+            why = f"cannot be read as HDF5 ({msg})"
+        raise ValueError(f"{path}: {why}") from None
+    try:
+        fmt = h5.attrs.get("format")
+        fmt = fmt.decode() if isinstance(fmt, bytes) else fmt
+        if fmt != FORMAT_NAME:
+            raise ValueError(f"{path}: an HDF5 file but not a scan collection (attribute 'format' is {fmt!r}, "
+                             f"expected {FORMAT_NAME!r})")
+        version = int(h5.attrs.get("format_version", -1))
+        if version != FORMAT_VERSION:
+            raise ValueError(f"{path}: scan collection format version {version} is not supported "
+                             f"(this toolkit reads version {FORMAT_VERSION})")
+        required = ["points", "normals", "point_labels"] + [f"scans/{k}" for k in (
+            *_STRING_FIELDS, "n_points", "offsets", "has_labels", "sensor_origin", "content_sha256")]
+        missing = [k for k in required if k not in h5]
+        if missing:
+            raise ValueError(f"{path}: damaged scan collection, missing datasets {missing}")
+    except ValueError:
+        h5.close()
+        raise
+    except OSError as e:
+        h5.close()
+        raise ValueError(f"{path}: damaged scan collection ({e})") from None
+    return h5
+
+
+class ScanCollection:
+    """A read-only view of a collection file; reads one scan's slice at a time.
+
+    Use as a context manager or call :meth:`close`. Per-scan metadata (S strings and numbers) is read once at open;
+    points are read on demand, so iterating holds one scan in memory at a time whatever the number of scans.
+
+    Parameters
+    ----------
+    path : str or Path
+        A file written by :meth:`create` / :meth:`append`.
+
+    Raises
+    ------
+    FileNotFoundError
+        The file does not exist.
+    ValueError
+        The file is not HDF5, not a collection, another format version, truncated or damaged (message names it).
+    """
+
+    def __init__(self, path):
+        self.path = Path(path)
+        self._h5 = _open_h5(self.path)
+        try:
+            g = self._h5["scans"]
+            self._meta = {k: g[k].asstr()[()].tolist() for k in _STRING_FIELDS}
+            self._n_points = g["n_points"][()].astype(np.int64)
+            self._offsets = g["offsets"][()].astype(np.int64)
+            self._has_labels = g["has_labels"][()].astype(bool)
+            self._sensor_origin = g["sensor_origin"][()].astype(np.float32)
+            self._hashes = g["content_sha256"][()]
+            self._frame = Frame(np.asarray(self._h5.attrs["frame_center"]), float(self._h5.attrs["frame_scale"]))
+            self._provenance = json.loads(self._h5.attrs.get("provenance", "{}"))
+            self.toolkit_version = str(self._h5.attrs.get("toolkit_version", ""))
+        except (OSError, KeyError, json.JSONDecodeError, ValueError) as e:
+            self._h5.close()
+            raise ValueError(f"{self.path}: damaged scan collection ({e})") from None
+        s = len(self._n_points)
+        if (len(self._offsets) != s + 1 or self._offsets[-1] != self._h5["points"].shape[0]
+                or not np.array_equal(np.diff(self._offsets), self._n_points)
+                or any(len(v) != s for v in self._meta.values())):
+            self._h5.close()
+            raise ValueError(f"{self.path}: damaged scan collection (offsets, counts and metadata disagree)")
+        self._index = {n: i for i, n in enumerate(self._meta["name"])}
+
+    # ---- writing -------------------------------------------------------------------------------------------------
+    @classmethod
+    def create(cls, path, scans, frame=None, provenance=None, overwrite=False, compression=DEFAULT_COMPRESSION):
+        """Write a new collection file atomically (temporary file in the same folder, then os.replace).
+
+        Parameters
+        ----------
+        path : str or Path
+        scans : iterable of Scan
+            Already in the collection frame; may be a generator (scans are written in ~1M-point batches).
+        frame : Frame, optional
+            The file -> collection transform the scans were moved by; identity by default.
+        provenance : dict, optional
+            JSON-serialisable description of where the data came from (stored, not part of the fingerprint).
+        overwrite : bool
+            Replace an existing file; otherwise FileExistsError.
+        compression : (str, int or None) or str or None
+            HDF5 filter for the point arrays: ("gzip", level), "lzf" or None.
+
+        Returns
+        -------
+        Path
+            ``path``.
+        """
+        path = Path(path)
+        if path.exists() and not overwrite:
+            raise FileExistsError(f"{path}: already exists (pass overwrite=True to replace it)")
+        if not path.parent.is_dir():
+            raise FileNotFoundError(f"{path.parent}: folder does not exist")
+        frame = Frame.identity() if frame is None else frame
+        json.dumps(provenance or {})  # fail before touching the disk if provenance is not JSON-serialisable
+
+        def fill(h5):
+            _new_file_layout(h5, frame, provenance, compression)
+            app = _Appender(h5, str(path))
+            for scan in scans:
+                app.add(scan)
+            app.flush()
+
+        _atomic_write(path, fill)
+        return path
+
+    @classmethod
+    def append(cls, path, scans):
+        """Add scans to an existing collection atomically: copy to a temporary file, append, os.replace.
+
+        The copy costs one read and write of the file, which is fine at our sizes (a few GB) and means a failure
+        mid-append leaves the original untouched. Scans must already be in the collection's frame.
+
+        Parameters
+        ----------
+        path : str or Path
+        scans : iterable of Scan
+            Names must not repeat each other or the names already stored (ValueError).
+        """
+        path = Path(path)
+        cls(path).close()  # validates the file first, with the usual clear errors
+
+        def fill(h5):
+            app = _Appender(h5, str(path))
+            for scan in scans:
+                app.add(scan)
+            app.flush()
+
+        _atomic_write(path, fill, copy_from=path)
+        return path
+
+    # ---- reading -------------------------------------------------------------------------------------------------
+    def close(self):
+        """Close the HDF5 handle (idempotent)."""
+        if self._h5 is not None:
+            self._h5.close()
+            self._h5 = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:  # interpreter shutdown: h5py may already be gone
+            pass
+
+    def __len__(self):
+        return len(self._n_points)
+
+    def __repr__(self):
+        return f"ScanCollection({str(self.path)!r}, {len(self)} scans)"
+
+    def _live(self):
+        if self._h5 is None:
+            raise ValueError(f"{self.path}: collection is closed")
+        return self._h5
+
+    def _norm_index(self, i):
+        n = len(self)
+        i = int(i)
+        if not -n <= i < n:
+            raise IndexError(f"{self.path}: scan index {i} out of range for {n} scans")
+        return i % n
+
+    def __getitem__(self, i):
+        """Scan ``i`` (negative indices count from the end); reads only that scan's rows."""
+        if isinstance(i, slice):
+            return self.read_many(range(*i.indices(len(self))))
+        i = self._norm_index(i)
+        h5 = self._live()
+        a, b = int(self._offsets[i]), int(self._offsets[i + 1])
+        try:
+            points = h5["points"][a:b]
+            normals = h5["normals"][a:b]
+            labels = h5["point_labels"][a:b] if self._has_labels[i] else None
+        except OSError as e:
+            raise ValueError(f"{self.path}: damaged scan collection, cannot read scan {i} ({e})") from None
+        origin = self._sensor_origin[i]
+        return Scan(name=self._meta["name"][i], points=points, normals=normals, split=self._meta["split"][i],
+                    label=self._meta["label"][i], defect=self._meta["defect"][i], part_id=self._meta["part_id"][i],
+                    point_labels=labels, sensor_origin=None if np.isnan(origin).any() else origin.copy())
+
+    def read_many(self, indices):
+        """Scans at ``indices`` (list of int), in the order given."""
+        return [self[i] for i in indices]
+
+    def __iter__(self):
+        for i in range(len(self)):
+            yield self[i]
+
+    @property
+    def names(self):
+        """Scan names in storage order (list of str)."""
+        return list(self._meta["name"])
+
+    @property
+    def frame(self):
+        """The file -> collection :class:`Frame` the scans were stored in."""
+        return self._frame
+
+    @property
+    def provenance(self):
+        """Where the data came from (dict, as given to :meth:`create`)."""
+        return json.loads(json.dumps(self._provenance))
+
+    @property
+    def n_points(self):
+        """(S,) int64 array: points per scan."""
+        return self._n_points.copy()
+
+    def metadata(self):
+        """One dict per scan, without arrays: index, name, split, label, defect, part_id, n_points, has_labels,
+        sensor_origin ([x, y, z] in the collection frame, or None)."""
+        out = []
+        for i in range(len(self)):
+            o = self._sensor_origin[i]
+            out.append({"index": i, **{k: self._meta[k][i] for k in _STRING_FIELDS},
+                        "n_points": int(self._n_points[i]), "has_labels": bool(self._has_labels[i]),
+                        "sensor_origin": None if np.isnan(o).any() else [float(x) for x in o]})
+        return out
+
+    def select(self, split=None, label=None, defect=None, part_id=None):
+        """Indices (sorted list of int) of the scans matching every given filter.
+
+        Each filter is None (any), one string, or a collection of accepted strings.
+        """
+        keep = np.ones(len(self), dtype=bool)
+        for key, want in (("split", split), ("label", label), ("defect", defect), ("part_id", part_id)):
+            if want is None:
+                continue
+            want = {want} if isinstance(want, str) else set(want)
+            keep &= np.array([v in want for v in self._meta[key]], dtype=bool)
+        return np.flatnonzero(keep).tolist()
+
+    def index_of(self, name):
+        """Index of the scan called ``name``; KeyError naming the file if absent."""
+        try:
+            return self._index[name]
+        except KeyError:
+            raise KeyError(f"{self.path}: no scan named {name!r}") from None
+
+    def fingerprint(self):
+        """sha256 hex identifying the data: frame, per-scan metadata, offsets and each scan's stored content hash.
+
+        Cheap (reads no points: the per-scan hashes are computed at write time; :meth:`verify` re-checks them).
+        Provenance and toolkit version are not part of it: the same data imported twice has the same fingerprint.
+        """
+        h = hashlib.sha256()
+        h.update(f"{FORMAT_NAME}/{FORMAT_VERSION}\n".encode())
+        h.update(json.dumps(self._frame.as_dict(), sort_keys=True).encode())
+        h.update(json.dumps([self._meta[k] for k in _STRING_FIELDS], ensure_ascii=False).encode())
+        h.update(self._offsets.astype("<i8").tobytes())
+        h.update(self._has_labels.astype("u1").tobytes())
+        h.update(np.nan_to_num(self._sensor_origin, nan=np.inf).astype("<f4").tobytes())  # one NaN bit pattern
+        h.update(b"".join(self._hashes.tolist()))
+        return h.hexdigest()
+
+    def verify(self):
+        """Recompute every scan's content hash from its arrays; ValueError naming the first scan that differs."""
+        for i, scan in enumerate(self):
+            if _content_hash(scan.points, scan.normals, scan.point_labels).encode() != self._hashes[i]:
+                raise ValueError(f"{self.path}: scan {i} ({scan.name!r}) does not match its stored content hash")

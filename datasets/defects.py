@@ -1,0 +1,360 @@
+"""Defect synthesis: dents, bumps, missing material and foreign objects made on a copy of a part's mesh."""
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+DEFECT_KINDS = ("dent", "bump", "missing", "foreign")
+
+# Default sizes, as fractions of the part's bounding-box diagonal. At 4000 points and depth noise of 0.002 x the
+# diagonal, a 4-6 % radius covers a few percent of a view's points, and a 2-3 % depth is 10-15 noise deviations at
+# the centre, still ~3 over the median labelled point (the smooth profile fades out towards the rim).
+RADIUS_RANGE = (0.04, 0.06)
+HEIGHT_RANGE = (0.02, 0.03)
+FOREIGN_SHAPES = ("sphere", "box", "cylinder")
+
+
+@dataclass
+class Defect:
+    """A defective copy of a part and where its defect is.
+
+    Attributes
+    ----------
+    kind : str
+        One of `DEFECT_KINDS`.
+    mesh : trimesh.Trimesh
+        The defective part, in the original part's coordinates.
+    center : (3,) float64 array
+        The surface point the defect was made at.
+    normal : (3,) float64 array
+        Outward unit surface normal there.
+    radius : float
+        Radius of the affected region, in mesh units.
+    height : float
+        Displacement depth for dent / bump (mesh units), protrusion of a foreign object, depth of a missing pit.
+    changed_faces : (F,) bool array
+        Faces of ``mesh`` that are new or moved (the defect's surface), for labelling scan points by triangle id.
+    tool : trimesh.Trimesh or None
+        The convex solid that was subtracted (missing) or added (foreign).
+    """
+
+    kind: str
+    mesh: object
+    center: np.ndarray
+    normal: np.ndarray
+    radius: float
+    height: float
+    changed_faces: np.ndarray
+    tool: Optional[object] = None
+
+    def region(self, points, triangle_ids=None):
+        """Which points lie on the defect.
+
+        Parameters
+        ----------
+        points : (n, 3) array
+            Points on ``self.mesh``, in its coordinates (noise-free hits label best).
+        triangle_ids : (n,) int array, optional
+            The faces of ``self.mesh`` the points lie on (a `ScanResult` has them); exact where given.
+
+        Returns
+        -------
+        (n,) bool array
+        """
+        points = np.asarray(points, dtype=np.float64)
+        if triangle_ids is not None:
+            return self.changed_faces[np.asarray(triangle_ids)]
+        if self.tool is not None:
+            # The defect surface of a boolean lies on the tool's boundary and nothing else of the part lies inside it.
+            return _convex_signed_distance(self.tool, points) <= 1e-3 * self.radius
+        offset = points - self.center
+        along = offset @ self.normal
+        # A thin wall's far side lies within the radius too but was not moved: the depth test keeps it out.
+        return (np.linalg.norm(offset, axis=1) < self.radius) & (np.abs(along) <= abs(self.height) + 1e-3 * self.radius)
+
+
+def pick_spot(scan, radius, seed=None, max_normal_deg=25.0, min_facing=0.6):
+    """Pick a defect site that a scan sees, away from sharp edges where possible.
+
+    Parameters
+    ----------
+    scan : ScanResult
+        A scan of the undamaged part (noise-free is best).
+    radius : float
+        Radius of the defect to be made, in mesh units: the site's neighbourhood of that radius should be smooth.
+    seed : int, numpy Generator or None
+    max_normal_deg : float
+        A site qualifies when all the scan normals within ``radius`` are within this angle of its own normal.
+    min_facing : float
+        ... and the cosine between its normal and the direction to the camera is at least this.
+
+    Returns
+    -------
+    center : (3,) float64 array
+        The site, in the scanned mesh's coordinates.
+    normal : (3,) float64 array
+        Unit normal there, facing the camera (outward on a closed part seen from outside).
+    """
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(seed)
+    points = scan.to_mesh_frame(scan.clean_points)
+    normals = np.asarray(scan.normals, dtype=np.float64) @ scan.pose[:3, :3]
+    eye = scan.to_mesh_frame(scan.sensor_origin[None])[0]
+    to_eye = eye - points
+    facing = np.sum(normals * to_eye, axis=1) / np.linalg.norm(to_eye, axis=1)
+    candidates = rng.permutation(len(points))[:256]
+    tree = cKDTree(points)
+    flatness = np.empty(len(candidates))
+    counts = np.empty(len(candidates))
+    for k, (i, near) in enumerate(zip(candidates, tree.query_ball_point(points[candidates], radius))):
+        flatness[k] = np.min(normals[near] @ normals[i])
+        counts[k] = len(near)
+    # Sites whose whole disc is visible have the most neighbours: prefer them over ones half over a silhouette.
+    good = (flatness >= np.cos(np.radians(max_normal_deg))) & (facing[candidates] >= min_facing)
+    good &= counts >= 0.5 * np.max(counts)
+    if good.any():
+        i = candidates[rng.choice(np.flatnonzero(good))]
+    else:
+        i = candidates[np.argmax(flatness + facing[candidates] + counts / np.max(counts))]
+    return points[i].copy(), normals[i] / np.linalg.norm(normals[i])
+
+
+def make_defect(mesh, kind, center, normal, radius=None, height=None, shape=None, seed=None):
+    """Make one defect on a copy of a mesh.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        The part (not modified).
+    kind : {'dent', 'bump', 'missing', 'foreign'}
+    center : (3,) array
+        A point on the surface, in mesh coordinates.
+    normal : (3,) array
+        Outward surface normal at ``center``.
+    radius : float, optional
+        Radius of the defect as a fraction of the bounding-box diagonal; drawn from `RADIUS_RANGE` when omitted.
+        dent / bump: radius of the displaced disc; missing: radius of the spherical pit (its depth too);
+        foreign: the added object is about 1.6 x this across.
+    height : float, optional
+        dent / bump depth as a fraction of the diagonal; drawn from `HEIGHT_RANGE` when omitted.
+    shape : {'sphere', 'box', 'cylinder'}, optional
+        The foreign object's shape; drawn when omitted.
+    seed : int, numpy Generator or None
+
+    Returns
+    -------
+    Defect
+    """
+    if kind not in DEFECT_KINDS:
+        raise ValueError(f"unknown defect kind {kind!r}; expected one of {DEFECT_KINDS}")
+    rng = np.random.default_rng(seed)
+    diagonal = float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
+    # Draw both sizes always so that the stream of draws does not depend on which were given.
+    drawn_radius, drawn_height = rng.uniform(*RADIUS_RANGE), rng.uniform(*HEIGHT_RANGE)
+    radius = (drawn_radius if radius is None else float(radius)) * diagonal
+    height = (drawn_height if height is None else float(height)) * diagonal
+    center = np.asarray(center, dtype=np.float64).reshape(3)
+    normal = np.asarray(normal, dtype=np.float64).reshape(3)
+    normal = normal / np.linalg.norm(normal)
+    if kind in ("dent", "bump"):
+        return _displace(mesh, kind, center, normal, radius, -height if kind == "dent" else height)
+    if kind == "missing":
+        return _missing(mesh, center, normal, radius)
+    return _foreign(mesh, center, normal, radius, shape or FOREIGN_SHAPES[rng.integers(len(FOREIGN_SHAPES))], rng)
+
+
+def defect_for_view(mesh, scanner, view, kind, radius=None, height=None, seed=None, fov_deg=40.0):
+    """Make a defect at a site that a given camera sees well.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        The part; ``scanner`` must scan this same mesh.
+    scanner : VirtualScanner
+    view : View
+        The camera (and part pose) the defective part will be scanned with.
+    kind, radius, height : see `make_defect`
+    seed : int, numpy Generator or None
+    fov_deg : float
+
+    Returns
+    -------
+    Defect
+    """
+    rng = np.random.default_rng(seed)
+    drawn_radius = rng.uniform(*RADIUS_RANGE)
+    radius = drawn_radius if radius is None else radius
+    preview = scanner.scan(view, fov_deg=fov_deg, n_points=2000, seed=rng)
+    center, normal = pick_spot(preview, radius * scanner.diagonal, seed=rng)
+    return make_defect(mesh, kind, center, normal, radius=radius, height=height, seed=rng)
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# dent / bump
+
+
+def _displace(mesh, kind, center, normal, radius, height):
+    """Smooth radial displacement (1 - (r/R)^2)^2 * height along ``normal`` on a locally refined copy."""
+    import trimesh
+
+    vertices, faces = _refine_near(np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces), center,
+                                   radius, radius / 6.0)
+    refined = trimesh.Trimesh(vertices, faces, process=False)
+    distance = np.linalg.norm(vertices - center, axis=1)
+    # Only the sheet the spot lies on moves: the far side of a thin wall, or a side wall met at a sharp edge, is
+    # within the radius too, but its normals point elsewhere.
+    moving = (distance < radius) & (refined.vertex_normals @ normal > 0.5)
+    profile = (1.0 - (distance[moving] / radius) ** 2) ** 2
+    vertices = vertices.copy()
+    vertices[moving] += (height * profile)[:, None] * normal
+    changed = moving[faces].any(axis=1)
+    return Defect(kind, trimesh.Trimesh(vertices, faces, process=False), center, normal, radius, height, changed)
+
+
+def _refine_near(vertices, faces, center, radius, max_edge, max_rounds=16):
+    """Split the faces near a ball until their edges are shorter than ``max_edge``, keeping the mesh conforming.
+
+    Faces within ``radius`` (plus their own size) of ``center`` are split 1-to-4 (midpoints of all edges); a
+    neighbour with one split edge is split 1-to-2 so no T-junction is left, and one with two or more split edges is
+    split 1-to-4 too. A watertight mesh stays watertight.
+
+    Returns
+    -------
+    vertices : (V', 3) float64 array
+    faces : (F', 3) int64 array
+    """
+    for _ in range(max_rounds):
+        corners = vertices[faces]  # (F, 3, 3)
+        edge_length = np.linalg.norm(corners - np.roll(corners, -1, axis=1), axis=2).max(axis=1)
+        near = np.linalg.norm(corners.mean(axis=1) - center, axis=1) - edge_length < 1.1 * radius
+        split_faces = near & (edge_length > max_edge)
+        if not split_faces.any():
+            break
+        vertices, faces = _split(vertices, faces, split_faces)
+    return vertices, faces
+
+
+def _split(vertices, faces, red):
+    """One round of red-green refinement: (V, 3), (F, 3), (F,) bool -> refined (V', 3), (F', 3)."""
+    edges = np.sort(faces[:, [[0, 1], [1, 2], [2, 0]]], axis=2).reshape(-1, 2)  # edge k of a face: (f[k], f[k+1])
+    # One int64 key per edge: a 1-D unique is many times faster than a row-wise one.
+    keys, edge_id = np.unique(edges[:, 0] * np.int64(len(vertices)) + edges[:, 1], return_inverse=True)
+    unique = np.stack(np.divmod(keys, np.int64(len(vertices))), axis=1)
+    edge_id = edge_id.reshape(-1, 3)
+    red = red.copy()
+    split = np.zeros(len(unique), dtype=bool)
+    while True:
+        split[edge_id[red].ravel()] = True
+        closed = red | (split[edge_id].sum(axis=1) >= 2)
+        if (closed == red).all():
+            break
+        red = closed
+    midpoint = np.full(len(unique), -1, dtype=np.int64)
+    midpoint[split] = len(vertices) + np.arange(split.sum())
+    new_vertices = np.concatenate([vertices, (vertices[unique[split, 0]] + vertices[unique[split, 1]]) / 2.0])
+    a, b, c = faces[red].T
+    ab, bc, ca = midpoint[edge_id[red]].T
+    children = [np.stack(f, axis=1) for f in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))]
+    split_count = split[edge_id].sum(axis=1)
+    green = ~red & (split_count == 1)
+    for k in range(3):
+        these = green & split[edge_id[:, k]]
+        f = faces[these]
+        m = midpoint[edge_id[these, k]]
+        p, q, r = f[:, k], f[:, (k + 1) % 3], f[:, (k + 2) % 3]
+        children += [np.stack((p, m, r), axis=1), np.stack((m, q, r), axis=1)]
+    keep = faces[~red & ~green]
+    return new_vertices, np.concatenate([keep, *children]).astype(np.int64)
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# missing material / foreign object (booleans with a convex tool)
+
+
+def _missing(mesh, center, normal, radius):
+    """Remove a ball of material centred on the surface (a pit as deep as ``radius``, a hole through a thin wall)."""
+    import trimesh
+
+    tool = trimesh.creation.icosphere(subdivisions=3, radius=radius)
+    tool.apply_translation(center)
+    result = _boolean(mesh, tool, "difference")
+    if result is None:
+        # Not a closed solid (or the boolean failed): cut the ball's faces away and line the hole with the half of
+        # the ball below the surface, which is what a difference would leave on a locally flat surface.
+        vertices, faces = _refine_near(np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces), center,
+                                       radius, radius / 6.0)
+        inside = np.linalg.norm(vertices - center, axis=1) < radius
+        faces = faces[~inside[faces].all(axis=1)]
+        below = (tool.vertices - center) @ normal < 0
+        lining = tool.faces[below[tool.faces].all(axis=1)][:, ::-1]  # flipped: the lining faces into the pit
+        result = trimesh.Trimesh(np.concatenate([vertices, tool.vertices]),
+                                 np.concatenate([faces, lining + len(vertices)]), process=False)
+    changed = _convex_signed_distance(tool, result.triangles_center) <= 1e-3 * radius
+    return Defect("missing", result, center, normal, radius, radius, changed, tool)
+
+
+def _foreign(mesh, center, normal, radius, shape, rng):
+    """Attach a small convex object (sphere, box or cylinder) to the surface, partly sunk into it."""
+    import trimesh
+
+    # About 1.6 x the defect radius across (8 % of the diagonal by default): a smaller object, seen from one side,
+    # covers too few of a scan's points to be told from noise.
+    if shape == "sphere":
+        tool = trimesh.creation.icosphere(subdivisions=3, radius=0.8 * radius)
+        sink = 0.4 * radius
+    elif shape == "box":
+        tool = trimesh.creation.box(extents=(1.6 * radius, 1.3 * radius, 1.3 * radius))
+        sink = 0.35 * radius
+    elif shape == "cylinder":
+        tool = trimesh.creation.cylinder(radius=0.65 * radius, height=1.8 * radius, sections=32)
+        sink = 0.45 * radius
+    else:
+        raise ValueError(f"unknown foreign object shape {shape!r}; expected one of {FOREIGN_SHAPES}")
+    # Local z along the normal, a random turn about it, then the object's centre so its bottom sinks in by `sink`.
+    turn = trimesh.transformations.rotation_matrix(rng.uniform(0, 2 * np.pi), [0, 0, 1])
+    tool.apply_transform(turn)
+    tool.apply_transform(trimesh.geometry.align_vectors([0, 0, 1], normal))
+    bottom = -np.min(tool.vertices @ normal)
+    tool.apply_translation(center + normal * (bottom - sink))
+    height = float(np.max((tool.vertices - center) @ normal))
+    result = _boolean(mesh, tool, "union")
+    if result is None:
+        # The part is not a closed solid: the object simply overlaps it, which a scanner cannot tell apart.
+        result = trimesh.Trimesh(np.concatenate([mesh.vertices, tool.vertices]),
+                                 np.concatenate([mesh.faces, tool.faces + len(mesh.vertices)]), process=False)
+    changed = _convex_signed_distance(tool, result.triangles_center) <= 1e-3 * radius
+    return Defect("foreign", result, center, normal, radius, height, changed, tool)
+
+
+def _boolean(mesh, tool, operation):
+    """manifold3d boolean of a watertight mesh with a tool; None when the mesh is not a closed solid or it fails."""
+    import trimesh
+
+    if not mesh.is_watertight:
+        return None
+    try:
+        result = getattr(trimesh.boolean, operation)([mesh, tool], engine="manifold")
+    except Exception:  # manifold3d reports invalid input in several ways
+        return None
+    if result is None or len(result.faces) == 0 or not result.is_watertight:
+        return None
+    return result
+
+
+def _convex_signed_distance(tool, points):
+    """A signed distance of (n, 3) points to a convex mesh, -> (n,) float64: <= 0 inside or on it, > 0 outside.
+
+    Inside it is the largest signed distance to the face planes (exact); outside it is a lower bound of the Euclidean
+    distance, which is all the inside / on-the-surface test of labelling needs.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    normals = np.asarray(tool.face_normals, dtype=np.float64)
+    offsets = np.sum(normals * tool.triangles_center, axis=1)
+    # Points beyond the tool's bounding sphere are outside: their distance to it is a lower bound and enough.
+    middle = tool.vertices.mean(axis=0)
+    reach = np.linalg.norm(tool.vertices - middle, axis=1).max()
+    distance = np.linalg.norm(points - middle, axis=1) - reach
+    near = np.flatnonzero(distance <= 0)
+    distance[near] = np.max(points[near] @ normals.T - offsets, axis=1)
+    return distance

@@ -1,0 +1,430 @@
+"""Turning a folder of scanner files (MVTec-3D-AD / Real3D-AD style tree, or flat) into a scan collection, and back.
+
+Tree layout (split, label and defect come from the folders)::
+
+    ROOT/train/good/*.{ply,pcd,xyz,pts,txt,npy,npz}
+    ROOT/validation/good/*            (optional)
+    ROOT/test/good/*
+    ROOT/test/<defect>/*              label 'defective', defect '<defect>'
+    ROOT/ground_truth/<defect>/<stem>.txt   (optional) one 0/1 per point of test/<defect>/<stem>.*; with several
+                                            columns (Real3D-AD: x y z label) the last one is the label
+    ROOT/<split>/*.{ply,...}          files directly in a split folder: 'good' for train/validation, 'unknown' in test
+
+A flat folder of clouds (no train/validation/test folder) becomes split 'test', label 'unknown'.
+Sensor origin (optional, file units): an npz key ``sensor_origin`` or a sidecar ``<stem>.json`` holding
+``{"sensor_origin": [x, y, z]}`` beside the cloud.
+"""
+import json
+import logging
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from .cloud_io import CLOUD_SUFFIXES, read_cloud, write_cloud
+from .frame import Frame
+from .scan import SPLITS, Scan
+
+log = logging.getLogger(__name__)
+
+MIN_POINTS = 3  # fewer finite points cannot define a tangent plane, let alone a surface
+_SIDECAR_SUFFIX = ".json"
+_NEIGHBOURS = 30  # max neighbours of the normal-estimation search
+_SPACING_RADIUS = 4.0  # search radius in median nearest-neighbour spacings (~50 neighbours on a uniform surface)
+
+
+@dataclass(frozen=True)
+class ScanSource:
+    """One scanner file and what its place in the tree says about it."""
+
+    path: Path
+    name: str
+    split: str
+    label: str
+    defect: str
+    ground_truth: Optional[Path] = None
+    all_good: bool = False  # a good test part in a tree that has ground truth: every point labelled 0
+
+
+# ---- finding files ---------------------------------------------------------------------------------------------------
+def _cloud_files(folder, exclude=None):
+    """Cloud files in ``folder`` (sorted); any other visible file is an error (sidecars, sub-folders and ``exclude``,
+    the collection being written, excepted)."""
+    files = []
+    for p in sorted(folder.iterdir()):
+        if p.name.startswith(".") or p.is_dir() or (exclude is not None and p.resolve() == exclude):
+            continue
+        if p.suffix.lower() in CLOUD_SUFFIXES:
+            files.append(p)
+        elif p.suffix.lower() != _SIDECAR_SUFFIX:
+            raise ValueError(f"{p}: unknown point-cloud extension {p.suffix!r} (known: {', '.join(CLOUD_SUFFIXES)})")
+    return files
+
+
+def find_sources(root, exclude=None):
+    """The scanner files of a tree or flat folder, in a fixed order (split, class folder, file name).
+
+    Parameters
+    ----------
+    root : str or Path
+    exclude : Path, optional
+        A file to skip (the output collection, when it is written into the folder being imported).
+
+    Returns
+    -------
+    list of ScanSource
+    """
+    root = Path(root)
+    if not root.exists():
+        raise FileNotFoundError(f"{root}: no such folder")
+    if not root.is_dir():
+        raise ValueError(f"{root}: not a folder")
+    exclude = None if exclude is None else Path(exclude).resolve()
+    split_dirs = [root / s for s in SPLITS if (root / s).is_dir()]
+    sources = []
+    if not split_dirs:
+        sources = [ScanSource(p, p.stem, "test", "unknown", "") for p in _cloud_files(root, exclude)]
+    for sdir in split_dirs:
+        split = sdir.name
+        for p in _cloud_files(sdir):
+            label = "unknown" if split == "test" else "good"
+            sources.append(ScanSource(p, f"{split}/{p.stem}", split, label, ""))
+        for cdir in sorted(d for d in sdir.iterdir() if d.is_dir() and not d.name.startswith(".")):
+            good = cdir.name == "good"
+            defect = "" if good else cdir.name
+            for p in _cloud_files(cdir):
+                gt = root / "ground_truth" / cdir.name / f"{p.stem}.txt"
+                all_good = good and split == "test" and (root / "ground_truth").is_dir()
+                sources.append(ScanSource(p, f"{split}/{cdir.name}/{p.stem}", split, "good" if good else "defective",
+                                          defect, gt if gt.is_file() else None, all_good))
+    if not sources:
+        raise ValueError(f"{root}: no point-cloud files found (looked for {', '.join(CLOUD_SUFFIXES)} "
+                         f"in {'train/ validation/ test/' if split_dirs else 'the folder itself'}; MVTec-3D-AD .tiff point "
+                         f"maps must be converted to one of these first)")
+    seen = {}
+    for s in sources:
+        if s.name in seen:
+            raise ValueError(f"{s.path}: same scan name {s.name!r} as {seen[s.name]} (one cloud per file stem)")
+        seen[s.name] = s.path
+    return sources
+
+
+# ---- per-file processing ---------------------------------------------------------------------------------------------
+def _read_sensor_origin(path):
+    """Sensor origin (3,) in file units from an npz key or a ``<stem>.json`` sidecar, or None."""
+    if path.suffix.lower() == ".npz":
+        with np.load(path, allow_pickle=False) as z:
+            if "sensor_origin" in z.files:
+                return _check_origin(z["sensor_origin"], path)
+    sidecar = path.with_suffix(_SIDECAR_SUFFIX)
+    if sidecar.is_file():
+        try:
+            return _check_origin(json.loads(sidecar.read_text())["sensor_origin"], sidecar)
+        except (json.JSONDecodeError, KeyError, TypeError) as e:
+            raise ValueError(f"{sidecar}: expected {{\"sensor_origin\": [x, y, z]}} ({e})") from None
+    return None
+
+
+def _check_origin(value, where):
+    o = np.asarray(value, dtype=np.float64).reshape(-1)
+    if o.shape != (3,) or not np.all(np.isfinite(o)):
+        raise ValueError(f"{where}: sensor_origin must be 3 finite numbers, got {value!r}")
+    return o
+
+
+def _read_ground_truth(gt, n, cloud):
+    try:
+        table = np.loadtxt(gt, ndmin=2)
+    except ValueError as e:
+        raise ValueError(f"{gt}: not a table of numbers ({e})") from None
+    if table.shape[0] != n:
+        raise ValueError(f"{gt}: {table.shape[0]} labels for the {n} points of {cloud}")
+    labels = table[:, -1]
+    if not np.all(np.isin(labels, (0, 1))):
+        raise ValueError(f"{gt}: per-point labels must be 0 or 1")
+    return labels.astype(np.uint8)
+
+
+def estimate_normals(points, sensor_origin=None):
+    """Unit normals of a cloud, oriented toward the sensor when known, else consistently and away from the centroid.
+
+    The search is a hybrid KNN/radius search whose radius is a few times the cloud's median nearest-neighbour
+    spacing, so it adapts to the scanner's resolution and the file's units.
+
+    Parameters
+    ----------
+    points : (N, 3) float array, N >= 3, finite
+    sensor_origin : (3,) float array, optional
+        In the same units as ``points``.
+
+    Returns
+    -------
+    (N, 3) float64 array
+    """
+    import open3d as o3d
+
+    pts = np.asarray(points, dtype=np.float64)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    nn = np.asarray(pcd.compute_nearest_neighbor_distance())
+    nn = nn[nn > 0]
+    spacing = float(np.median(nn)) if len(nn) else 0.0
+    if spacing <= 0:  # every point duplicated: fall back to the spacing of a uniform cloud over the bounding box
+        spacing = float(np.linalg.norm(np.ptp(pts, axis=0))) / max(len(pts), 1) ** 0.5
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=_SPACING_RADIUS * spacing,
+                                                              max_nn=_NEIGHBOURS))
+    if sensor_origin is not None:
+        # a depth sensor sees the outside of a surface, so outward normals face it
+        pcd.orient_normals_towards_camera_location(np.asarray(sensor_origin, dtype=np.float64))
+        return np.asarray(pcd.normals, dtype=np.float64)
+    if len(pts) > 16:
+        try:  # propagate one orientation along a minimum spanning tree so neighbours agree...
+            pcd.orient_normals_consistent_tangent_plane(15)
+        except RuntimeError as e:  # disconnected or degenerate graphs: fall back to per-point centroid test
+            log.debug("consistent orientation failed (%s); orienting each normal away from the centroid", e)
+            normals = np.asarray(pcd.normals, dtype=np.float64)
+            away = np.einsum("ij,ij->i", normals, pts - pts.mean(0)) < 0
+            normals[away] *= -1
+            return normals
+    normals = np.asarray(pcd.normals, dtype=np.float64)
+    # ...then pick the global sign that makes most normals point away from the centroid (outward on closed parts)
+    if np.count_nonzero(np.einsum("ij,ij->i", normals, pts - pts.mean(0)) < 0) > len(pts) / 2:
+        normals = -normals
+    return normals
+
+
+def voxel_downsample(points, normals, labels, size):
+    """One point per occupied voxel of side ``size``: the mean point, the renormalised mean normal, the max label.
+
+    Own implementation (not open3d's) so per-point labels follow the points and the result is deterministic.
+
+    Parameters
+    ----------
+    points : (N, 3) float64 array
+    normals : (N, 3) float64 array, unit
+    labels : (N,) uint8 array or None
+    size : float > 0, same units as ``points``
+
+    Returns
+    -------
+    points (M, 3), normals (M, 3), labels (M,) or None, with voxels in lexicographic order of their integer keys.
+    """
+    keys = np.floor((points - points.min(0)) / size).astype(np.int64)
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    m = len(counts)
+    out_p = np.stack([np.bincount(inverse, points[:, k], m) for k in range(3)], axis=1) / counts[:, None]
+    out_n = np.stack([np.bincount(inverse, normals[:, k], m) for k in range(3)], axis=1)
+    norm = np.linalg.norm(out_n, axis=1, keepdims=True)
+    # opposite normals in one voxel (a thin wall) can cancel: keep one of the originals there instead
+    first = np.full(m, len(points))
+    np.minimum.at(first, inverse, np.arange(len(points)))
+    out_n = np.where(norm > 1e-6, out_n / np.maximum(norm, 1e-12), normals[first])
+    out_l = None
+    if labels is not None:
+        out_l = np.zeros(m, dtype=np.uint8)
+        np.maximum.at(out_l, inverse, labels)
+    return out_p, out_n, out_l
+
+
+def load_source(src, voxel=None, n_points=None, seed=0):
+    """Read one scanner file into a Scan in file units, cleaned, with normals, optionally downsampled.
+
+    Parameters
+    ----------
+    src : ScanSource
+    voxel : float, optional
+        Voxel side for downsampling, in file units.
+    n_points : int, optional
+        Keep a random subset of this many points (all points when there are fewer).
+    seed : int
+        The subset is drawn from a generator seeded with (seed, crc32 of the scan name), so a scan's subset does not
+        depend on which other files are imported or in which order.
+
+    Returns
+    -------
+    scan : Scan
+        In file units (the collection frame is applied later).
+    n_dropped : int
+        Non-finite points (or points with non-finite or zero normals) that were removed.
+    """
+    points, normals = read_cloud(src.path)
+    n_raw = len(points)
+    labels = _read_ground_truth(src.ground_truth, n_raw, src.path) if src.ground_truth is not None else None
+    ok = np.all(np.isfinite(points), axis=1)
+    if normals is not None:
+        lengths = np.linalg.norm(normals, axis=1)
+        ok &= np.isfinite(lengths) & (lengths > 1e-12)
+    n_dropped = int(n_raw - ok.sum())
+    if ok.sum() == 0:
+        raise ValueError(f"{src.path}: no finite points (all {n_raw} are NaN/Inf)")
+    if ok.sum() < MIN_POINTS:
+        raise ValueError(f"{src.path}: {int(ok.sum())} finite point(s), need at least {MIN_POINTS}")
+    if n_dropped:
+        log.info("%s: dropped %d of %d points (NaN/Inf or zero normal)", src.path, n_dropped, n_raw)
+        points = points[ok]
+        normals = normals[ok] if normals is not None else None
+        labels = labels[ok] if labels is not None else None
+    if np.ptp(points, axis=0).max() == 0:
+        raise ValueError(f"{src.path}: all {len(points)} points are identical")
+    origin = _read_sensor_origin(src.path)
+    if normals is None:
+        normals = estimate_normals(points, origin)
+    else:
+        normals = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+    if voxel is not None:
+        points, normals, labels = voxel_downsample(points, normals, labels, voxel)
+    elif n_points is not None and len(points) > n_points:
+        rng = np.random.default_rng([seed, zlib.crc32(src.name.encode())])
+        keep = np.sort(rng.choice(len(points), size=n_points, replace=False))
+        points, normals = points[keep], normals[keep]
+        labels = labels[keep] if labels is not None else None
+    if labels is None and src.all_good:
+        labels = np.zeros(len(points), np.uint8)
+    scan = Scan(name=src.name, points=points, normals=normals, split=src.split, label=src.label, defect=src.defect,
+                point_labels=labels, sensor_origin=origin)
+    scan.points = np.asarray(points, dtype=np.float64)  # keep file-unit precision until the frame is applied
+    return scan, n_dropped
+
+
+# ---- whole folders ---------------------------------------------------------------------------------------------------
+def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, progress=None):
+    """Import a tree or flat folder of scanner files into a new collection at ``out``.
+
+    The frame is fitted to the bounding box of all training points (of all points when there is no train split)
+    and applied to every scan. Everything is read and checked before anything is written, so any bad file raises
+    one ValueError naming it and leaves ``out`` untouched. The preprocessed scans are held in memory until written
+    (use --voxel / --points for large trees).
+
+    Parameters
+    ----------
+    root, out : str or Path
+    voxel : float, optional
+        Voxel side in file units.
+    n_points : int, optional
+        Points per scan (seeded random subset).
+    seed : int
+    overwrite : bool
+    progress : bool or None
+        tqdm bar over files; None shows it only on a terminal.
+
+    Returns
+    -------
+    dict
+        Summary: out, n_scans, counts per split/label/defect, n_dropped, frame, points per scan min/median/max.
+    """
+    from tqdm import tqdm
+
+    from .collection import ScanCollection
+
+    root, out = Path(root), Path(out)
+    if voxel is not None and n_points is not None:
+        raise ValueError("give --voxel or --points, not both")
+    if voxel is not None and not voxel > 0:
+        raise ValueError(f"voxel size must be > 0, got {voxel}")
+    if n_points is not None and n_points < MIN_POINTS:
+        raise ValueError(f"--points must be >= {MIN_POINTS}, got {n_points}")
+    if out.exists() and not overwrite:
+        raise FileExistsError(f"{out}: already exists (use --overwrite to replace it)")
+    if not out.parent.is_dir():  # say so now, not after reading every file
+        raise FileNotFoundError(f"{out.parent}: output folder does not exist")
+    sources = find_sources(root, exclude=out)
+    scans, n_dropped = [], 0
+    for src in tqdm(sources, desc="import", unit="file", disable=None if progress is None else not progress):
+        scan, dropped = load_source(src, voxel=voxel, n_points=n_points, seed=seed)
+        scans.append(scan)
+        n_dropped += dropped
+    train = [s.points for s in scans if s.split == "train"]
+    frame = Frame.fit(np.concatenate(train if train else [s.points for s in scans]))
+    provenance = {"source": "import", "root": str(root.resolve()), "files": len(sources), "voxel": voxel,
+                  "points": n_points, "seed": seed, "dropped_nonfinite": n_dropped,
+                  "frame_fitted_on": "train" if train else "all (no train split)"}
+    ScanCollection.create(out, (frame.apply(s) for s in scans), frame=frame, provenance=provenance,
+                          overwrite=overwrite)
+    counts = np.array([len(s) for s in scans])
+    summary = {"out": str(out), "n_scans": len(scans), "n_dropped": n_dropped, "frame": frame.as_dict(),
+               "points_min": int(counts.min()), "points_median": float(np.median(counts)),
+               "points_max": int(counts.max()), "groups": _group_counts((s.split, s.label, s.defect) for s in scans)}
+    log.info("imported %d scans from %s into %s", len(scans), root, out)
+    return summary
+
+
+def _group_counts(rows):
+    groups = {}
+    for key in rows:
+        groups[key] = groups.get(key, 0) + 1
+    return dict(sorted(groups.items()))
+
+
+def export_collection(path, out_dir, file_frame=False, overwrite=False):
+    """Write each scan of a collection as ``out_dir/<name>.ply`` (the tree layout its names spell).
+
+    Scans with per-point labels are coloured (defect points red, others grey) and, when defective, also get
+    ``out_dir/ground_truth/<defect>/<stem>.txt``; a known sensor origin goes to a ``<stem>.json`` sidecar. So an
+    exported tree imports back with the same structure.
+
+    Parameters
+    ----------
+    path : str or Path
+        A collection.
+    out_dir : str or Path
+        Created if missing; must be empty unless ``overwrite``.
+    file_frame : bool
+        Write coordinates in the original file units (the collection's frame inverted) instead of the collection's.
+
+    Returns
+    -------
+    int
+        Number of scans written.
+    """
+    from .collection import ScanCollection
+
+    out_dir = Path(out_dir)
+    with ScanCollection(path) as c:
+        if out_dir.exists() and any(out_dir.iterdir()) and not overwrite:
+            raise FileExistsError(f"{out_dir}: not empty (use --overwrite to write into it)")
+        base = out_dir.resolve()
+        for scan in c:
+            target = (out_dir / f"{scan.name}.ply")
+            if base not in target.resolve().parents:
+                raise ValueError(f"{path}: scan name {scan.name!r} would be written outside {out_dir}")
+            points, origin = scan.points, scan.sensor_origin
+            if file_frame:
+                points = c.frame.to_file(points)
+                origin = None if origin is None else c.frame.to_file(origin)
+            colors = None
+            if scan.point_labels is not None:
+                colors = np.where(scan.point_labels[:, None] > 0, [[1.0, 0.0, 0.0]], [[0.7, 0.7, 0.7]])
+                if scan.label == "defective":
+                    gt = out_dir / "ground_truth" / (scan.defect or "defect") / f"{target.stem}.txt"
+                    gt.parent.mkdir(parents=True, exist_ok=True)
+                    np.savetxt(gt, scan.point_labels, fmt="%d")
+            write_cloud(target, points, scan.normals, colors)
+            if origin is not None:
+                target.with_suffix(_SIDECAR_SUFFIX).write_text(
+                    json.dumps({"sensor_origin": [float(x) for x in origin]}))
+        return len(c)
+
+
+def collection_info(path):
+    """A human-readable summary of a collection (str): counts per split/label/defect, points per scan, frame,
+    provenance, fingerprint."""
+    from .collection import ScanCollection
+
+    with ScanCollection(path) as c:
+        meta = c.metadata()
+        lines = [f"{path}: {len(c)} scans, format version 1, written by toolkit {c.toolkit_version or '?'}"]
+        if meta:
+            groups = _group_counts((m["split"], m["label"], m["defect"] or "-") for m in meta)
+            lines.append(f"{'split':<12}{'label':<12}{'defect':<16}{'scans':>7}")
+            lines += [f"{s:<12}{lab:<12}{d:<16}{n:>7}" for (s, lab, d), n in groups.items()]
+            n = c.n_points
+            lines.append(f"points per scan: min {n.min()}, median {np.median(n):g}, max {n.max()}, total {n.sum()}")
+            lines.append(f"with point labels: {sum(m['has_labels'] for m in meta)}, with sensor origin: "
+                         f"{sum(m['sensor_origin'] is not None for m in meta)}")
+        lines.append(f"frame: center {c.frame.as_dict()['center']}, scale {c.frame.scale:.6g} "
+                     f"(x_collection = scale * (x_file - center))")
+        lines.append(f"provenance: {json.dumps(c.provenance, sort_keys=True)}")
+        lines.append(f"fingerprint: {c.fingerprint()}")
+    return "\n".join(lines)

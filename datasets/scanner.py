@@ -1,0 +1,264 @@
+"""Virtual depth scanning: a pinhole depth camera ray-cast over a triangle mesh (open3d RaycastingScene)."""
+from dataclasses import dataclass
+
+import numpy as np
+
+# Below this many rays the scanner never goes, above this it stops raising the resolution and samples with
+# replacement instead (a part that small in the image is a badly chosen view, not a reason to cast 100M rays).
+_MIN_RAYS = 64 * 48
+_MAX_RAYS = 4096 * 4096
+
+
+@dataclass
+class ScanResult:
+    """One depth-camera scan of a mesh.
+
+    All positions are in the world frame: the mesh's own coordinates moved by ``pose`` (identity without jitter).
+
+    Attributes
+    ----------
+    points : (n, 3) float32 array
+        Measured points, with the depth noise applied along each ray.
+    normals : (n, 3) float32 array
+        Unit normals of the hit triangles, flipped to face the camera.
+    triangle_ids : (n,) int64 array
+        Index of the hit triangle in the scanned mesh's ``faces``.
+    sensor_origin : (3,) float64 array
+        Camera position.
+    clean_points : (n, 3) float64 array
+        The exact ray hits before noise (ground truth for labelling and tests).
+    pose : (4, 4) float64 array
+        Rigid transform that was applied to the mesh before scanning (mesh coordinates -> world).
+    """
+
+    points: np.ndarray
+    normals: np.ndarray
+    triangle_ids: np.ndarray
+    sensor_origin: np.ndarray
+    clean_points: np.ndarray
+    pose: np.ndarray
+
+    def to_mesh_frame(self, x):
+        """(m, 3) world-frame positions -> (m, 3) positions in the scanned mesh's own coordinates."""
+        rotation, translation = self.pose[:3, :3], self.pose[:3, 3]
+        return (np.asarray(x, dtype=np.float64) - translation) @ rotation
+
+
+@dataclass
+class View:
+    """A camera placement plus the pose of the part in front of it.
+
+    Attributes
+    ----------
+    camera_position : (3,) float64 array
+    look_at : (3,) float64 array
+    pose : (4, 4) float64 array
+        Rigid transform applied to the part before scanning (identity when there is no jitter).
+    """
+
+    camera_position: np.ndarray
+    look_at: np.ndarray
+    pose: np.ndarray
+
+
+def random_view(center, radius_range, elevation_range_deg=(-20.0, 70.0), size=1.0, jitter_deg=0.0,
+                jitter_translation=0.0, seed=None):
+    """Draw a camera position on a spherical shell around a part, looking at its centre, and a random part pose.
+
+    Parameters
+    ----------
+    center : (3,) array
+        Centre of the part (the camera looks at it).
+    radius_range : (2,) floats
+        Camera distance from ``center``, in multiples of ``size`` (drawn uniformly).
+    elevation_range_deg : (2,) floats
+        Elevation above the x-y plane in degrees (drawn uniformly in sin(elevation), i.e. uniform on the sphere band);
+        the azimuth is uniform.
+    size : float
+        Length scale of the part (the scanner passes its bounding-box diagonal), so that one ``radius_range``
+        works for parts of any size and units.
+    jitter_deg : float
+        Maximum rotation of the part about its centre, about a uniformly random axis (0 = part held in a fixture).
+    jitter_translation : float
+        Maximum translation of the part along each axis, as a fraction of ``size``.
+    seed : int, numpy Generator or None
+
+    Returns
+    -------
+    View
+    """
+    rng = np.random.default_rng(seed)
+    center = np.asarray(center, dtype=np.float64).reshape(3)
+    lo, hi = np.sin(np.radians(np.asarray(elevation_range_deg, dtype=np.float64)))
+    sin_el = rng.uniform(lo, hi)
+    azimuth = rng.uniform(0.0, 2.0 * np.pi)
+    radius = rng.uniform(*radius_range) * size
+    cos_el = np.sqrt(max(0.0, 1.0 - sin_el ** 2))
+    direction = np.array([cos_el * np.cos(azimuth), cos_el * np.sin(azimuth), sin_el])
+    # Draw the jitter even when it is zero so that a view's camera does not depend on whether jitter is on.
+    axis = rng.normal(size=3)
+    angle = np.radians(jitter_deg) * rng.uniform(-1.0, 1.0)
+    shift = jitter_translation * size * rng.uniform(-1.0, 1.0, size=3)
+    pose = np.eye(4)
+    if jitter_deg > 0 or jitter_translation > 0:
+        rotation = _axis_angle(axis / np.linalg.norm(axis), angle)
+        pose[:3, :3] = rotation
+        # Rotate about the part's centre, then shift.
+        pose[:3, 3] = center - rotation @ center + shift
+    return View(center + radius * direction, center.copy(), pose)
+
+
+def _axis_angle(axis, angle):
+    """(3,) unit axis, angle in radians -> (3, 3) rotation matrix (Rodrigues)."""
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k)
+
+
+class VirtualScanner:
+    """A depth camera over one triangle mesh; the ray-casting scene is built once and reused for every scan.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        The part, in its own units. It need not be watertight.
+    """
+
+    def __init__(self, mesh):
+        import open3d as o3d
+
+        vertices = np.asarray(mesh.vertices, dtype=np.float64)
+        faces = np.asarray(mesh.faces, dtype=np.int64)
+        if len(faces) == 0:
+            raise ValueError("VirtualScanner: the mesh has no faces")
+        lower, upper = vertices.min(axis=0), vertices.max(axis=0)
+        self.mesh = mesh
+        self.center = (lower + upper) / 2.0
+        self.diagonal = float(np.linalg.norm(upper - lower))
+        # open3d casts in float32: shift the mesh to its box centre so parts far from the origin (CAD coordinates in
+        # mm) keep their precision; hits are shifted back in float64.
+        self._scene = o3d.t.geometry.RaycastingScene()
+        self._scene.add_triangles(o3d.core.Tensor((vertices - self.center).astype(np.float32)),
+                                  o3d.core.Tensor(faces.astype(np.uint32)))
+
+    def random_view(self, radius_range=(1.5, 2.2), elevation_range_deg=(-20.0, 70.0), jitter_deg=0.0,
+                    jitter_translation=0.0, seed=None):
+        """`random_view` around this mesh's box centre, with distances in multiples of its box diagonal."""
+        return random_view(self.center, radius_range, elevation_range_deg, size=self.diagonal, jitter_deg=jitter_deg,
+                           jitter_translation=jitter_translation, seed=seed)
+
+    def scan(self, camera_position, look_at=None, fov_deg=40.0, resolution=None, noise=0.0, n_points=4000,
+             pose=None, seed=None):
+        """Scan the mesh from one camera position.
+
+        Parameters
+        ----------
+        camera_position : (3,) array or View
+            Camera position in the world frame; a `View` also supplies ``look_at`` and ``pose``.
+        look_at : (3,) array, optional
+            Point the optical axis goes through; defaults to the mesh's box centre.
+        fov_deg : float
+            Horizontal field of view of the pinhole camera.
+        resolution : (W, H) ints, optional
+            Image size. Raised automatically (same aspect) when the part covers fewer than ``n_points`` pixels;
+            by default it starts at 4:3 with about ``6 * n_points`` pixels.
+        noise : float
+            Standard deviation of the Gaussian depth noise, in mesh units, applied along each ray.
+        n_points : int
+            Exact number of points returned (a seeded subset of the hit pixels).
+        pose : (4, 4) array, optional
+            Rigid transform applied to the mesh before scanning (mesh coordinates -> world).
+        seed : int, numpy Generator or None
+
+        Returns
+        -------
+        ScanResult
+
+        Raises
+        ------
+        ValueError
+            When no ray hits the part.
+        """
+        if isinstance(camera_position, View):
+            view = camera_position
+            camera_position, look_at, pose = view.camera_position, view.look_at, view.pose
+        rng = np.random.default_rng(seed)
+        n_points = int(n_points)
+        if n_points < 1:
+            raise ValueError(f"n_points must be >= 1, got {n_points}")
+        pose = np.eye(4) if pose is None else np.asarray(pose, dtype=np.float64)
+        rotation, translation = pose[:3, :3], pose[:3, 3]
+        eye_world = np.asarray(camera_position, dtype=np.float64).reshape(3)
+        target_world = self.center if look_at is None else np.asarray(look_at, dtype=np.float64).reshape(3)
+        # Moving the part by the pose is the same as moving the camera by its inverse: cast in the mesh's frame so the
+        # scene is never rebuilt, then carry the hits forward.
+        eye = (eye_world - translation) @ rotation
+        target = (target_world - translation) @ rotation
+        if resolution is None:
+            height = int(np.ceil(np.sqrt(6.0 * n_points * 3.0 / 4.0)))
+            resolution = (int(np.ceil(height * 4.0 / 3.0)), height)
+        width, height = (max(2, int(r)) for r in resolution)
+        while True:
+            directions = _pinhole_directions(eye, target, fov_deg, width, height)
+            t_hit, ray_index, triangle_ids, normals = self._cast(eye, directions)
+            n_hits = len(t_hit)
+            if n_hits == 0:
+                raise ValueError(f"the part is not visible from camera position {eye_world.tolist()} "
+                                 f"looking at {target_world.tolist()} (fov {fov_deg} deg)")
+            if n_hits >= n_points or width * height >= _MAX_RAYS:
+                break
+            # Hits grow with the pixel count: aim 20% above what is needed.
+            factor = np.sqrt(1.2 * n_points / n_hits)
+            factor = min(factor, np.sqrt(_MAX_RAYS / (width * height)))
+            width, height = int(np.ceil(width * factor)) + 1, int(np.ceil(height * factor)) + 1
+        hit_directions = directions[ray_index]
+        # Subset first, noise second, so that the same seed picks the same pixels with or without noise.
+        chosen = np.sort(rng.choice(n_hits, size=n_points, replace=n_hits < n_points))
+        t, d, tri, nrm = t_hit[chosen], hit_directions[chosen], triangle_ids[chosen], normals[chosen]
+        clean = eye + t[:, None] * d
+        depth_noise = rng.normal(0.0, noise, size=n_points) if noise > 0 else np.zeros(n_points)
+        noisy = clean + depth_noise[:, None] * d
+        # Flip triangle normals that point away from the camera (back-facing hits, inconsistent winding).
+        nrm = np.where((np.sum(nrm * d, axis=1) > 0)[:, None], -nrm, nrm)
+        return ScanResult(
+            points=(noisy @ rotation.T + translation).astype(np.float32),
+            normals=(nrm @ rotation.T).astype(np.float32),
+            triangle_ids=tri.astype(np.int64),
+            sensor_origin=eye_world.copy(),
+            clean_points=clean @ rotation.T + translation,
+            pose=pose.copy(),
+        )
+
+    def _cast(self, eye, directions):
+        """Cast rays from ``eye`` (mesh frame); per hit: t (h,), ray index (h,), triangle id (h,), unit normal (h, 3)."""
+        import open3d as o3d
+
+        rays = np.empty((len(directions), 6), dtype=np.float32)
+        rays[:, :3] = eye - self.center
+        rays[:, 3:] = directions
+        hit = self._scene.cast_rays(o3d.core.Tensor(rays))
+        t = hit["t_hit"].numpy()
+        index = np.flatnonzero(np.isfinite(t))
+        normals = hit["primitive_normals"].numpy()[index].astype(np.float64)
+        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-30)
+        return t[index].astype(np.float64), index, hit["primitive_ids"].numpy()[index].astype(np.int64), normals
+
+
+def _pinhole_directions(eye, target, fov_deg, width, height):
+    """Unit ray directions (width*height, 3) of a pinhole camera at ``eye`` looking at ``target``, row-major."""
+    forward = target - eye
+    norm = np.linalg.norm(forward)
+    if norm == 0:
+        raise ValueError("camera position and look_at coincide")
+    forward /= norm
+    # Any up vector not parallel to the optical axis will do: the image is only used as a set of rays.
+    up = np.array([0.0, 0.0, 1.0]) if abs(forward[2]) < 0.99 else np.array([1.0, 0.0, 0.0])
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    half_w = np.tan(np.radians(fov_deg) / 2.0)
+    half_h = half_w * height / width
+    u = ((np.arange(width) + 0.5) / width * 2.0 - 1.0) * half_w
+    v = ((np.arange(height) + 0.5) / height * 2.0 - 1.0) * half_h
+    uu, vv = np.meshgrid(u, v)
+    directions = forward + uu.reshape(-1, 1) * right - vv.reshape(-1, 1) * up
+    return directions / np.linalg.norm(directions, axis=1, keepdims=True)

@@ -1,0 +1,124 @@
+"""Synthetic scan collections: virtual scans of a CAD part, good and with synthetic defects, in the collection frame."""
+import numpy as np
+
+from .defects import DEFECT_KINDS, defect_for_view
+from .frame import Frame
+from .scan import Scan
+from .scanner import VirtualScanner
+
+
+def synthesise(mesh, n_train=32, n_test_good=16, n_test_defective=16, defects=DEFECT_KINDS, n_points=4000,
+               noise=0.002, seed=0, jitter_deg=0.0, n_validation=0, part_id="", jitter_translation=0.0,
+               radius_range=(1.5, 2.2), fov_deg=40.0, min_defect_fraction=0.015, min_defect_points=30,
+               max_attempts=12, progress=True):
+    """Scan a part from random views, good and with synthetic defects, into scans in the collection frame.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        The part, in its own units (watertight is best: missing / foreign defects are then exact booleans).
+    n_train, n_validation, n_test_good : int
+        Numbers of good scans in each split.
+    n_test_defective : int
+        Number of defective test scans PER defect kind.
+    defects : sequence of str
+        Defect kinds, from `datasets.defects.DEFECT_KINDS`.
+    n_points : int
+        Points per scan (exact).
+    noise : float
+        Depth-noise standard deviation RELATIVE to the part's size: the noise in mesh units is
+        ``noise * bounding-box diagonal`` (0.002 of a 100 mm part is 0.2 mm), applied along each camera ray.
+    seed : int
+        Everything drawn (views, poses, defect sites and sizes, noise, point subsets) follows from it: the same seed
+        gives the same scans. Each scan draws from its own child of ``np.random.SeedSequence(seed)``.
+    jitter_deg, jitter_translation : float
+        Random pose of the part in every scan (a part not held in a fixture): rotation up to ``jitter_deg`` degrees
+        about its centre and a shift up to ``jitter_translation`` x the diagonal per axis. 0 = fixture.
+    part_id : str
+        Stored in every scan.
+    radius_range : (2,) floats
+        Camera distance from the part's centre, in multiples of its diagonal.
+    fov_deg : float
+        Horizontal field of view of the camera.
+    min_defect_fraction, min_defect_points : float, int
+        A defective scan must have at least this fraction of its points on the defect, and at least
+        ``min(min_defect_points, 3 % of the points)`` of them; otherwise a new view and defect site are drawn, up to
+        ``max_attempts`` times.
+    progress : bool
+        Show a tqdm progress bar over the scans.
+
+    Returns
+    -------
+    scans : list of Scan
+        In the collection frame ``frame`` (points, sensor origins), named ``train/good/000``, ``test/dent/003``, ...;
+        test scans carry per-point labels (all zeros for good ones); ``extra`` holds the pose (4, 4) of the part in
+        file units and, for defects, the defect's centre and radius in file units.
+    frame : Frame
+        ``Frame.fit(mesh.vertices)``: the part's bounding box mapped to a cube of side 1 centred at 0.
+
+    Raises
+    ------
+    ValueError
+        Unknown defect kind, bad counts, or a defect that no view could show after ``max_attempts`` tries.
+    """
+    from tqdm import tqdm
+
+    defects = tuple(defects)
+    unknown = [d for d in defects if d not in DEFECT_KINDS]
+    if unknown:
+        raise ValueError(f"unknown defect kind(s) {unknown}; expected some of {DEFECT_KINDS}")
+    counts = dict(n_train=n_train, n_validation=n_validation, n_test_good=n_test_good,
+                  n_test_defective=n_test_defective, n_points=n_points)
+    for key, value in counts.items():
+        if int(value) != value or value < (1 if key == "n_points" else 0):
+            raise ValueError(f"{key} must be a non-negative integer (n_points >= 1), got {value!r}")
+    if not noise >= 0:
+        raise ValueError(f"noise must be >= 0 (relative to the bounding-box diagonal), got {noise!r}")
+
+    scanner = VirtualScanner(mesh)
+    frame = Frame.fit(mesh.vertices)
+    jobs = ([("train", "good", i) for i in range(n_train)]
+            + [("validation", "good", i) for i in range(n_validation)]
+            + [("test", "good", i) for i in range(n_test_good)]
+            + [("test", kind, i) for kind in defects for i in range(n_test_defective)])
+    # One child seed per scan: a scan does not depend on how many retries the scans before it needed.
+    children = np.random.SeedSequence(seed).spawn(len(jobs))
+    options = dict(n_points=int(n_points), noise=noise * scanner.diagonal, fov_deg=fov_deg)
+    view_options = dict(radius_range=radius_range, jitter_deg=jitter_deg, jitter_translation=jitter_translation)
+    scans = []
+    for (split, kind, i), child in tqdm(list(zip(jobs, children)), desc="synth scans", unit="scan",
+                                        disable=not progress):
+        rng = np.random.default_rng(child)
+        name = f"{split}/{kind}/{i:03d}"
+        if kind == "good":
+            result = scanner.scan(scanner.random_view(seed=rng, **view_options), seed=rng, **options)
+            labels = np.zeros(len(result.points), dtype=np.uint8) if split == "test" else None
+            extra = {"pose": result.pose}
+        else:
+            result, labels, defect = _defective_scan(mesh, scanner, kind, rng, view_options, options,
+                                                     min_defect_fraction, min_defect_points, max_attempts, name)
+            extra = {"pose": result.pose, "defect_center": defect.center, "defect_radius": defect.radius}
+        scan = Scan(name=name, points=result.points, normals=result.normals, split=split,
+                    label="good" if kind == "good" else "defective", defect="" if kind == "good" else kind,
+                    part_id=part_id, point_labels=labels, sensor_origin=result.sensor_origin, extra=extra)
+        scans.append(frame.apply(scan))
+    return scans, frame
+
+
+def _defective_scan(mesh, scanner, kind, rng, view_options, options, min_fraction, min_points, max_attempts, name):
+    """Draw views and defect sites until the scan shows the defect. Returns (ScanResult, (n,) uint8, Defect)."""
+    # The count floor matters at thousands of points; with few points it would ask for a large share of them.
+    share = int(np.ceil(min_fraction * options["n_points"]))
+    needed = max(share, min(min_points, int(np.ceil(0.03 * options["n_points"]))))
+    best = 0
+    for _ in range(max_attempts):
+        view = scanner.random_view(seed=rng, **view_options)
+        defect = defect_for_view(mesh, scanner, view, kind, seed=rng, fov_deg=options["fov_deg"])
+        result = VirtualScanner(defect.mesh).scan(view, seed=rng, **options)
+        # Label the noise-free hits, by the triangles they hit: noise must not move a point on or off the defect.
+        labels = defect.region(result.to_mesh_frame(result.clean_points), result.triangle_ids)
+        if labels.sum() >= needed:
+            return result, labels.astype(np.uint8), defect
+        best = max(best, int(labels.sum()))
+    raise ValueError(f"{name}: no view out of {max_attempts} showed the {kind} defect on at least {needed} points "
+                     f"(best {best}); use a larger defect or more points")

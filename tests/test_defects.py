@@ -1,0 +1,107 @@
+"""Tests of datasets.defects: each defect changes the scanned surface where its labels say and nowhere else."""
+import numpy as np
+import pytest
+import trimesh
+
+from datasets.defects import DEFECT_KINDS, _refine_near, defect_for_view, make_defect, pick_spot
+from datasets.scanner import VirtualScanner
+
+TOP = np.array([0.1, 0.05, 0.25])  # a point of the top face of the box below
+UP = np.array([0.0, 0.0, 1.0])
+
+
+@pytest.fixture(scope="module")
+def box():
+    return trimesh.creation.box(extents=(1.0, 1.0, 0.5))  # 12 big faces: the dent / bump must refine them
+
+
+def _scan_top(mesh, n_points=2000):
+    return VirtualScanner(mesh).scan(np.array([0.3, -0.2, 2.0]), look_at=np.zeros(3), n_points=n_points, seed=0)
+
+
+@pytest.fixture(scope="module")
+def scanned(box):
+    """kind -> (Defect, ScanResult of the defective part, labels)."""
+    out = {}
+    for kind in DEFECT_KINDS:
+        defect = make_defect(box, kind, TOP, UP, radius=0.1, height=0.03, shape="sphere", seed=0)
+        result = _scan_top(defect.mesh)
+        out[kind] = defect, result, defect.region(result.clean_points, result.triangle_ids)
+    return out
+
+
+@pytest.mark.parametrize("kind", DEFECT_KINDS)
+def test_defect_changes_the_scan_where_labelled_and_nowhere_else(box, scanned, kind):
+    defect, result, labels = scanned[kind]
+    assert labels.sum() >= 30
+    distance = trimesh.proximity.closest_point(box, result.clean_points)[1]
+    diagonal = np.linalg.norm(box.extents)
+    assert distance[~labels].max() < 1e-5 * diagonal  # unlabelled: on the undamaged part
+    height = (result.clean_points[labels] - TOP) @ UP  # labelled: off it, on the expected side
+    if kind == "dent":
+        assert height.max() < 1e-9 and height.min() == pytest.approx(-0.03 * diagonal, rel=0.1)
+    elif kind == "bump":
+        assert height.min() > -1e-9 and height.max() == pytest.approx(0.03 * diagonal, rel=0.1)
+    elif kind == "missing":
+        assert height.max() < 1e-6 and height.min() < -0.5 * defect.radius
+        assert np.linalg.norm(result.clean_points[labels] - TOP, axis=1).max() <= defect.radius * 1.001
+    else:
+        assert height.min() > -1e-6 and height.max() > 0.5 * defect.radius
+    # most labelled points are measurably off the undamaged surface (dent / bump fade out at the rim)
+    assert np.median(distance[labels]) > 0.002 * diagonal
+
+
+@pytest.mark.parametrize("kind", DEFECT_KINDS)
+def test_watertight_input_stays_watertight_and_geometry_labels_agree(scanned, kind):
+    defect, result, labels = scanned[kind]
+    assert defect.mesh.is_watertight
+    assert defect.mesh.volume > 0
+    by_geometry = defect.region(result.clean_points)
+    assert np.mean(by_geometry == labels) > 0.98
+
+
+def test_refinement_is_conforming_and_resolves_the_radius(box):
+    vertices, faces = _refine_near(box.vertices, box.faces, TOP, 0.1, 0.1 / 6.0)
+    refined = trimesh.Trimesh(vertices, faces, process=False)
+    assert refined.is_watertight and refined.volume == pytest.approx(box.volume)
+    corners = vertices[faces]
+    near = np.linalg.norm(corners.mean(axis=1) - TOP, axis=1) < 0.1
+    edges = np.linalg.norm(corners - np.roll(corners, -1, axis=1), axis=2).max(axis=1)
+    assert edges[near].max() <= 0.1 / 6.0
+
+
+@pytest.mark.parametrize("kind", ["missing", "foreign"])
+def test_open_mesh_falls_back_without_booleans(box, kind):
+    open_box = box.copy()
+    open_box.update_faces(np.flatnonzero(open_box.face_normals[:, 2] > -0.5))  # no bottom
+    defect = make_defect(open_box, kind, TOP, UP, radius=0.1, shape="sphere", seed=0)
+    result = _scan_top(defect.mesh)
+    labels = defect.region(result.clean_points, result.triangle_ids)
+    assert labels.sum() >= 30
+    distance = trimesh.proximity.closest_point(box, result.clean_points)[1]
+    assert np.median(distance[labels]) > 0.02
+
+
+def test_defect_for_view_picks_a_visible_smooth_spot(box):
+    scanner = VirtualScanner(box)
+    view = scanner.random_view(seed=1)
+    defect = defect_for_view(box, scanner, view, "bump", seed=2)
+    preview = scanner.scan(view, n_points=2000, seed=3)
+    # on a face the camera sees, away from its edges by about the radius
+    assert np.min(np.linalg.norm(preview.clean_points - defect.center, axis=1)) < 0.05
+    assert np.sum(defect.normal * (view.camera_position - defect.center)) > 0
+    spot, normal = pick_spot(preview, 0.1, seed=4)
+    near = np.linalg.norm(preview.clean_points - spot, axis=1) < 0.1
+    assert near.sum() > 10 and np.all(preview.normals[near] @ normal > 0.99)  # no edge within the radius
+
+
+def test_same_seed_same_defect(box):
+    a = make_defect(box, "foreign", TOP, UP, seed=5)
+    b = make_defect(box, "foreign", TOP, UP, seed=5)
+    np.testing.assert_array_equal(a.mesh.vertices, b.mesh.vertices)
+    np.testing.assert_array_equal(a.mesh.faces, b.mesh.faces)
+
+
+def test_unknown_kind_is_rejected(box):
+    with pytest.raises(ValueError, match="scratch"):
+        make_defect(box, "scratch", TOP, UP)

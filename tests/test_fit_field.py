@@ -1,0 +1,123 @@
+"""fit_cloud and StochasticField on a sphere: surface, P(inside), variance, save/load, bad input.
+
+One small fit is shared by the module (a few seconds); the assertions are properties of a sphere that any correct
+stochastic Poisson reconstruction must have, not numbers copied from a run.
+"""
+import numpy as np
+import pytest
+import torch
+
+from autodecoder import StochasticField, fit_cloud
+
+CENTER = np.array([1.0, -2.0, 0.5])
+RADIUS = 3.0  # deliberately not the unit sphere at the origin: the field must undo its normalisation
+
+
+def sphere_cloud(n, seed=0):
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return CENTER + RADIUS * d, d
+
+
+@pytest.fixture(scope="module")
+def sphere_field():
+    points, normals = sphere_cloud(1500)
+    return fit_cloud(points, normals, seed=0, quiet=True, width=64, depth=2, features=32, steps=250,
+                     mean_batch=1024, screen_batch=512, pair_clusters=48)
+
+
+def test_mean_surface_lies_on_the_sphere(sphere_field):
+    mesh = sphere_field.mesh(resolution=48)
+    radii = np.linalg.norm(mesh.vertices - CENTER, axis=1)
+    assert np.abs(radii - RADIUS).max() < 0.04 * RADIUS
+    assert abs(radii.mean() - RADIUS) < 0.01 * RADIUS
+    # outward orientation: the faces' normals point away from the centre
+    outward = np.einsum("ij,ij->i", mesh.face_normals, mesh.triangles_center - CENTER)
+    assert (outward > 0).mean() > 0.99
+
+
+def test_sign_convention_and_prob_inside(sphere_field):
+    inside, far = CENTER[None], CENTER[None] + [[0, 0, 1.6 * RADIUS]]
+    assert sphere_field.mean(inside)[0] < 0 < sphere_field.mean(far)[0]
+    assert sphere_field.prob_inside(inside)[0] > 0.99
+    assert sphere_field.prob_inside(far)[0] < 0.01
+    p = sphere_field.prob_inside(CENTER + RADIUS * np.eye(3))
+    assert np.all((p > 0.05) & (p < 0.95)), "on the surface the field should be uncertain about its sign"
+
+
+def test_variance_smallest_on_points_and_grows_away(sphere_field):
+    points, _ = sphere_cloud(200, seed=1)
+    direction = (points - CENTER) / RADIUS
+    on = sphere_field.variance(points)
+    near = sphere_field.variance(CENTER + (RADIUS * 1.1) * direction)
+    far = sphere_field.variance(CENTER + (RADIUS * 1.45) * direction)
+    assert np.all(on > 0)
+    assert np.median(on) < np.median(near) < np.median(far)
+
+
+def test_covariance_is_symmetric_and_variance_on_diagonal(sphere_field):
+    rng = np.random.default_rng(2)
+    a, b = CENTER + rng.uniform(-4, 4, (50, 3)), CENTER + rng.uniform(-4, 4, (50, 3))
+    np.testing.assert_allclose(sphere_field.covariance(a, b), sphere_field.covariance(b, a), rtol=1e-5, atol=1e-12)
+    np.testing.assert_allclose(sphere_field.covariance(a, a), sphere_field.variance(a), rtol=1e-5, atol=1e-12)
+
+
+def test_nll_matches_gaussian_formula_and_prefers_surface_points(sphere_field):
+    points, _ = sphere_cloud(100, seed=3)
+    noise = 0.01
+    nll = sphere_field.nll(points, noise=noise)
+    mean, var = sphere_field.mean(points), sphere_field.variance(points) + noise**2
+    np.testing.assert_allclose(nll, 0.5 * mean**2 / var + 0.5 * np.log(2 * np.pi * var), rtol=1e-10)
+    off = CENTER + (points - CENTER) * 1.05
+    assert np.median(sphere_field.nll(off, noise=noise)) > np.median(nll) + 1.0
+    with pytest.raises(ValueError, match="noise"):
+        sphere_field.nll(points, noise=-1)
+
+
+def test_save_load_round_trip_gives_identical_outputs(sphere_field, tmp_path):
+    path = tmp_path / "field.pt"
+    sphere_field.save(path)
+    loaded = StochasticField.load(path)
+    x = CENTER + np.random.default_rng(4).uniform(-4, 4, (300, 3))
+    for query in ("mean", "variance", "prob_inside"):
+        np.testing.assert_array_equal(getattr(loaded, query)(x), getattr(sphere_field, query)(x))
+    assert loaded.noise == sphere_field.noise
+    assert list(tmp_path.iterdir()) == [path], "the atomic save must leave no temporary file behind"
+
+
+def test_load_rejects_foreign_and_corrupt_files(tmp_path):
+    foreign = tmp_path / "foreign.pt"
+    torch.save({"weights": torch.zeros(3)}, foreign)
+    with pytest.raises(ValueError, match="foreign.pt.*not a stochastic field"):
+        StochasticField.load(foreign)
+    corrupt = tmp_path / "corrupt.pt"
+    corrupt.write_bytes(b"this is not a torch file")
+    with pytest.raises(ValueError, match="corrupt.pt"):
+        StochasticField.load(corrupt)
+    with pytest.raises(FileNotFoundError, match="missing.pt"):
+        StochasticField.load(tmp_path / "missing.pt")
+
+
+def test_same_seed_same_field():
+    points, normals = sphere_cloud(300)
+    kwargs = dict(seed=5, quiet=True, width=16, depth=1, features=8, steps=5, mean_batch=128, screen_batch=64,
+                  pair_clusters=8)
+    a, b = fit_cloud(points, normals, **kwargs), fit_cloud(points, normals, **kwargs)
+    x = CENTER + np.random.default_rng(6).uniform(-4, 4, (50, 3))
+    np.testing.assert_array_equal(a.mean(x), b.mean(x))
+    np.testing.assert_array_equal(a.variance(x), b.variance(x))
+
+
+@pytest.mark.parametrize("points, normals, message", [
+    (np.zeros((0, 3)), np.zeros((0, 3)), "0 points"),
+    (np.full((50, 3), np.nan), np.ones((50, 3)), "NaN"),
+    (np.ones((50, 2)), np.ones((50, 2)), r"\(n, 3\)"),
+    (np.random.default_rng(0).normal(size=(50, 3)), None, "normals are missing"),
+    (np.random.default_rng(0).normal(size=(50, 3)), np.ones((40, 3)), "same shape"),
+    (np.random.default_rng(0).normal(size=(50, 3)), np.zeros((50, 3)), "zero length"),
+    (np.ones((50, 3)), np.ones((50, 3)), "span no volume"),
+])
+def test_bad_input_gives_one_clear_error(points, normals, message):
+    with pytest.raises(ValueError, match=message):
+        fit_cloud(points, normals, quiet=True, steps=1)
