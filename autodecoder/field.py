@@ -153,8 +153,9 @@ class StochasticField:
         if not (values.min() < 0 < values.max()):
             raise ValueError("the mean field has no zero crossing in its box: there is no surface to mesh")
         spacing = tuple((hi - lo) / (resolution - 1))
-        # 'ascent': the object is where values are below the level (f < 0 inside), so faces point outward
-        verts, faces, _, _ = marching_cubes(values, level=0.0, spacing=spacing, gradient_direction="ascent")
+        # skimage's default winding ('descent') gives counter-clockwise faces seen from where values grow, i.e.
+        # outward-facing normals for f < 0 inside (checked by the sphere test)
+        verts, faces, _, _ = marching_cubes(values, level=0.0, spacing=spacing)
         return trimesh.Trimesh(self.normalization.to_world(verts + lo), faces, process=False)
 
     # ----------------------------------------------------------------------------------------------- files

@@ -36,7 +36,13 @@ class FitOptions:
     screening_weight : float
         lambda_S.
     refresh : int
-        Steps between redraws of the mean-sample pool.
+        Minibatches in the mean-sample pool (the pool holds ``mean_batch * refresh`` samples).
+    pool_passes : int
+        Shuffled passes over the mean-sample pool before it is redrawn. GP targets cost ~20 us a sample on this
+        CPU, as much as a training step; a pool served several times keeps that cost to a fraction of a step while
+        every pass is still an unbiased Monte-Carlo estimate of the loss.
+    pair_pool, pair_reuse : int
+        Covariance batches kept in a pool, and how many steps each serves before it is redrawn (same reason).
     """
 
     steps: int = 1000
@@ -48,7 +54,10 @@ class FitOptions:
     pair_clusters: int = 128
     cluster_size: int = 4
     screening_weight: float = SCREENING_WEIGHT
-    refresh: int = 25
+    refresh: int = 32
+    pool_passes: int = 4
+    pair_pool: int = 8
+    pair_reuse: int = 4
 
 
 def _cosine_lr(step, total, fraction):
@@ -56,21 +65,70 @@ def _cosine_lr(step, total, fraction):
 
 
 class MeanPool:
-    """A pool of mean-loss samples, redrawn every ``refresh`` steps and served in random minibatches."""
+    """Mean-loss samples drawn ``batch * refresh`` at a time, served in shuffled minibatches for ``passes``
+    passes, then redrawn.
 
-    def __init__(self, targets, batch, refresh, rng):
-        self.targets, self.batch, self.refresh, self.rng = targets, batch, refresh, rng
+    Parameters
+    ----------
+    targets : CloudTargets
+    batch : int
+        Minibatch size.
+    refresh : int
+        Minibatches per pool.
+    rng : numpy.random.Generator
+    passes : int
+        Passes over one pool before a new one is drawn.
+    """
+
+    def __init__(self, targets, batch, refresh, rng, passes=1):
+        self.targets, self.batch, self.refresh, self.rng, self.passes = targets, batch, refresh, rng, passes
         self.served = refresh
+        self.pass_count = passes
 
     def next(self):
+        """One minibatch: x (batch, 3), mu (batch, 3), omega (batch,) float32 tensors."""
         if self.served >= self.refresh:
-            x, mu, omega = self.targets.mean_batch(self.batch * self.refresh, self.rng)
-            self.x, self.mu, self.omega = map(torch.from_numpy, (x, mu, omega))
-            self.order = torch.from_numpy(self.rng.permutation(len(x)))
+            if self.pass_count >= self.passes:
+                x, mu, omega = self.targets.mean_batch(self.batch * self.refresh, self.rng)
+                self.x, self.mu, self.omega = map(torch.from_numpy, (x, mu, omega))
+                self.pass_count = 0
+            self.order = torch.from_numpy(self.rng.permutation(len(self.x)))
+            self.pass_count += 1
             self.served = 0
         idx = self.order[self.served * self.batch:(self.served + 1) * self.batch]
         self.served += 1
         return self.x[idx], self.mu[idx], self.omega[idx]
+
+
+class PairPool:
+    """A round-robin pool of ``size`` covariance batches, each redrawn after it has served ``reuse`` steps.
+
+    Parameters
+    ----------
+    targets : CloudTargets
+    n_clusters, cluster_size : int
+        Shape of one batch (see :meth:`CloudTargets.pair_batch`).
+    rng : numpy.random.Generator
+    size, reuse : int
+    """
+
+    def __init__(self, targets, n_clusters, cluster_size, rng, size=8, reuse=4):
+        self.targets, self.n_clusters, self.cluster_size, self.rng = targets, n_clusters, cluster_size, rng
+        self.size, self.reuse = max(1, size), max(1, reuse)
+        self.batches = [None] * self.size
+        self.uses = [self.reuse] * self.size
+        self.count = 0
+
+    def next(self):
+        """x (m, 3), sigma (m, m), weights (m, m) float32 tensors."""
+        slot = self.count % self.size
+        self.count += 1
+        if self.uses[slot] >= self.reuse:
+            batch = self.targets.pair_batch(self.n_clusters, self.cluster_size, self.rng)
+            self.batches[slot] = tuple(map(torch.from_numpy, batch))
+            self.uses[slot] = 0
+        self.uses[slot] += 1
+        return self.batches[slot]
 
 
 def mean_step_loss(mean_net, targets, pool, options, rng, code=None):
@@ -83,10 +141,15 @@ def mean_step_loss(mean_net, targets, pool, options, rng, code=None):
     return dirichlet + screening, dirichlet, screening
 
 
-def covariance_step_loss(cov_net, targets, options, rng, code=None):
-    """Dirichlet + screening loss of the covariance net on one batch; returns (total, dirichlet, screening)."""
-    x, sigma, weights = targets.pair_batch(options.pair_clusters, options.cluster_size, rng)
-    x, sigma, weights = map(torch.from_numpy, (x, sigma, weights))
+def covariance_step_loss(cov_net, targets, options, rng, code=None, pairs=None):
+    """Dirichlet + screening loss of the covariance net on one batch; returns (total, dirichlet, screening).
+
+    ``pairs`` is a :class:`PairPool` to draw the batch from (default: a fresh batch from ``targets``)."""
+    if pairs is None:
+        x, sigma, weights = map(torch.from_numpy,
+                                targets.pair_batch(options.pair_clusters, options.cluster_size, rng))
+    else:
+        x, sigma, weights = pairs.next()
     if cov_net.kind == "feature":
         _, jac = cov_net.features_and_jacobian(x, code)
         dirichlet = covariance_dirichlet_loss_features(jac.unsqueeze(0), sigma.unsqueeze(0), weights.unsqueeze(0))
@@ -195,7 +258,9 @@ def train_single(mean_net, cov_net, targets, options, rng, quiet=False, steps=No
     mean_net.train(), cov_net.train()
     opt_mean = torch.optim.Adam(mean_net.parameters(), lr=options.lr, weight_decay=options.weight_decay)
     opt_cov = torch.optim.Adam(cov_net.parameters(), lr=options.lr, weight_decay=options.weight_decay)
-    pool = MeanPool(targets, options.mean_batch, options.refresh, rng)
+    pool = MeanPool(targets, options.mean_batch, options.refresh, rng, passes=options.pool_passes)
+    pairs = PairPool(targets, options.pair_clusters, options.cluster_size, rng, options.pair_pool,
+                     options.pair_reuse)
     history = []
     bar = tqdm(range(steps), desc="fitting", disable=quiet, leave=False)
     for step in bar:
@@ -207,7 +272,7 @@ def train_single(mean_net, cov_net, targets, options, rng, quiet=False, steps=No
         opt_mean.zero_grad(set_to_none=True)
         total_m.backward()
         opt_mean.step()
-        total_c, dir_c, scr_c = covariance_step_loss(cov_net, targets, options, rng, code)
+        total_c, dir_c, scr_c = covariance_step_loss(cov_net, targets, options, rng, code, pairs)
         opt_cov.zero_grad(set_to_none=True)
         total_c.backward()
         opt_cov.step()

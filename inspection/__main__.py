@@ -1,10 +1,96 @@
-"""Command line of the inspection package (placeholder until the inspection issue)."""
+"""Command line of the inspection package: calibrate a model on good scans, score scans, run the demo.
+
+    python -m inspection calibrate --model model.pt --data good.h5 [--alpha 0.01] [--aggregate top5]
+    python -m inspection score --model model.pt --data tree.h5 --out results/ [--split test] [--align]
+    python -m inspection demo --out demo_output
+
+Heavy libraries are imported inside the commands, so --help is fast.
+"""
+import argparse
+import logging
 import sys
 
 
+def _parser():
+    p = argparse.ArgumentParser(prog="python -m inspection", description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="command", required=True)
+
+    c = sub.add_parser("calibrate", help="calibrate a model's threshold on good scans it did not train on; the "
+                                         "calibration is stored in the model file")
+    c.add_argument("--model", required=True, help="model checkpoint (.pt), rewritten atomically")
+    c.add_argument("--data", required=True, help="collection (.h5), folder of scans or cloud file with good scans")
+    c.add_argument("--split", default=None, help="use this split's good scans (default: the model's held-back "
+                                                 "scans when DATA is its training collection, else every good scan "
+                                                 "the model did not train on)")
+    c.add_argument("--alpha", type=float, default=0.01, help="default false-alarm rate stored with it (0.01)")
+    c.add_argument("--aggregate", default=None, help="per-scan aggregate: top5 (default), mean, max, median, "
+                                                     "top<P>, q<P>")
+    c.add_argument("--point-score", choices=("residual", "nll"), default=None,
+                   help="per-point score (default residual)")
+    c.add_argument("--noise", type=float, default=None, help="noise floor (model frame units; default the model's)")
+    c.add_argument("--quiet", action="store_true")
+
+    s = sub.add_parser("score", help="score scans, write scores.csv, summary.json, roc.png, scores.png, maps/")
+    s.add_argument("--model", required=True)
+    s.add_argument("--data", required=True, help="collection (.h5), folder of scanner files, or one cloud file")
+    s.add_argument("--out", required=True, help="results folder (an earlier results folder is overwritten)")
+    s.add_argument("--split", default="test", help="split to score (default test; 'all' for every scan)")
+    s.add_argument("--alpha", type=float, default=None, help="false-alarm rate (default: the calibration's)")
+    s.add_argument("--maps", choices=("flagged", "all", "none"), default="flagged",
+                   help="which scans get a coloured PLY in OUT/maps (default flagged)")
+    s.add_argument("--align", action="store_true", help="register each scan into the model's frame first (ICP)")
+    s.add_argument("--reference", default=None, help="alignment reference: collection or cloud file (default: the "
+                                                     "data collection's good training scans, else the model's mean "
+                                                     "surface)")
+    s.add_argument("--overwrite", action="store_true", help="write into an existing folder that is not a results "
+                                                            "folder")
+    s.add_argument("--quiet", action="store_true")
+
+    d = sub.add_parser("demo", help="the whole pipeline on the built-in part: synthesise, train, calibrate, score")
+    d.add_argument("--out", default="demo_output")
+    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--quick", action="store_true", help="smaller sizes (a smoke test, not a measurement)")
+    d.add_argument("--quiet", action="store_true")
+    return p
+
+
 def main(argv=None):
-    print("inspection: not yet implemented", file=sys.stderr)
-    return 2
+    """Run the command line; returns the exit status (0 ok, 2 bad input)."""
+    args = _parser().parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s: %(message)s")
+    try:
+        from .run import InspectionError
+    except ImportError as exc:  # pragma: no cover
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        if args.command == "calibrate":
+            from .run import calibrate
+
+            insp, info = calibrate(args.model, args.data, alpha=args.alpha, aggregate=args.aggregate,
+                                   point_score=args.point_score, noise=args.noise, split=args.split,
+                                   progress=not args.quiet)
+            t = info["threshold"]
+            print(f"calibrated {args.model} on {info['n']} scans ({info['how']}): aggregate {insp.aggregate}, "
+                  f"point score {insp.point_score}, threshold at alpha={insp.alpha:g}: "
+                  f"{'none (too few scans)' if t == float('inf') else f'{t:.4g}'}")
+        elif args.command == "score":
+            from .run import score
+
+            score(args.model, args.data, args.out, split=None if args.split == "all" else args.split,
+                  alpha=args.alpha, maps=args.maps, align=args.align, reference=args.reference,
+                  progress=not args.quiet, overwrite=args.overwrite)
+        else:
+            from .demo import run_demo
+
+            run_demo(args.out, seed=args.seed, quick=args.quick, progress=not args.quiet)
+    except (InspectionError, FileNotFoundError, FileExistsError, ValueError, KeyError) as exc:
+        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        if isinstance(exc, KeyError):
+            msg = msg.strip("'\"")
+        print(f"error: {msg}", file=sys.stderr)
+        return 2
+    return 0
 
 
 if __name__ == "__main__":

@@ -16,6 +16,15 @@ from autodecoder.networks import FeatureCovarianceNet
 from autodecoder.sampling import Box, sample_mean_targets, sample_pair_clusters
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """Tiny tensors: intra-op threads only add overhead, and oversubscribe a shared CPU badly. Restored after."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 # ------------------------------------------------------------------------------------------------------------ losses
 
 def test_covariance_loss_features_equals_explicit_pairs():

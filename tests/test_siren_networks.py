@@ -13,6 +13,15 @@ from autodecoder.siren import Siren
 RTOL = 1e-5
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """Tiny tensors: intra-op threads only add overhead, and oversubscribe a shared CPU badly. Restored after."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 def assert_rel_close(actual, expected, rtol=RTOL):
     """|actual - expected| <= rtol * max|expected| elementwise (relative to the tensor's scale), shapes equal."""
     assert actual.shape == expected.shape, (actual.shape, expected.shape)

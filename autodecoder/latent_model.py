@@ -1,0 +1,192 @@
+"""LatentModel: a trained autodecoder (mean and covariance nets conditioned on a code) and its checkpoint format.
+
+A checkpoint is a plain dict of tensors and Python values, readable with ``torch.load(weights_only=True)``:
+
+=====================  ==============================================================================================
+key                    content
+=====================  ==============================================================================================
+format, version        ``"nsspr-latent-model"``, 1
+config                 network and training configuration (see :func:`autodecoder.latent_train.train_latent`)
+mean_state, cov_state  network weights
+codes                  (T, L) float32: one code per training scan, in ``train_names`` order
+code_mean, code_std    (L,) float32: statistics of the codes
+train_names            list of str: the training scans (collection names)
+train_part_ids         list of str: their part ids
+calibration_names      list of str: good scans held back for the inspection threshold
+frame                  {"center": [x, y, z], "scale": s}: file -> collection frame of the training collection
+noise                  float: RMS of the mean at the training scans' points (collection units)
+fingerprint            str: the training collection's fingerprint ('' when trained on in-memory scans)
+epoch                  int: epochs completed
+resume                 dict: optimiser and RNG states (only what ``--resume`` needs)
+info                   dict: provenance (wall time, per-epoch losses summary)
+=====================  ==============================================================================================
+
+All coordinates the model takes and returns are in the training collection's frame (the unit cube the collection's
+scans are stored in); :attr:`LatentModel.frame` maps scanner-file coordinates into it.
+"""
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .checkpoint_io import atomic_torch_save, load_torch_file
+from .networks import build_networks
+
+LATENT_FORMAT = "nsspr-latent-model"
+LATENT_VERSION = 1
+_REQUIRED_KEYS = ("config", "mean_state", "cov_state", "codes", "train_names", "calibration_names", "frame", "noise")
+
+
+def check_checkpoint(state, source):
+    """Raise one clear ValueError naming ``source`` unless ``state`` is a latent-model checkpoint of our version."""
+    if not isinstance(state, dict) or state.get("format") != LATENT_FORMAT:
+        raise ValueError(f"{source}: not a latent model checkpoint (format tag {LATENT_FORMAT!r} missing)")
+    if state.get("version") != LATENT_VERSION:
+        raise ValueError(f"{source}: latent model checkpoint version {state.get('version')} is not supported "
+                         f"(this toolkit reads version {LATENT_VERSION})")
+    missing = [k for k in _REQUIRED_KEYS if k not in state]
+    if missing:
+        raise ValueError(f"{source}: damaged latent model checkpoint (missing {', '.join(missing)})")
+    return state
+
+
+def read_checkpoint(path):
+    """The checkpoint dict at ``path`` (``torch.load(weights_only=True)``), validated; clear errors naming it."""
+    return check_checkpoint(load_torch_file(path, what="latent model checkpoint"), os.fspath(Path(path)))
+
+
+class LatentModel:
+    """A trained latent model: g(x, z), c(x1, x2, z) and the codes of its training scans.
+
+    Build it with :func:`load_model`; fit a code to a new scan with :meth:`project`.
+
+    Attributes
+    ----------
+    mean_net, cov_net : torch.nn.Module
+        Frozen (eval mode, no gradients) networks.
+    codes : (T, L) float32 tensor
+        Training codes.
+    code_mean, code_std : (L,) float32 tensors
+    train_names, calibration_names : list of str
+    noise : float
+        Measurement noise level in collection units (RMS training residual).
+    config : dict
+    fingerprint : str
+        The training collection's fingerprint.
+    """
+
+    def __init__(self, state, source="<state>"):
+        state = check_checkpoint(state, source)
+        self.source = source
+        self.config = dict(state["config"])
+        self.mean_net, self.cov_net = build_networks(self.config)
+        self.mean_net.load_state_dict(state["mean_state"])
+        self.cov_net.load_state_dict(state["cov_state"])
+        for net in (self.mean_net, self.cov_net):
+            net.eval()
+            net.requires_grad_(False)
+        self.codes = state["codes"].detach().float()
+        self.code_mean = state.get("code_mean", self.codes.mean(0)).float()
+        self.code_std = state.get("code_std", self.codes.std(0) if len(self.codes) > 1 else torch.ones_like(self.code_mean)).float()
+        self.train_names = list(state["train_names"])
+        self.train_part_ids = list(state.get("train_part_ids", [""] * len(self.train_names)))
+        self.calibration_names = list(state["calibration_names"])
+        self.frame_dict = dict(state["frame"])
+        self.noise = float(state["noise"])
+        self.fingerprint = str(state.get("fingerprint", ""))
+        self.epoch = int(state.get("epoch", 0))
+        self.info = dict(state.get("info", {}))
+
+    @property
+    def latent_dim(self):
+        return int(self.config["latent_dim"])
+
+    @property
+    def frame(self):
+        """The training collection's :class:`datasets.frame.Frame` (x_collection = scale * (x_file - center))."""
+        from datasets.frame import Frame
+
+        return Frame.from_dict(self.frame_dict)
+
+    @property
+    def lengthscale(self):
+        """GP kernel lengthscale the model was trained with (collection units)."""
+        return float(self.config["lengthscale"])
+
+    def __repr__(self):
+        return (f"LatentModel({self.source!r}, {len(self.train_names)} training codes, latent_dim={self.latent_dim}, "
+                f"width={self.config['width']}, depth={self.config['depth']}, epoch={self.epoch})")
+
+    def field(self, code, mean_net=None, cov_net=None, info=None):
+        """The :class:`StochasticField` of a code (L,), in the collection frame (identity normalization)."""
+        from .field import StochasticField
+        from .frame import Normalization
+
+        code = torch.as_tensor(code, dtype=torch.float32).reshape(-1)
+        if code.shape != (self.latent_dim,):
+            raise ValueError(f"code must have {self.latent_dim} entries, got {tuple(code.shape)}")
+        field_config = {k: self.config[k] for k in ("width", "depth", "latent_dim", "covariance", "features",
+                                                    "omega0", "lengthscale", "box_lo", "box_hi")
+                        if k in self.config}
+        return StochasticField(mean_net or self.mean_net, cov_net or self.cov_net, Normalization.identity(),
+                               field_config, code=code, noise=self.noise, info=info)
+
+    def training_field(self, name):
+        """The field of training scan ``name`` (its learned code)."""
+        try:
+            i = self.train_names.index(name)
+        except ValueError:
+            raise KeyError(f"{self.source}: no training scan named {name!r}") from None
+        return self.field(self.codes[i], info={"training_scan": name})
+
+    def project(self, points, normals=None, **options):
+        """Fit a code to one scan with the nets frozen; see :func:`autodecoder.projection.project`."""
+        from .projection import project
+
+        return project(self, points, normals, **options)
+
+    def project_many(self, scans, **options):
+        """Fit codes to many scans at once; see :func:`autodecoder.projection.project_many`."""
+        from .projection import project_many
+
+        return project_many(self, scans, **options)
+
+
+def load_model(path):
+    """Read a latent model checkpoint written by ``train_latent.py``.
+
+    Parameters
+    ----------
+    path : str or Path
+
+    Returns
+    -------
+    LatentModel
+
+    Raises
+    ------
+    FileNotFoundError
+        No such file.
+    ValueError
+        Not a latent model checkpoint, another format version, or damaged (the message names the file).
+    """
+    return LatentModel(read_checkpoint(path), os.fspath(Path(path)))
+
+
+def save_checkpoint(state, path):
+    """Write a checkpoint dict atomically (see :func:`autodecoder.checkpoint_io.atomic_torch_save`)."""
+    check_checkpoint(state, os.fspath(path))
+    atomic_torch_save(state, path)
+
+
+def code_statistics(codes):
+    """(mean, std) of the codes (T, L); std is ones for a single code."""
+    codes = codes.detach().float()
+    mean = codes.mean(0)
+    std = codes.std(0) if len(codes) > 1 else torch.ones_like(mean)
+    return mean, std
+
+
+def as_float_array(x):
+    return np.ascontiguousarray(np.asarray(x, dtype=np.float32))

@@ -1,0 +1,506 @@
+"""Training the latent model over many scans: a code table, the conditioned nets, checkpoints that resume, DDP.
+
+One step takes a batch of S scans and, for each, fresh samples of its GP posterior targets (the targets themselves,
+a KD-tree and the lumped diagonal per scan, are built once and cached); the NSSPR losses are computed for the S
+scans in one forward pass with a code per sample (z: (S * n, L)). The covariance net sees the codes detached: the
+codes are shaped by the mean (geometry) loss only, and the covariance net learns the uncertainty given the code.
+
+Distributed data parallel (``torchrun --nproc_per_node=N train_latent.py ...``): the training scans are sharded over
+the ranks (rank r owns scans r, r + N, ...); each rank holds and optimises only its own scans' codes (outside DDP);
+the two nets are wrapped in one :class:`torch.nn.parallel.DistributedDataParallel` module, so their gradients are
+averaged over the ranks and the weights stay identical. At checkpoint time the codes, their optimiser moments and the
+per-rank random states are gathered and rank 0 writes the file.
+"""
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import torch
+from torch import nn
+
+from .latent_model import LATENT_FORMAT, LATENT_VERSION, LatentModel, code_statistics, save_checkpoint
+from .losses import SCREENING_WEIGHT, covariance_dirichlet_loss_features, mean_dirichlet_loss, screening_loss
+from .networks import build_networks
+from .sampling import Box
+from .targets import DEFAULT_LENGTHSCALE_FACTOR, MIN_LENGTHSCALE, CloudTargets, point_spacing
+
+LOG_COLUMNS = ("epoch", "loss", "mean_dirichlet", "mean_screening", "cov_dirichlet", "cov_screening", "code_reg",
+               "code_rms", "lr", "seconds")
+
+
+@dataclass
+class LatentOptions:
+    """Architecture and optimisation settings of :func:`train_latent` (defaults measured, see the README).
+
+    Attributes
+    ----------
+    latent_dim : int
+        Code dimension L.
+    width, depth : int
+        SIREN hidden width and number of hidden layers of both nets.
+    features : int
+        Rank K of the feature covariance net.
+    omega0 : float
+        SIREN first-layer frequency.
+    epochs : int
+        Passes over the training scans.
+    batch : int
+        Scans per step (per process under DDP).
+    lr, code_lr : float
+        Peak Adam learning rates of the nets and of the codes (cosine decay to ``final_lr_fraction`` of them).
+    mean_samples, screen_samples : int
+        Box samples (mean loss) and cloud points (screening terms) per scan and step.
+    pair_clusters, cluster_size : int
+        The covariance batch per scan and step: pair_clusters x cluster_size points, all their ordered pairs.
+    code_reg : float
+        lambda of the code prior lambda * |z|^2 (per scan, averaged over the batch).
+    code_init_std : float
+        Codes start as N(0, code_init_std^2) (DeepSDF).
+    screening_weight : float
+        lambda_S.
+    lengthscale : float, optional
+        GP kernel lengthscale (collection units); default: 2 x the median point spacing of the training scans.
+    seed : int
+    checkpoint_every : int
+        Epochs between checkpoints (0: only at the end).
+    """
+
+    latent_dim: int = 32
+    width: int = 128
+    depth: int = 3
+    features: int = 64
+    omega0: float = 30.0
+    epochs: int = 300
+    batch: int = 8
+    lr: float = 1e-3
+    code_lr: float = 1e-3
+    final_lr_fraction: float = 0.05
+    mean_samples: int = 1024
+    screen_samples: int = 512
+    pair_clusters: int = 32
+    cluster_size: int = 4
+    code_reg: float = 1e-4
+    code_init_std: float = 0.01
+    screening_weight: float = SCREENING_WEIGHT
+    lengthscale: Optional[float] = None
+    seed: int = 0
+    checkpoint_every: int = 0
+
+    def __post_init__(self):
+        for name in ("latent_dim", "width", "depth", "features", "epochs", "batch", "mean_samples",
+                     "screen_samples", "pair_clusters"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.cluster_size < 2:
+            raise ValueError(f"cluster_size must be >= 2, got {self.cluster_size}")
+        for name in ("lr", "code_lr"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.code_reg < 0 or self.checkpoint_every < 0:
+            raise ValueError("code_reg and checkpoint_every must be >= 0")
+
+    @classmethod
+    def from_dict(cls, d):
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in names})
+
+
+class _NetPair(nn.Module):
+    """Both nets in one module whose forward returns the four NSSPR loss terms (what DDP wraps)."""
+
+    def __init__(self, mean_net, cov_net, screening_weight, box_volume):
+        super().__init__()
+        self.mean_net, self.cov_net = mean_net, cov_net
+        self.screening_weight, self.box_volume = float(screening_weight), float(box_volume)
+
+    def forward(self, x, z_x, mu, omega, screen, z_screen, pair_x, z_pair, sigma, weights):
+        s, n = mu.shape[:2]
+        _, grad = self.mean_net.value_and_gradient(x, z_x)  # (S n, 3)
+        mean_dir = mean_dirichlet_loss(grad.view(s, n, 3), mu, omega, self.box_volume)
+        mean_scr = screening_loss(self.mean_net(screen, z_screen), self.screening_weight)
+        _, jac = self.cov_net.features_and_jacobian(pair_x, z_pair)  # (S m, 3, K)
+        m = sigma.shape[1]
+        cov_dir = covariance_dirichlet_loss_features(jac.view(s, m, 3, -1), sigma, weights)
+        cov_scr = screening_loss(self.cov_net.variance(screen, z_screen.detach()), self.screening_weight)
+        return torch.stack([mean_dir, mean_scr, cov_dir, cov_scr])
+
+
+def _cosine(step, total, fraction):
+    return fraction + (1 - fraction) * 0.5 * (1 + math.cos(math.pi * min(step / max(total, 1), 1.0)))
+
+
+def _dist():
+    """(rank, world size, initialised?) of torch.distributed."""
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size(), True
+    return 0, 1, False
+
+
+def _all_gather(obj, world):
+    if world == 1:
+        return [obj]
+    import torch.distributed as dist
+
+    out = [None] * world
+    dist.all_gather_object(out, obj)
+    return out
+
+
+def collection_lengthscale(scans, indices, factor=DEFAULT_LENGTHSCALE_FACTOR, max_scans=16):
+    """One lengthscale for a collection: ``factor`` x the median point spacing of (up to ``max_scans``) scans."""
+    pick = list(indices)[:max_scans] if len(indices) <= max_scans else \
+        [indices[i] for i in np.linspace(0, len(indices) - 1, max_scans).round().astype(int)]
+    spacing = float(np.median([point_spacing(np.asarray(scans[i].points, dtype=np.float64)) for i in pick]))
+    return max(factor * spacing, MIN_LENGTHSCALE)
+
+
+def train_latent(scans, out=None, options=None, *, names=None, frame=None, fingerprint="", calibration_names=(),
+                 resume=None, device="cpu", quiet=False, stop_after=None, **overrides):
+    """Train a latent model (autodecoder) over oriented scans, all in one collection frame.
+
+    Parameters
+    ----------
+    scans : sequence of Scan
+        The training scans (``len`` and ``scans[i]``; a lazy view over a collection works: each process reads only
+        the scans it owns, plus up to 16 for the lengthscale). Points (N, 3) in the collection frame.
+    out : str or Path, optional
+        Checkpoint path; the log ``<stem>.log.csv`` and plot ``<stem>.loss.png`` go beside it. None: no files.
+    options : LatentOptions, optional
+        Overridden field by field by ``**overrides``.
+    names : list of str, optional
+        Scan names (default: ``scans.names`` or each scan's ``name``).
+    frame : datasets.frame.Frame or dict, optional
+        The collection's file -> collection frame, stored in the checkpoint (identity by default).
+    fingerprint : str
+        The training collection's fingerprint (stored; checked on resume).
+    calibration_names : list of str
+        Good scans held back for calibration (stored only).
+    resume : dict, optional
+        A checkpoint (see :func:`autodecoder.latent_model.read_checkpoint`) to continue from; its configuration wins
+        over ``options`` except ``epochs`` and ``checkpoint_every``.
+    device : str or torch.device
+    quiet : bool
+        No progress bar.
+    stop_after : int, optional
+        End this run (with a checkpoint) once this many epochs are complete, as if interrupted there.
+
+    Returns
+    -------
+    LatentModel
+        On every rank (codes gathered from all ranks).
+    """
+    rank, world, distributed = _dist()
+    device = torch.device(device)
+    options = LatentOptions.from_dict({**asdict(options or LatentOptions()), **overrides})
+    if names is None:
+        names = list(getattr(scans, "names", None) or [s.name for s in scans])
+    names = [str(n) for n in names]
+    n_scans = len(names)
+    if n_scans < 1:
+        raise ValueError("no training scans")
+    if len(set(names)) != n_scans:
+        raise ValueError("training scan names must be unique")
+    frame_dict = _frame_dict(frame)
+
+    if resume is not None:
+        if resume.get("fingerprint", "") != fingerprint:
+            raise ValueError(f"the checkpoint was trained on another collection (fingerprint "
+                             f"{resume.get('fingerprint', '')[:12]}... vs {fingerprint[:12]}...)")
+        if list(resume["train_names"]) != names:
+            raise ValueError("the checkpoint's training scans differ from the scans given")
+        config = dict(resume["config"])
+        config["epochs"], config["checkpoint_every"] = options.epochs, options.checkpoint_every
+        options = LatentOptions.from_dict(config)
+        if config.get("world_size", 1) != world:
+            raise ValueError(f"the checkpoint was written by {config.get('world_size', 1)} processes; resume it "
+                             f"with the same number (got {world})")
+    else:
+        config = None
+
+    local = list(range(rank, n_scans, world))
+    if not local:
+        raise ValueError(f"{world} processes but only {n_scans} training scans: every process needs one")
+    local_scans = {i: scans[i] for i in local}
+    for i, s in local_scans.items():
+        if len(s.points) < 10:
+            raise ValueError(f"scan {names[i]!r} has {len(s.points)} points; at least 10 needed")
+
+    if config is None:
+        h = options.lengthscale or collection_lengthscale(scans, list(range(n_scans)))
+        lo = np.min([s.points.min(0) for s in local_scans.values()], 0).astype(np.float64)
+        hi = np.max([s.points.max(0) for s in local_scans.values()], 0).astype(np.float64)
+        if distributed:
+            import torch.distributed as dist
+
+            t = torch.tensor(np.concatenate([-lo, hi]), dtype=torch.float64)
+            dist.all_reduce(t, op=dist.ReduceOp.MAX)
+            lo, hi = -t[:3].numpy(), t[3:].numpy()
+        box = Box.around(np.stack([lo, hi]), margin=max(0.1, 4 * h))
+        config = {**asdict(options), "lengthscale": float(h), "covariance": "feature",
+                  "box_lo": box.lo.tolist(), "box_hi": box.hi.tolist(), "world_size": world}
+    box = Box(np.asarray(config["box_lo"]), np.asarray(config["box_hi"]))
+    h = float(config["lengthscale"])
+
+    # ---- state: nets, codes, optimisers, random generators (all seeded, so a run is reproducible) --------------
+    torch.manual_seed(options.seed)
+    mean_net, cov_net = build_networks(config)
+    nets = _NetPair(mean_net, cov_net, options.screening_weight, box.volume).to(device)
+    gen = torch.Generator().manual_seed(options.seed + 1)
+    all_codes = torch.randn(n_scans, options.latent_dim, generator=gen) * options.code_init_std
+    codes = nn.Parameter(all_codes[local].clone().to(device))
+    opt_nets = torch.optim.Adam(nets.parameters(), lr=options.lr)
+    opt_codes = torch.optim.Adam([codes], lr=options.code_lr)
+    rng = np.random.default_rng([options.seed, rank])
+    start_epoch, history = 0, []
+    if resume is not None:
+        mean_net.load_state_dict(resume["mean_state"])
+        cov_net.load_state_dict(resume["cov_state"])
+        r = resume["resume"]
+        opt_nets.load_state_dict(r["opt_nets"])
+        with torch.no_grad():
+            codes.copy_(resume["codes"][local].to(device))
+        code_state = r["opt_codes"]
+        code_state = {"state": {0: {"step": code_state["step"], "exp_avg": code_state["exp_avg"][local],
+                                    "exp_avg_sq": code_state["exp_avg_sq"][local]}},
+                      "param_groups": code_state["param_groups"]}
+        opt_codes.load_state_dict(code_state)
+        rng.bit_generator.state = r["numpy_rng"][rank]
+        torch.set_rng_state(r["torch_rng"])
+        start_epoch, history = int(resume["epoch"]), list(resume.get("info", {}).get("history", []))
+    module = nets
+    if distributed:
+        from torch.nn.parallel import DistributedDataParallel
+
+        module = DistributedDataParallel(nets, device_ids=[device.index] if device.type == "cuda" else None)
+
+    t_targets = time.perf_counter()
+    targets = {i: CloudTargets(np.asarray(s.points, np.float64), np.asarray(s.normals, np.float64), h, box=box)
+               for i, s in local_scans.items()}
+    t_targets = time.perf_counter() - t_targets
+    scans_part_ids = _part_ids({i: str(getattr(s, "part_id", "")) for i, s in local_scans.items()}, n_scans, world)
+    del local_scans
+
+    batch = min(options.batch, len(local))
+    steps_per_epoch = math.ceil(math.ceil(n_scans / world) / batch)
+    total_steps = options.epochs * steps_per_epoch
+    info = dict(resume.get("info", {})) if resume is not None else {}
+    info.setdefault("train_seconds", 0.0)
+    info["targets_seconds"] = t_targets
+
+    local_points = [torch.from_numpy(targets[i].points32).to(device) for i in local]
+
+    def checkpoint_state(epoch):
+        return _checkpoint(config, nets, codes, opt_nets, opt_codes, rng, local, local_points, names,
+                           scans_part_ids, calibration_names, frame_dict, fingerprint, epoch, info, history, world)
+
+    end_epoch = options.epochs if stop_after is None else min(options.epochs, int(stop_after))
+    show = not quiet and rank == 0
+    bar = None
+    if show and end_epoch > start_epoch:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=end_epoch - start_epoch, desc="training", unit="epoch", dynamic_ncols=True)
+    state = None
+    nets.train()
+    for epoch in range(start_epoch, end_epoch):
+        t0 = time.perf_counter()
+        order = rng.permutation(len(local))
+        order = np.resize(order, steps_per_epoch * batch)  # ranks with fewer scans wrap around
+        sums = torch.zeros(6, dtype=torch.float64)
+        for k in range(steps_per_epoch):
+            step = epoch * steps_per_epoch + k
+            f = _cosine(step, total_steps, options.final_lr_fraction)
+            for g in opt_nets.param_groups:
+                g["lr"] = options.lr * f
+            for g in opt_codes.param_groups:
+                g["lr"] = options.code_lr * f
+            pos = order[k * batch:(k + 1) * batch]
+            inputs = _batch_inputs([targets[local[p]] for p in pos], options, rng, device)
+            z = codes[torch.as_tensor(pos, device=device)]  # (S, L)
+            n, m, q = options.mean_samples, inputs["sigma"].shape[1], inputs["screen"].shape[0] // len(pos)
+            terms = module(inputs["x"], z.repeat_interleave(n, 0), inputs["mu"], inputs["omega"], inputs["screen"],
+                           z.repeat_interleave(q, 0), inputs["pair_x"], z.detach().repeat_interleave(m, 0),
+                           inputs["sigma"], inputs["weights"])
+            reg = options.code_reg * z.square().sum(1).mean()
+            loss = terms.sum() + reg
+            opt_nets.zero_grad(set_to_none=True)
+            opt_codes.zero_grad(set_to_none=True)
+            loss.backward()
+            opt_nets.step()
+            opt_codes.step()
+            sums += torch.cat([loss.detach().reshape(1), terms.detach(), reg.detach().reshape(1)]).double().cpu()
+        sums /= steps_per_epoch
+        if distributed:
+            import torch.distributed as dist
+
+            sums = sums.to(device) if device.type == "cuda" else sums
+            dist.all_reduce(sums)
+            sums = sums.cpu() / world
+        seconds = time.perf_counter() - t0
+        info["train_seconds"] += seconds
+        record = dict(zip(LOG_COLUMNS, [epoch + 1, *sums.tolist(), float(codes.detach().square().mean().sqrt()),
+                                        options.lr * f, seconds]))
+        history.append(record)
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(loss=f"{record['loss']:.4g}", mean=f"{record['mean_dirichlet']:.3g}",
+                            screen=f"{record['mean_screening']:.3g}", cov=f"{record['cov_dirichlet']:.3g}")
+        if out is not None and rank == 0:
+            _write_log(out, history)
+        done = epoch + 1
+        if (options.checkpoint_every and done % options.checkpoint_every == 0) or done == end_epoch:
+            state = checkpoint_state(done)
+            if out is not None and rank == 0:
+                save_checkpoint(state, out)
+                _plot_losses(out, history)
+    if bar is not None:
+        bar.close()
+    nets.eval()
+    if state is None:  # nothing left to train (resumed a finished run)
+        state = checkpoint_state(start_epoch)
+    return LatentModel(state, os.fspath(out) if out is not None else "<trained>")
+
+
+def _frame_dict(frame):
+    if frame is None:
+        return {"center": [0.0, 0.0, 0.0], "scale": 1.0}
+    if isinstance(frame, dict):
+        return {"center": [float(c) for c in frame["center"]], "scale": float(frame["scale"])}
+    return {"center": [float(c) for c in frame.center], "scale": float(frame.scale)}
+
+
+def _part_ids(local_ids, n_scans, world):
+    """Every training scan's part id, gathered from the ranks that read them."""
+    merged = {}
+    for d in _all_gather(local_ids, world):
+        merged.update(d)
+    return [merged.get(i, "") for i in range(n_scans)]
+
+
+def _batch_inputs(batch_targets, options, rng, device):
+    """Fresh samples of S scans' targets, stacked: the tensors :class:`_NetPair` takes."""
+    xs, mus, omegas, screens, pxs, sigmas, weights = [], [], [], [], [], [], []
+    n_screen = min([options.screen_samples] + [len(t.points32) for t in batch_targets])
+    for t in batch_targets:
+        x, mu, omega = t.mean_batch(options.mean_samples, rng)
+        px, sigma, w = t.pair_batch(options.pair_clusters, options.cluster_size, rng)
+        xs.append(x), mus.append(mu), omegas.append(omega), pxs.append(px), sigmas.append(sigma), weights.append(w)
+        screens.append(t.screen_batch(n_screen, rng))
+
+    def cat(a, stack=False):
+        return torch.from_numpy(np.stack(a) if stack else np.concatenate(a)).to(device)
+
+    return {"x": cat(xs), "mu": cat(mus, True), "omega": cat(omegas, True), "screen": cat(screens),
+            "pair_x": cat(pxs), "sigma": cat(sigmas, True), "weights": cat(weights, True)}
+
+
+def _checkpoint(config, nets, codes, opt_nets, opt_codes, rng, local, local_points, names, part_ids,
+                calibration_names, frame_dict, fingerprint, epoch, info, history, world):
+    """The full checkpoint dict (codes and per-rank states gathered from all ranks)."""
+    code_state = opt_codes.state_dict()
+    st = code_state["state"].get(0)
+    latent_dim = codes.shape[1]
+    if st is None:
+        st = {"step": torch.tensor(0.0), "exp_avg": torch.zeros_like(codes), "exp_avg_sq": torch.zeros_like(codes)}
+    # noise: RMS of the mean at this rank's scans' points
+    total, count = 0.0, 0
+    with torch.no_grad():
+        for p, pts in enumerate(local_points):
+            total += float(nets.mean_net(pts, codes[p]).double().square().sum())
+            count += len(pts)
+    mine = {"local": local, "codes": codes.detach().cpu(), "exp_avg": st["exp_avg"].detach().cpu(),
+            "exp_avg_sq": st["exp_avg_sq"].detach().cpu(), "rng": rng.bit_generator.state, "sq": total, "n": count}
+    gathered = _all_gather(mine, world)
+    n = len(names)
+    full = {k: torch.zeros(n, latent_dim) for k in ("codes", "exp_avg", "exp_avg_sq")}
+    for g in gathered:
+        for k in full:
+            full[k][g["local"]] = g[k]
+    sq, cnt = sum(g["sq"] for g in gathered), sum(g["n"] for g in gathered)
+    noise = math.sqrt(sq / cnt) if cnt else 0.0
+    mean, std = code_statistics(full["codes"])
+    info = {**info, "history": list(history)}
+    return {
+        "format": LATENT_FORMAT,
+        "version": LATENT_VERSION,
+        "config": dict(config),
+        "mean_state": {k: v.detach().cpu() for k, v in nets.mean_net.state_dict().items()},
+        "cov_state": {k: v.detach().cpu() for k, v in nets.cov_net.state_dict().items()},
+        "codes": full["codes"],
+        "code_mean": mean,
+        "code_std": std,
+        "train_names": list(names),
+        "train_part_ids": list(part_ids),
+        "calibration_names": [str(c) for c in calibration_names],
+        "frame": dict(frame_dict),
+        "noise": float(noise),
+        "fingerprint": str(fingerprint),
+        "epoch": int(epoch),
+        "resume": {
+            "opt_nets": _to_cpu(opt_nets.state_dict()),
+            "opt_codes": {"step": st["step"].detach().cpu() if torch.is_tensor(st["step"]) else torch.tensor(float(st["step"])),
+                          "exp_avg": full["exp_avg"], "exp_avg_sq": full["exp_avg_sq"],
+                          "param_groups": code_state["param_groups"]},
+            "numpy_rng": [g["rng"] for g in gathered],
+            "torch_rng": torch.get_rng_state(),
+        },
+        "info": info,
+    }
+
+
+def _to_cpu(obj):
+    if torch.is_tensor(obj):
+        return obj.detach().cpu()
+    if isinstance(obj, dict):
+        return {k: _to_cpu(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_to_cpu(v) for v in obj]
+    return obj
+
+
+def log_paths(out):
+    """The CSV log and loss plot that go beside checkpoint ``out``: (model.log.csv, model.loss.png)."""
+    out = Path(out)
+    stem = out.name[:-len(out.suffix)] if out.suffix else out.name
+    return out.with_name(stem + ".log.csv"), out.with_name(stem + ".loss.png")
+
+
+def _write_log(out, history):
+    csv_path, _ = log_paths(out)
+    csv_path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = csv_path.with_name("." + csv_path.name + ".tmp")
+    with open(tmp, "w") as fh:
+        fh.write(",".join(LOG_COLUMNS) + "\n")
+        for r in history:
+            fh.write(",".join(f"{r[c]:.6g}" if isinstance(r[c], float) else str(r[c]) for c in LOG_COLUMNS) + "\n")
+    os.replace(tmp, csv_path)
+
+
+def _plot_losses(out, history):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    _, png = log_paths(out)
+    epochs = [r["epoch"] for r in history]
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for key in ("loss", "mean_dirichlet", "mean_screening", "cov_dirichlet", "cov_screening"):
+        values = [max(r[key], 1e-12) for r in history]
+        ax.plot(epochs, values, label=key)
+    ax.set_yscale("log")
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("loss (epoch mean)")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    tmp = png.with_name("." + png.name + ".tmp.png")
+    fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    os.replace(tmp, png)

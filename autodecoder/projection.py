@@ -1,0 +1,313 @@
+"""Test-time projection: fitting a latent code to a new scan with the trained nets frozen (optionally fine-tuning).
+
+The projection loss of a code z on a scan's points p_i with normals n_i (collection frame) is
+
+    lambda_S mean_i g(p_i, z)^2  +  mean_i |grad g(p_i, z) - n_i|^2  +  lambda_z |z|^2,
+
+the screening term plus the mean Dirichlet term restricted to the points (where the GP posterior mean of the normal
+field is the unit normal itself, so no KD-tree or box samples are needed). Without normals, the points' PCA normals are
+used without an orientation: the second term becomes min(|grad g - n|^2, |grad g + n|^2).
+
+Robust starts: every candidate (the mean code and up to ``max_candidates`` training codes) is scored by this loss on
+a small subset of the points; the ``starts`` best are optimised together for a short while and the best one goes on
+alone. Several scans are optimised in one batched forward pass (Adam acts elementwise, so each scan's code follows
+exactly the path it would follow alone).
+"""
+import time
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+import torch
+
+from .validation import check_points
+
+
+@dataclass
+class ProjectionOptions:
+    """Settings of :func:`project` (defaults measured on a 2-core CPU, see the README).
+
+    Attributes
+    ----------
+    steps : int
+        Adam steps on the code.
+    lr : float
+        Adam learning rate of the code (cosine decay to 10%).
+    sample : int
+        Scan points per step (a fresh random subset each step).
+    starts : int
+        Candidate codes optimised for the first ``explore`` steps.
+    explore : int
+        Steps after which only the best start continues.
+    max_candidates : int
+        Training codes scored as candidate starts (evenly spread when there are more).
+    score_points : int
+        Points on which the candidates are scored.
+    code_reg : float, optional
+        lambda_z (default: the training's ``code_reg``).
+    finetune_steps : int
+        Steps of fine-tuning copies of both nets on the scan's GP targets after the projection (0: none).
+    finetune_lr : float
+        Peak learning rate of the fine-tuning.
+    """
+
+    steps: int = 150
+    lr: float = 0.02
+    sample: int = 512
+    starts: int = 4
+    explore: int = 30
+    max_candidates: int = 64
+    score_points: int = 128
+    code_reg: Optional[float] = None
+    finetune_steps: int = 0
+    finetune_lr: float = 1e-4
+
+
+@dataclass
+class Projection:
+    """The result of projecting one scan.
+
+    Attributes
+    ----------
+    code : (L,) float32 tensor
+    loss : float
+        Projection loss (without the code prior) on all the scan's points.
+    field : StochasticField
+        The field of the code (collection frame); with fine-tuned copies of the nets when ``finetune_steps > 0``.
+    start : int
+        Which candidate the winning code started from (-1: the mean code, else a training code index).
+    seconds : float
+        Wall time of this scan's projection (its share when batched).
+    """
+
+    code: torch.Tensor
+    loss: float
+    field: object
+    start: int = -1
+    seconds: float = 0.0
+    info: dict = field(default_factory=dict)
+
+
+def _pca_normals(points, k=16):
+    """Unoriented unit normals (n, 3): the smallest principal direction of each point's k neighbours."""
+    from scipy.spatial import cKDTree
+
+    k = min(k, len(points))
+    _, idx = cKDTree(points).query(points, k)
+    nb = points[idx] - points[idx].mean(1, keepdims=True)  # (n, k, 3)
+    cov = np.einsum("nki,nkj->nij", nb, nb)
+    _, vecs = np.linalg.eigh(cov)
+    return vecs[:, :, 0]
+
+
+def _prepare(scan_like, index):
+    if hasattr(scan_like, "points"):
+        points, normals = scan_like.points, scan_like.normals
+    elif isinstance(scan_like, (tuple, list)) and len(scan_like) == 2:
+        points, normals = scan_like
+    else:
+        points, normals = scan_like, None
+    points = check_points(points, f"scan {index} points", min_points=10)
+    if normals is None:
+        return points.astype(np.float32), _pca_normals(points).astype(np.float32), False
+    normals = check_points(normals, f"scan {index} normals", min_points=10)
+    if normals.shape != points.shape:
+        raise ValueError(f"scan {index}: points {points.shape} and normals {normals.shape} differ in shape")
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    if (length < 1e-8).any():
+        raise ValueError(f"scan {index}: {int((length < 1e-8).sum())} normals have zero length")
+    return points.astype(np.float32), (normals / length).astype(np.float32), True
+
+
+def _data_loss(mean_net, x, normals, oriented, z, screening_weight):
+    """Per-group projection loss: x, normals (G, n, 3), z (G, L), oriented (G,) bool -> (G,)."""
+    g_, n_, _ = x.shape
+    zz = z[:, None, :].expand(g_, n_, z.shape[1]).reshape(g_ * n_, -1)
+    g, grad = mean_net.value_and_gradient(x.reshape(-1, 3), zz)
+    g, grad = g.view(g_, n_), grad.view(g_, n_, 3)
+    plus = (grad - normals).square().sum(-1)
+    minus = (grad + normals).square().sum(-1)
+    align = torch.where(oriented[:, None], plus, torch.minimum(plus, minus))
+    return screening_weight * g.square().mean(1) + align.mean(1)
+
+
+def project_many(model, scans, *, seed=0, batch=16, workers=None, quiet=True, **options):
+    """Project several scans, ``batch`` of them per batched optimisation.
+
+    Parameters
+    ----------
+    model : LatentModel
+    scans : list of Scan, (points, normals) pairs or (n, 3) point arrays
+        In the model's collection frame (map scanner-file coordinates with ``model.frame.to_collection``).
+    seed : int
+        Seeds the point subsets (scan k uses ``seed + k``'s subsets only through the shared generator: the same
+        call gives the same codes).
+    batch : int
+        Scans optimised together.
+    workers : int, optional
+        Torch intra-op threads for the call (default: leave torch's setting).
+    **options
+        :class:`ProjectionOptions` fields.
+
+    Returns
+    -------
+    list of Projection
+    """
+    opts = ProjectionOptions(**options)
+    if opts.steps < 0 or opts.starts < 1 or opts.sample < 1:
+        raise ValueError(f"steps must be >= 0, starts and sample >= 1; got {opts.steps}, {opts.starts}, {opts.sample}")
+    if batch < 1:
+        raise ValueError(f"batch must be >= 1, got {batch}")
+    old_threads = torch.get_num_threads()
+    if workers is not None:
+        torch.set_num_threads(int(workers))
+    try:
+        prepared = [_prepare(s, i) for i, s in enumerate(scans)]
+        out = []
+        for start in range(0, len(prepared), batch):
+            out.extend(_project_batch(model, prepared[start:start + batch], opts, seed + start))
+        if opts.finetune_steps > 0:
+            out = [_finetune(model, p, prepared[i], opts, seed + i, quiet) for i, p in enumerate(out)]
+        return out
+    finally:
+        torch.set_num_threads(old_threads)
+
+
+def project(model, points, normals=None, *, seed=0, quiet=True, **options):
+    """Fit a latent code to one scan with the nets frozen.
+
+    Parameters
+    ----------
+    model : LatentModel
+    points : (n, 3) array
+        The scan's points in the model's collection frame (``model.frame.to_collection`` maps file coordinates).
+    normals : (n, 3) array, optional
+        Outward unit normals; without them PCA normals are used, sign-free.
+    seed : int
+    **options
+        :class:`ProjectionOptions` fields, e.g. ``steps=200``, ``finetune_steps=300``.
+
+    Returns
+    -------
+    Projection
+    """
+    return project_many(model, [(points, normals)], seed=seed, batch=1, quiet=quiet, **options)[0]
+
+
+def _candidates(model, max_candidates):
+    codes = model.codes
+    if len(codes) > max_candidates:
+        codes = codes[np.linspace(0, len(codes) - 1, max_candidates).round().astype(int)]
+        index = np.linspace(0, len(model.codes) - 1, max_candidates).round().astype(int)
+    else:
+        index = np.arange(len(codes))
+    return torch.cat([model.code_mean[None], codes]), np.concatenate([[-1], index])
+
+
+def _project_batch(model, prepared, opts, seed):
+    t0 = time.perf_counter()
+    net = model.mean_net
+    lam_s = float(model.config.get("screening_weight", 100.0))
+    lam_z = float(model.config.get("code_reg", 1e-4)) if opts.code_reg is None else float(opts.code_reg)
+    rng = np.random.default_rng(seed)
+    b = len(prepared)
+    pts = [torch.from_numpy(p) for p, _, _ in prepared]
+    nrm = [torch.from_numpy(n) for _, n, _ in prepared]
+    oriented = torch.tensor([o for _, _, o in prepared])
+    sizes = [len(p) for p in pts]
+
+    def subset(k):
+        idx = [torch.from_numpy(rng.integers(0, n, k)) for n in sizes]
+        return (torch.stack([p[i] for p, i in zip(pts, idx)]), torch.stack([q[i] for q, i in zip(nrm, idx)]))
+
+    cand, cand_index = _candidates(model, opts.max_candidates)  # (C, L)
+    c, latent = cand.shape
+    starts = min(opts.starts, c)
+    with torch.no_grad():
+        xs, ns = subset(opts.score_points)  # (B, q, 3)
+        x = xs[:, None].expand(b, c, *xs.shape[1:]).reshape(b * c, -1, 3)
+        n = ns[:, None].expand(b, c, *ns.shape[1:]).reshape(b * c, -1, 3)
+        o = oriented[:, None].expand(b, c).reshape(-1)
+        z = cand[None].expand(b, c, latent).reshape(b * c, latent)
+        score = _data_loss(net, x, n, o, z, lam_s).view(b, c)
+        best = torch.topk(-score, starts, dim=1).indices  # (B, starts)
+    z = torch.nn.Parameter(cand[best].clone())  # (B, starts, L)
+    start_index = cand_index[best.numpy()]  # (B, starts)
+    opt = torch.optim.Adam([z], lr=opts.lr)
+    explore = min(opts.explore, opts.steps) if starts > 1 else 0
+    for step in range(opts.steps):
+        for grp in opt.param_groups:
+            grp["lr"] = opts.lr * (0.1 + 0.9 * 0.5 * (1 + np.cos(np.pi * step / max(opts.steps, 1))))
+        k = z.shape[1]
+        xs, ns = subset(opts.sample)
+        x = xs[:, None].expand(b, k, *xs.shape[1:]).reshape(b * k, -1, 3)
+        n = ns[:, None].expand(b, k, *ns.shape[1:]).reshape(b * k, -1, 3)
+        o = oriented[:, None].expand(b, k).reshape(-1)
+        data = _data_loss(net, x, n, o, z.reshape(b * k, latent), lam_s).view(b, k)
+        loss = data.sum() + lam_z * z.square().sum()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if k > 1 and step + 1 == explore:  # keep each scan's best start, and its Adam moments
+            keep = data.detach().argmin(1)  # (B,)
+            rows = torch.arange(b)
+            state = opt.state[z]
+            z = torch.nn.Parameter(z.detach()[rows, keep][:, None].clone())
+            new = torch.optim.Adam([z], lr=opts.lr)
+            new.state[z] = {"step": state["step"], "exp_avg": state["exp_avg"][rows, keep][:, None].clone(),
+                            "exp_avg_sq": state["exp_avg_sq"][rows, keep][:, None].clone()}
+            opt = new
+            start_index = start_index[rows.numpy(), keep.numpy()][:, None]
+    z = z.detach()
+    with torch.no_grad():  # final loss on all points, per start; keep the best
+        losses = torch.stack([_full_loss(net, pts[i], nrm[i], bool(oriented[i]), z[i], lam_s) for i in range(b)])
+    keep = losses.argmin(1)
+    seconds = (time.perf_counter() - t0) / b
+    out = []
+    for i in range(b):
+        code = z[i, keep[i]].clone()
+        out.append(Projection(code=code, loss=float(losses[i, keep[i]]), field=model.field(code),
+                              start=int(start_index[i, keep[i]]), seconds=seconds,
+                              info={"steps": opts.steps, "oriented": bool(oriented[i])}))
+    return out
+
+
+def _full_loss(net, pts, nrm, oriented, z, lam_s, chunk=8192):
+    """Projection loss of each of k codes z (k, L) on all of a scan's points -> (k,)."""
+    total = torch.zeros(len(z), dtype=torch.float64)
+    for s in range(0, len(pts), chunk):
+        x = pts[s:s + chunk][None].expand(len(z), -1, 3)
+        n = nrm[s:s + chunk][None].expand(len(z), -1, 3)
+        o = torch.full((len(z),), oriented)
+        total += _data_loss(net, x, n, o, z, lam_s).double() * x.shape[1]
+    return (total / len(pts)).float()
+
+
+def _finetune(model, projection, prepared, opts, seed, quiet):
+    """Adapt copies of both nets to the scan's GP targets with the projected code fixed (the paper's fine-tuning)."""
+    import copy
+
+    from .fit import FitOptions, train_single
+    from .sampling import Box
+    from .targets import CloudTargets
+
+    t0 = time.perf_counter()
+    points, normals, oriented = prepared
+    if not oriented:
+        raise ValueError("fine-tuning needs oriented normals (the GP targets are built from them)")
+    box = Box(np.asarray(model.config["box_lo"]), np.asarray(model.config["box_hi"]))
+    targets = CloudTargets(points.astype(np.float64), normals.astype(np.float64), model.lengthscale, box=box)
+    mean_net, cov_net = copy.deepcopy(model.mean_net), copy.deepcopy(model.cov_net)
+    for net in (mean_net, cov_net):
+        net.requires_grad_(True)
+    options = FitOptions(steps=opts.finetune_steps, lr=opts.finetune_lr, mean_batch=2048, screen_batch=1024,
+                         pair_clusters=64)
+    code = projection.code.clone()
+    train_single(mean_net, cov_net, targets, options, np.random.default_rng(seed), quiet=quiet, code=code)
+    for net in (mean_net, cov_net):
+        net.requires_grad_(False)
+    field = model.field(code, mean_net=mean_net, cov_net=cov_net,
+                        info={**projection.info, "finetune_steps": opts.finetune_steps})
+    return Projection(code=code, loss=projection.loss, field=field, start=projection.start,
+                      seconds=projection.seconds + time.perf_counter() - t0,
+                      info={**projection.info, "finetune_steps": opts.finetune_steps})

@@ -1,0 +1,216 @@
+"""Inspector: a scikit-learn style outlier detector over scans, calibrated on good scans with conformal p-values."""
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from .calibration import Calibration, check_alpha, conformal_p_values, conformal_threshold
+from .scores import POINT_SCORES, aggregate as aggregate_scores, check_aggregate, point_scores
+
+log = logging.getLogger(__name__)
+
+DEFAULT_AGGREGATE = "top5"
+DEFAULT_POINT_SCORE = "residual"
+
+
+try:  # scikit-learn's own class, so `except sklearn.exceptions.NotFittedError` catches ours
+    from sklearn.exceptions import NotFittedError
+except ImportError:  # pragma: no cover
+    class NotFittedError(ValueError, AttributeError):
+        """The Inspector was used before :meth:`Inspector.fit`."""
+
+
+@dataclass
+class ScanResult:
+    """One scan's inspection: its anomaly score (higher = more anomalous) and per-point scores (m,)."""
+
+    score: float
+    point_scores: np.ndarray
+    field: object = None
+
+
+def _points_normals(scan):
+    """(points, normals or None) of a Scan, a (points, normals) pair or an (m, 3) array."""
+    if hasattr(scan, "points"):
+        return np.asarray(scan.points), getattr(scan, "normals", None)
+    if isinstance(scan, tuple) and len(scan) == 2:
+        return np.asarray(scan[0]), None if scan[1] is None else np.asarray(scan[1])
+    return np.asarray(scan), None
+
+
+def _scan_name(scan, i):
+    return getattr(scan, "name", None) or f"scan #{i}"
+
+
+def field_for(model, points, normals=None):
+    """The stochastic field that explains one scan under ``model``.
+
+    ``model`` may be a latent model (``model.project(points, normals)`` -> a projection with ``.field``, e.g.
+    :func:`autodecoder.load_model`'s), a fixed field (anything with ``mean``/``variance``, e.g. a ``fit_cloud``
+    field: every scan is scored against the same surface), or a callable ``(points, normals) -> field``.
+    """
+    if hasattr(model, "project"):
+        projection = model.project(points, normals)
+        return getattr(projection, "field", projection)
+    if hasattr(model, "mean") and hasattr(model, "variance"):
+        return model
+    if callable(model):
+        out = model(points, normals)
+        return getattr(out, "field", out)
+    raise TypeError(f"model must have .project(points, normals), .mean/.variance, or be callable; "
+                    f"got {type(model).__name__}")
+
+
+class Inspector:
+    """Defect detector over scans: per-point scores under the projected field, one score per scan, and a threshold
+    calibrated on good scans (split-conformal p-values, false-alarm rate at most ``alpha``).
+
+    Parameters
+    ----------
+    model : latent model, field or callable
+        See :func:`field_for`. Scans must be in the model's frame.
+    alpha : float in (0, 1)
+        False-alarm rate: a scan is defective when its conformal p-value is <= alpha.
+    aggregate : str
+        Per-scan aggregate of the point scores (:func:`inspection.scores.aggregate`): ``'top5'`` (default: mean of
+        the worst 5 % of the points), ``'mean'`` (the paper's), ``'max'``, ``'median'``, ``'top<P>'``, ``'q<P>'``.
+    point_score : {'residual', 'nll'}
+        Per-point score (:func:`inspection.scores.point_scores`): the standardized residual (default) or the NLL.
+    noise : float, optional
+        Noise floor (measurement noise standard deviation, model frame units); default the field's own.
+
+    Attributes (after :meth:`fit`)
+    ------------------------------
+    calibration_scores_ : (n,) array
+        Anomaly scores of the calibration scans.
+    calibration_names_ : list of str
+    threshold_ : float
+        Scans with anomaly score > threshold_ are defective (+inf: too few calibration scans for alpha).
+    offset_ : float
+        ``-threshold_``, so that ``decision_function = score_samples - offset_`` is negative exactly for defects.
+    n_calibration_ : int
+    """
+
+    def __init__(self, model, alpha=0.01, aggregate=DEFAULT_AGGREGATE, point_score=DEFAULT_POINT_SCORE, noise=None):
+        self.model = model
+        self.alpha = alpha
+        self.aggregate = aggregate
+        self.point_score = point_score
+        self.noise = noise
+
+    # ------------------------------------------------------------------------------------------------ checks
+    def _check_params(self):
+        check_alpha(self.alpha)
+        check_aggregate(self.aggregate)
+        if self.point_score not in POINT_SCORES:
+            raise ValueError(f"point_score must be one of {POINT_SCORES}, got {self.point_score!r}")
+        if self.noise is not None and not float(self.noise) >= 0:
+            raise ValueError(f"noise must be None or >= 0, got {self.noise!r}")
+
+    def _check_is_fitted(self):
+        if not hasattr(self, "calibration_scores_"):
+            raise NotFittedError("This Inspector is not calibrated yet: call fit(good_scans) or "
+                                 "set_calibration(...) before scoring against a threshold")
+
+    # ------------------------------------------------------------------------------------------------ scoring
+    def inspect(self, scan):
+        """Project one scan and score it. Returns a :class:`ScanResult` (score, per-point scores, field)."""
+        self._check_params()
+        points, normals = _points_normals(scan)
+        if points.ndim != 2 or points.shape[-1] != 3 or len(points) == 0:
+            raise ValueError(f"{_scan_name(scan, 0)}: a scan needs (m >= 1, 3) points, got shape {points.shape}")
+        field = field_for(self.model, points, normals)
+        values = point_scores(field, points, kind=self.point_score, noise=self.noise)
+        return ScanResult(aggregate_scores(values, self.aggregate), values, field)
+
+    def anomaly_scores(self, scans):
+        """Per-scan anomaly scores (n,) (higher = more anomalous). Works unfitted."""
+        return np.array([self.inspect(s).score for s in scans], dtype=np.float64)
+
+    def anomaly_map(self, scan):
+        """Per-point scores (m,) of one scan (higher = more anomalous). Works unfitted."""
+        return self.inspect(scan).point_scores
+
+    # ------------------------------------------------------------------------------------------------ fitting
+    def fit(self, good_scans, y=None, names=None):
+        """Calibrate on good scans the model did NOT train on (held-back or validation scans).
+
+        Parameters
+        ----------
+        good_scans : sequence of Scan (or (m, 3) arrays)
+        y : ignored
+        names : list of str, optional
+            Default: the scans' names.
+
+        Returns
+        -------
+        self
+        """
+        self._check_params()
+        good_scans = list(good_scans)
+        if not good_scans:
+            raise ValueError("fit needs at least one good calibration scan, got none")
+        scores = self.anomaly_scores(good_scans)
+        names = [_scan_name(s, i) for i, s in enumerate(good_scans)] if names is None else list(names)
+        return self._set(scores, names)
+
+    def _set(self, scores, names):
+        scores = np.asarray(scores, dtype=np.float64).reshape(-1)
+        if len(scores) == 0 or not np.all(np.isfinite(scores)):
+            raise ValueError("calibration scores must be a non-empty array of finite numbers")
+        self.calibration_scores_ = scores
+        self.calibration_names_ = list(names)
+        self.n_calibration_ = len(scores)
+        self.threshold_ = conformal_threshold(scores, self.alpha)
+        self.offset_ = -self.threshold_
+        return self
+
+    def set_calibration(self, calibration):
+        """Use a stored :class:`~inspection.calibration.Calibration` (its aggregate, point score and noise floor
+        replace this inspector's; ``alpha`` stays). Returns self."""
+        self.aggregate = calibration.aggregate
+        self.point_score = calibration.point_score
+        self.noise = calibration.noise
+        self._check_params()
+        return self._set(calibration.scores, calibration.names)
+
+    def calibration(self, source="", fingerprint=""):
+        """The fitted calibration as a :class:`~inspection.calibration.Calibration`, ready to store in the model."""
+        self._check_is_fitted()
+        return Calibration(scores=self.calibration_scores_.tolist(), names=list(self.calibration_names_),
+                           aggregate=self.aggregate, point_score=self.point_score,
+                           noise=None if self.noise is None else float(self.noise), alpha=float(self.alpha),
+                           source=source, fingerprint=fingerprint)
+
+    # ------------------------------------------------------------------------------------ sklearn outlier API
+    def p_values_from_scores(self, anomaly_scores):
+        """Conformal p-values (n,) of given anomaly scores."""
+        self._check_is_fitted()
+        return conformal_p_values(self.calibration_scores_, anomaly_scores)
+
+    def p_values(self, scans):
+        """Conformal p-values (n,) in [1/(n_calibration_+1), 1]; small = unlike the good calibration scans."""
+        return self.p_values_from_scores(self.anomaly_scores(scans))
+
+    def score_samples(self, scans):
+        """Normality scores (n,): the negated anomaly score, so HIGHER = MORE NORMAL (scikit-learn convention)."""
+        return -self.anomaly_scores(scans)
+
+    def decision_function(self, scans):
+        """``score_samples(scans) - offset_``: negative for defective scans, >= 0 for good ones."""
+        self._check_is_fitted()
+        return self.score_samples(scans) - self.offset_
+
+    def predict_from_scores(self, anomaly_scores):
+        """+1 (good) / -1 (defective) for given anomaly scores: -1 exactly when the p-value is <= alpha."""
+        self._check_is_fitted()
+        s = np.asarray(anomaly_scores, dtype=np.float64)
+        return np.where(s > self.threshold_, -1, 1)
+
+    def predict(self, scans):
+        """+1 for good scans, -1 for defective ones (p-value <= alpha, i.e. decision_function < 0)."""
+        return self.predict_from_scores(self.anomaly_scores(scans))
+
+    def __repr__(self):
+        return (f"Inspector(alpha={self.alpha!r}, aggregate={self.aggregate!r}, point_score={self.point_score!r}, "
+                f"noise={self.noise!r})")

@@ -1,0 +1,43 @@
+"""Anomaly maps: a scan's points coloured by their standardized residual, written as PLY.
+
+Colour scale (fixed, so maps of different scans and runs compare): colormap ``turbo`` over the standardized residual
+|E f(p)| / sqrt(Var f(p) + noise^2) from 0 (dark blue: on the expected surface) to 5 (dark red: 5 standard deviations
+off, or more; values above 5 are clipped). The legend is written as ``legend.png`` beside the maps.
+"""
+from pathlib import Path
+
+import numpy as np
+
+MAP_CMAP = "turbo"
+MAP_RANGE = (0.0, 5.0)
+MAP_LABEL = "standardized residual |mean| / sqrt(var + noise^2)  (clipped at 5)"
+
+
+def colours(values, cmap=MAP_CMAP, vrange=MAP_RANGE):
+    """(m,) scores -> (m, 3) uint8 RGB on the fixed scale."""
+    import matplotlib
+
+    lo, hi = vrange
+    t = np.clip((np.asarray(values, dtype=np.float64) - lo) / (hi - lo), 0.0, 1.0)
+    rgba = matplotlib.colormaps[cmap](t)
+    return np.round(rgba[:, :3] * 255).astype(np.uint8)
+
+
+def safe_name(name):
+    """A scan name as a file name: '/' -> '__', anything outside [A-Za-z0-9._-] -> '_'."""
+    out = "".join(c if c.isalnum() or c in "._-" else ("__" if c == "/" else "_") for c in name)
+    return out.strip(".") or "scan"
+
+
+def write_map(path, points, normals, values):
+    """Write the scan coloured by ``values`` (standardized residuals) to a binary PLY (atomically)."""
+    from datasets import write_cloud
+
+    return write_cloud(Path(path), np.asarray(points, dtype=np.float32),
+                       None if normals is None else np.asarray(normals, dtype=np.float32), colours(values))
+
+
+def write_legend(path):
+    from .plots import plot_legend
+
+    return plot_legend(path, MAP_CMAP, *MAP_RANGE, MAP_LABEL)

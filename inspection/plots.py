@@ -1,0 +1,117 @@
+"""Pictures of an inspection run: ROC curve, score histograms with the threshold, the colour legend of the maps."""
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path, dpi=110):
+    """Save a figure atomically (temporary PNG beside ``path`` renamed into place)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".png")
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=dpi)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def plot_roc(path, labels, scores, defects=None, title="ROC (object level)"):
+    """ROC of defective (positive) vs good scans, overall and per defect type.
+
+    Parameters
+    ----------
+    labels : (n,) array of 0 (good) / 1 (defective)
+    scores : (n,) anomaly scores
+    defects : (n,) array of str, optional
+    """
+    from sklearn.metrics import roc_auc_score, roc_curve
+
+    plt = _pyplot()
+    labels, scores = np.asarray(labels, dtype=int), np.asarray(scores, dtype=float)
+    fig, ax = plt.subplots(figsize=(5.2, 5))
+    if 0 < labels.sum() < len(labels):
+        fpr, tpr, _ = roc_curve(labels, scores)
+        ax.plot(fpr, tpr, "k-", lw=2, label=f"all (AUROC {roc_auc_score(labels, scores):.3f})")
+        if defects is not None:
+            defects = np.asarray(defects)
+            for d in sorted(set(defects[labels == 1])):
+                sel = (labels == 0) | (defects == d)
+                fpr, tpr, _ = roc_curve(labels[sel], scores[sel])
+                ax.plot(fpr, tpr, lw=1.2, label=f"{d} ({roc_auc_score(labels[sel], scores[sel]):.3f})")
+    else:
+        ax.text(0.5, 0.5, "needs good and defective scans", ha="center")
+    ax.plot([0, 1], [0, 1], ":", color="grey")
+    ax.set(xlabel="false-alarm rate (good scans flagged)", ylabel="detection rate", title=title, xlim=(0, 1),
+           ylim=(0, 1.01))
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="lower right", fontsize=8)
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)
+    return Path(path)
+
+
+def plot_score_histograms(path, scores, labels, threshold=None, calibration_scores=None, defects=None,
+                          title="anomaly scores"):
+    """Histograms of the scores of good and defective (and unknown) scans, calibration scores, and the threshold.
+
+    Parameters
+    ----------
+    scores : (n,) anomaly scores
+    labels : (n,) array of 'good' / 'defective' / 'unknown'
+    threshold : float, optional (a vertical line; not drawn when infinite)
+    calibration_scores : (k,) array, optional
+    """
+    plt = _pyplot()
+    scores, labels = np.asarray(scores, dtype=float), np.asarray(labels)
+    fig, ax = plt.subplots(figsize=(7, 4))
+    allv = [scores] + ([np.asarray(calibration_scores, float)] if calibration_scores is not None else [])
+    allv = np.concatenate(allv)
+    bins = np.linspace(allv.min(), allv.max() + 1e-12, 31) if len(allv) else 10
+    groups = [("good", "tab:green"), ("defective", "tab:red"), ("unknown", "tab:grey")]
+    for lab, colour in groups:
+        sel = labels == lab
+        if sel.any():
+            ax.hist(scores[sel], bins=bins, alpha=0.55, color=colour, label=f"{lab} ({sel.sum()})")
+    if calibration_scores is not None and len(calibration_scores):
+        ax.hist(calibration_scores, bins=bins, histtype="step", color="tab:blue", lw=1.5,
+                label=f"calibration ({len(calibration_scores)})")
+    if threshold is not None and np.isfinite(threshold):
+        ax.axvline(threshold, color="k", ls="--", label=f"threshold {threshold:.3g}")
+    ax.set(xlabel="anomaly score (higher = more anomalous)", ylabel="scans", title=title)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)
+    return Path(path)
+
+
+def plot_legend(path, cmap, vmin, vmax, label):
+    """A horizontal colour bar: the legend of the anomaly maps."""
+    import matplotlib as mpl
+
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6, 1.1))
+    norm = mpl.colors.Normalize(vmin=vmin, vmax=vmax)
+    fig.colorbar(mpl.cm.ScalarMappable(norm=norm, cmap=cmap), cax=ax, orientation="horizontal",
+                 label=label, extend="max")
+    fig.subplots_adjust(bottom=0.55, top=0.9, left=0.05, right=0.95)
+    _save(fig, path)
+    plt.close(fig)
+    return Path(path)

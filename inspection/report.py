@@ -1,0 +1,153 @@
+"""Reports of an inspection run: the scores table (CSV), the metrics summary (JSON), the terminal table."""
+import csv
+import io
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+CSV_COLUMNS = ("name", "split", "label", "defect", "score", "p_value", "verdict")
+
+
+def atomic_write_text(path, text):
+    """Write ``text`` to ``path`` through a temporary file in the same folder renamed into place."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
+            f.write(text)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def write_scores_csv(path, rows):
+    """``rows``: dicts with the keys of CSV_COLUMNS (score and p_value floats). Written atomically."""
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=CSV_COLUMNS, extrasaction="ignore", lineterminator="\n")
+    writer.writeheader()
+    for r in rows:
+        writer.writerow({**r, "score": f"{r['score']:.9g}", "p_value": f"{r['p_value']:.6g}"})
+    return atomic_write_text(path, buf.getvalue())
+
+
+def _finite(x):
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
+def summarize(rows, threshold, alpha, point_labels=None, point_scores=None, extra=None):
+    """Counts and, when labels exist, detection metrics (positive class = defective).
+
+    Parameters
+    ----------
+    rows : list of dict
+        One per scan with 'label' ('good' / 'defective' / 'unknown'), 'defect', 'score', 'p_value', 'verdict'.
+    threshold, alpha : float
+    point_labels, point_scores : list of (m_i,) arrays, optional
+        Per-point ground truth and scores of the scans that have ground truth (pooled for the point-level AUROC).
+    extra : dict, optional
+        Merged into the summary (model, aggregate, ...).
+
+    Returns
+    -------
+    dict (JSON-ready; infinities as null)
+    """
+    from sklearn.metrics import average_precision_score, confusion_matrix, precision_recall_fscore_support, \
+        roc_auc_score
+
+    labels = [r["label"] for r in rows]
+    summary = {
+        "n_scans": len(rows),
+        "counts": {lab: labels.count(lab) for lab in ("good", "defective", "unknown")},
+        "counts_by_defect": {},
+        "n_flagged": sum(r["verdict"] == "defective" for r in rows),
+        "alpha": float(alpha),
+        "threshold": _finite(threshold),
+        "threshold_note": "a scan is defective when its score > threshold (p_value <= alpha); "
+                          "null threshold: too few calibration scans for alpha, nothing is flagged",
+    }
+    for r in rows:
+        if r["label"] == "defective":
+            summary["counts_by_defect"][r["defect"]] = summary["counts_by_defect"].get(r["defect"], 0) + 1
+    known = [r for r in rows if r["label"] in ("good", "defective")]
+    metrics = {}
+    if known:
+        y = np.array([r["label"] == "defective" for r in known], dtype=int)
+        s = np.array([r["score"] for r in known])
+        pred = np.array([r["verdict"] == "defective" for r in known], dtype=int)
+        good = y == 0
+        if good.any():
+            metrics["false_alarm_rate"] = float(pred[good].mean())
+        if y.any():
+            metrics["detection_rate"] = float(pred[~good].mean())
+        if 0 < y.sum() < len(y):
+            metrics["auroc"] = float(roc_auc_score(y, s))
+            metrics["aupr"] = float(average_precision_score(y, s))
+            per = {}
+            for d in sorted({r["defect"] for r in known if r["label"] == "defective"}):
+                sel = np.array([r["label"] == "good" or r["defect"] == d for r in known])
+                per[d] = float(roc_auc_score(y[sel], s[sel]))
+            metrics["auroc_per_defect"] = per
+        p, rc, f1, _ = precision_recall_fscore_support(y, pred, average="binary", pos_label=1, zero_division=0)
+        tn, fp, fn, tp = confusion_matrix(y, pred, labels=[0, 1]).ravel()
+        metrics.update(precision=float(p), recall=float(rc), f1=float(f1),
+                       confusion_matrix={"tn": int(tn), "fp": int(fp), "fn": int(fn), "tp": int(tp),
+                                         "rows": "true label (good, defective)",
+                                         "matrix": [[int(tn), int(fp)], [int(fn), int(tp)]]})
+    if point_labels:
+        yl = np.concatenate([np.asarray(v).reshape(-1) for v in point_labels]).astype(int)
+        sl = np.concatenate([np.asarray(v).reshape(-1) for v in point_scores])
+        if 0 < yl.sum() < len(yl):
+            metrics["point_auroc"] = float(roc_auc_score(yl, sl))
+            metrics["point_n"] = int(len(yl))
+    summary["metrics"] = metrics
+    summary.update(extra or {})
+    return summary
+
+
+def write_json(path, obj):
+    return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
+
+
+def _json_default(o):
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return _finite(float(o))
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
+
+
+def format_table(rows, summary, max_rows=60):
+    """The terminal table: one line per scan (up to ``max_rows``, flagged scans first) and the metrics."""
+    lines = [f"{'name':<28} {'label':<9} {'defect':<9} {'score':>10} {'p_value':>8}  verdict"]
+    shown = sorted(rows, key=lambda r: (r["verdict"] != "defective", r["name"]))
+    for r in shown[:max_rows]:
+        mark = "  <-- FLAGGED" if r["verdict"] == "defective" else ""
+        lines.append(f"{r['name'][:28]:<28} {r['label']:<9} {r['defect'] or '-':<9} {r['score']:>10.4g} "
+                     f"{r['p_value']:>8.3g}  {r['verdict']}{mark}")
+    if len(rows) > max_rows:
+        lines.append(f"... {len(rows) - max_rows} more in scores.csv")
+    t = summary.get("threshold")
+    lines.append(f"{summary['n_flagged']} of {summary['n_scans']} scans flagged at alpha={summary['alpha']:g} "
+                 f"(threshold {'none' if t is None else f'{t:.4g}'})")
+    m = summary.get("metrics", {})
+    bits = []
+    for key in ("auroc", "aupr", "point_auroc", "precision", "recall", "f1", "false_alarm_rate"):
+        if key in m:
+            bits.append(f"{key} {m[key]:.3f}")
+    if bits:
+        lines.append("  ".join(bits))
+    if m.get("auroc_per_defect"):
+        lines.append("AUROC per defect: " + "  ".join(f"{k} {v:.3f}" for k, v in m["auroc_per_defect"].items()))
+    return "\n".join(lines)

@@ -1,0 +1,269 @@
+"""The inspection jobs behind the command line: calibrate a model on good scans, score scans and write the results."""
+import logging
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+COLLECTION_SUFFIXES = (".h5", ".hdf5")
+RESULT_FILES = ("scores.csv", "summary.json", "roc.png", "scores.png")
+
+
+class InspectionError(Exception):
+    """A user-facing problem (bad input); the command line prints its message as one line and exits 2."""
+
+
+# ------------------------------------------------------------------------------------------------------ inputs
+def load_scans(data, frame=None, split=None, label=None, model_fingerprint=""):
+    """Scans to inspect, in the model's frame.
+
+    Parameters
+    ----------
+    data : str or Path
+        A collection file (.h5), a folder of scanner files (tree or flat, see datasets.importer) or one cloud file.
+    frame : datasets.Frame, optional
+        The model's frame: a collection must have been stored in it; scanner files are moved into it.
+    split : str, optional
+        Keep only this split ('train', 'validation', 'test') when the data has splits; None keeps all.
+    label : str, optional
+        Keep only this label.
+
+    Returns
+    -------
+    scans : list of Scan
+    info : dict
+        ``source``, ``kind`` ('collection' / 'files'), ``fingerprint`` (collections), ``same_as_training``.
+    """
+    from datasets import ScanCollection
+    from datasets.cloud_io import CLOUD_SUFFIXES
+    from datasets.importer import ScanSource, find_sources, load_source
+
+    data = Path(data)
+    if not data.exists():
+        raise InspectionError(f"{data}: no such file or folder")
+    info = {"source": str(data)}
+    if data.is_file() and data.suffix.lower() in COLLECTION_SUFFIXES:
+        try:
+            coll = ScanCollection(data)
+        except (OSError, ValueError) as exc:
+            raise InspectionError(str(exc) if str(data) in str(exc) else f"{data}: {exc}") from None
+        with coll:
+            if frame is not None and coll.frame != frame:
+                raise InspectionError(f"{data}: collection frame {coll.frame} differs from the model's {frame}; "
+                                      f"the model was trained on other data (re-import the scans with the model's "
+                                      f"frame, or pass the scanner files)")
+            idx = coll.select(split=split, label=label)
+            fp = coll.fingerprint()
+            info.update(kind="collection", fingerprint=fp, same_as_training=bool(model_fingerprint)
+                        and fp == model_fingerprint, frame=coll.frame)
+            scans = coll.read_many(idx)
+    elif data.is_dir() or data.suffix.lower() in CLOUD_SUFFIXES:
+        if data.is_dir():
+            sources = find_sources(data)
+        else:
+            sources = [ScanSource(data, data.stem, "test", "unknown", "")]
+        if frame is None:
+            raise InspectionError(f"{data}: scanner files need the model's frame, and this model records none")
+        scans = []
+        for src in sources:
+            scan, _ = load_source(src)
+            scans.append(frame.apply(scan))
+        scans = [s for s in scans if (split is None or s.split == split) and (label is None or s.label == label)]
+        info.update(kind="files", fingerprint="", same_as_training=False, frame=frame)
+    else:
+        raise InspectionError(f"{data}: unknown data file type {data.suffix!r} (expected a collection "
+                              f"{'/'.join(COLLECTION_SUFFIXES)}, a folder of scans, or a cloud file "
+                              f"{'/'.join(CLOUD_SUFFIXES)})")
+    for s in scans:
+        if len(s.points) == 0:
+            raise InspectionError(f"{data}: scan {s.name!r} has no points")
+    return scans, info
+
+
+def make_aligner(handle, data_info, reference=None, seed=0):
+    """An :class:`inspection.align.Aligner` onto: ``reference`` (a collection: its good training scans; a cloud file),
+    else the good training scans of the data's collection, else the model's mean surface."""
+    from .align import Aligner
+
+    def from_collection(path, names=None):
+        from datasets import ScanCollection
+
+        with ScanCollection(path) as c:
+            idx = c.select(split="train", label="good")
+            if not idx:
+                idx = c.select(label="good")
+            rng = np.random.default_rng(seed)
+            idx = sorted(rng.choice(idx, min(8, len(idx)), replace=False).tolist()) if idx else []
+            scans = c.read_many(idx)
+        if not scans:
+            raise InspectionError(f"{path}: no good scans to align against")
+        return (np.concatenate([s.points for s in scans]), np.concatenate([s.normals for s in scans]))
+
+    if reference is not None:
+        ref = Path(reference)
+        if ref.suffix.lower() in COLLECTION_SUFFIXES:
+            pts, nrm = from_collection(ref)
+        else:
+            from datasets import read_cloud
+
+            pts, nrm = read_cloud(ref)
+        return Aligner(pts, nrm, seed=seed)
+    if data_info.get("kind") == "collection":
+        from datasets import ScanCollection
+
+        with ScanCollection(data_info["source"]) as c:
+            has_train = bool(c.select(split="train", label="good"))
+        if has_train:
+            return Aligner(*from_collection(data_info["source"]), seed=seed)
+    surf = handle.reference_points(seed=seed)
+    if surf is None:
+        raise InspectionError(f"{handle.path}: --align needs a reference: pass --reference (a collection or cloud "
+                              f"file in the model's frame); this model cannot give its mean surface")
+    return Aligner(*surf, seed=seed)
+
+
+def prepare_out(out, overwrite=False):
+    """Create the results folder. An existing folder is reused only when empty or holding an earlier inspection
+    run (its result files are replaced and its old maps removed); anything else needs ``overwrite``."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InspectionError(f"{out}: exists and is not a folder")
+    if out.is_dir():
+        entries = [p for p in out.iterdir() if not p.name.startswith(".")]
+        ours = (out / "summary.json").is_file() or (out / "scores.csv").is_file()
+        if entries and not ours and not overwrite:
+            raise InspectionError(f"{out}: folder exists and does not hold inspection results; choose another --out "
+                                  f"or pass --overwrite")
+        maps = out / "maps"
+        if maps.is_dir():
+            for p in maps.glob("*.ply"):
+                p.unlink()
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+# ------------------------------------------------------------------------------------------------------ jobs
+def calibration_scans(handle, data, split=None, frame_check=True):
+    """The good scans of ``data`` that the model did not train on. Returns (scans, info, how)."""
+    scans, info = load_scans(data, handle.frame if frame_check else None, split=split, label="good",
+                             model_fingerprint=handle.fingerprint)
+    how = f"good scans of {data}" + (f" (split {split})" if split else "")
+    train = set(handle.train_names)
+    if info.get("same_as_training"):
+        held = set(handle.heldback_names)
+        if split is None:
+            if held:
+                val = [s for s in scans if s.split == "validation"]
+                scans = [s for s in scans if s.name in held] + [s for s in val if s.name not in held]
+                how = f"the model's {len(held)} held-back good scans" + (f" and {len(val)} validation scans"
+                                                                         if val else "")
+            else:
+                val = [s for s in scans if s.split == "validation"]
+                scans = val if val else [s for s in scans if s.split != "train"]
+                how = "validation scans" if val else "good test scans (the model trained on the train split)"
+        else:
+            scans = [s for s in scans if s.split != "train" or s.name in held]
+    if train:
+        scans = [s for s in scans if s.name not in train or s.name in set(handle.heldback_names)]
+    if not scans:
+        raise InspectionError(f"{data}: no good scans the model did not train on (give a collection of good parts, "
+                              f"a validation split, or a model with held-back calibration scans)")
+    return scans, info, how
+
+
+def calibrate(model, data, alpha=0.01, aggregate=None, point_score=None, noise=None, split=None, progress=True,
+              write=True):
+    """Calibrate ``model`` on good scans and store the calibration in the model file. Returns (Inspector, info)."""
+    from tqdm import tqdm
+
+    from .calibration import write_calibration
+    from .estimator import DEFAULT_AGGREGATE, DEFAULT_POINT_SCORE, Inspector
+    from .model_io import load_model
+
+    handle = load_model(model)
+    scans, info, how = calibration_scans(handle, data, split=split)
+    insp = Inspector(handle.model, alpha=alpha, aggregate=aggregate or DEFAULT_AGGREGATE,
+                     point_score=point_score or DEFAULT_POINT_SCORE, noise=noise)
+    scores = [insp.inspect(s).score for s in tqdm(scans, desc="calibrate", unit="scan", disable=not progress)]
+    insp._set(scores, [s.name for s in scans])
+    if write:
+        write_calibration(handle.path, insp.calibration(source=f"{how}", fingerprint=info.get("fingerprint", "")))
+    return insp, {"n": len(scans), "how": how, "threshold": insp.threshold_}
+
+
+def score(model, data, out, split="test", alpha=None, maps="flagged", align=False, reference=None, progress=True,
+          overwrite=False, echo=print):
+    """Score scans against a calibrated model and write scores.csv, summary.json, roc.png, scores.png, maps/.
+
+    Returns
+    -------
+    summary : dict
+    """
+    from tqdm import tqdm
+
+    from .estimator import Inspector
+    from .maps import safe_name, write_legend, write_map
+    from .model_io import load_model
+    from .plots import plot_roc, plot_score_histograms
+    from .report import format_table, summarize, write_json, write_scores_csv
+    from .scores import point_scores
+
+    if maps not in ("flagged", "all", "none"):
+        raise InspectionError(f"--maps must be flagged, all or none, got {maps!r}")
+    handle = load_model(model)
+    if handle.calibration is None:
+        raise InspectionError(f"{handle.path}: the model is not calibrated; run `python -m inspection calibrate "
+                              f"--model {handle.path} --data GOOD_SCANS` first")
+    cal = handle.calibration
+    alpha = cal.alpha if alpha is None else alpha
+    insp = Inspector(handle.model, alpha=alpha).set_calibration(cal)
+    scans, info = load_scans(data, handle.frame, split=split, model_fingerprint=handle.fingerprint)
+    if not scans:
+        raise InspectionError(f"{data}: no scans" + (f" in split {split!r}" if split else ""))
+    out = prepare_out(out, overwrite=overwrite)
+    aligner = make_aligner(handle, info, reference) if align else None
+    rows, point_labels, point_vals = [], [], []
+    maps_dir = out / "maps"
+    n_maps = 0
+    seconds = []
+    for scan in tqdm(scans, desc="inspect", unit="scan", disable=not progress):
+        t0 = time.perf_counter()
+        if aligner is not None:
+            scan = aligner.align_scan(scan)
+        res = insp.inspect(scan)
+        seconds.append(time.perf_counter() - t0)
+        p = float(insp.p_values_from_scores([res.score])[0])
+        verdict = "defective" if insp.predict_from_scores([res.score])[0] == -1 else "good"
+        rows.append({"name": scan.name, "split": scan.split, "label": scan.label, "defect": scan.defect,
+                     "score": res.score, "p_value": p, "verdict": verdict})
+        if scan.point_labels is not None:
+            point_labels.append(scan.point_labels)
+            point_vals.append(res.point_scores)
+        if maps == "all" or (maps == "flagged" and verdict == "defective"):
+            resid = res.point_scores if insp.point_score == "residual" else \
+                point_scores(res.field, scan.points, "residual", insp.noise)
+            write_map(maps_dir / f"{safe_name(scan.name)}.ply", scan.points, scan.normals, resid)
+            n_maps += 1
+    extra = {"model": str(handle.path), "model_kind": handle.kind, "data": str(data), "split": split,
+             "aggregate": insp.aggregate, "point_score": insp.point_score, "noise": insp.noise,
+             "n_calibration": insp.n_calibration_, "calibration_source": cal.source, "aligned": bool(align),
+             "seconds_per_scan": float(np.mean(seconds)), "maps": n_maps,
+             "higher_score_means": "more anomalous"}
+    summary = summarize(rows, insp.threshold_, alpha, point_labels, point_vals, extra)
+    write_scores_csv(out / "scores.csv", rows)
+    write_json(out / "summary.json", summary)
+    labels = np.array([r["label"] for r in rows])
+    sc = np.array([r["score"] for r in rows])
+    known = labels != "unknown"
+    plot_roc(out / "roc.png", (labels[known] == "defective").astype(int), sc[known],
+             np.array([r["defect"] for r in rows])[known])
+    plot_score_histograms(out / "scores.png", sc, labels, insp.threshold_, insp.calibration_scores_)
+    if n_maps:
+        write_legend(maps_dir / "legend.png")
+    echo(format_table(rows, summary))
+    echo(f"results in {out}/: scores.csv, summary.json, roc.png, scores.png"
+         + (f", maps/ ({n_maps} coloured PLY + legend.png)" if n_maps else ""))
+    return summary

@@ -1,0 +1,201 @@
+"""inspection: per-point scores, aggregates, conformal p-values and thresholds, the Inspector estimator contract."""
+import math
+import warnings
+
+import numpy as np
+import pytest
+
+from inspection import Inspector, NotFittedError, aggregate, conformal_p_values, conformal_threshold, point_scores
+from inspection.calibration import Calibration, SmallCalibrationWarning
+
+
+# ---------------------------------------------------------------------------------------------- test doubles
+class SphereField:
+    """Analytic stochastic field: mean = |x - c| - r (a signed distance), constant variance."""
+
+    def __init__(self, center=(0, 0, 0), radius=1.0, variance=1e-4, noise=0.01):
+        self.center, self.radius = np.asarray(center, float), float(radius)
+        self.var, self.noise = variance, noise
+
+    def mean(self, x):
+        return np.linalg.norm(np.asarray(x) - self.center, axis=1) - self.radius
+
+    def variance(self, x):
+        return np.full(len(x), self.var)
+
+
+class SphereModel:
+    """A one-shape 'latent' model: projecting a scan fits a sphere's centre and radius (4 numbers) to it."""
+
+    def project(self, points, normals=None):
+        p = np.asarray(points, float)
+        A = np.c_[2 * p, np.ones(len(p))]
+        sol, *_ = np.linalg.lstsq(A, (p**2).sum(1), rcond=None)
+        c = sol[:3]
+        r = math.sqrt(sol[3] + c @ c)
+
+        class Projection:
+            field = SphereField(c, r)
+
+        return Projection()
+
+
+def sphere_scan(n=2000, seed=0, dent=0.0, noise=0.003, center=(0.1, -0.2, 0.05)):
+    """Points on the upper half of a unit sphere (one view), optionally with a dent of depth ``dent`` at the pole."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d[:, 2] = np.abs(d[:, 2])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    r = 1.0 + noise * rng.normal(size=n)
+    r -= dent * np.clip(1 - np.arccos(np.clip(d[:, 2], -1, 1)) / 0.35, 0, None)  # cone-shaped dent, 0.35 rad
+    return d * r[:, None] + np.asarray(center), d
+
+
+# ---------------------------------------------------------------------------------------------- scores
+def test_point_scores_match_formulae():
+    f = SphereField(variance=4e-4, noise=0.03)
+    x = np.array([[1.1, 0, 0], [0, 0.95, 0], [0, 0, 1.0]])
+    total = 4e-4 + 0.03**2
+    m = np.array([0.1, -0.05, 0.0])
+    np.testing.assert_allclose(point_scores(f, x, "residual"), np.abs(m) / math.sqrt(total))
+    np.testing.assert_allclose(point_scores(f, x, "nll"), 0.5 * (m**2 / total + np.log(2 * math.pi * total)))
+    # an explicit noise floor replaces the field's
+    np.testing.assert_allclose(point_scores(f, x, "residual", noise=0.0), np.abs(m) / 0.02)
+
+
+def test_point_scores_validate():
+    f = SphereField()
+    with pytest.raises(ValueError, match="point_score"):
+        point_scores(f, np.zeros((2, 3)), "bogus")
+    with pytest.raises(ValueError, match="no points"):
+        point_scores(f, np.zeros((0, 3)))
+    with pytest.raises(ValueError, match="noise"):
+        point_scores(f, np.zeros((2, 3)), noise=-1)
+
+
+def test_aggregates():
+    v = np.arange(1, 101, dtype=float)  # 1..100
+    assert aggregate(v, "mean") == 50.5
+    assert aggregate(v, "max") == 100
+    assert aggregate(v, "top5") == np.mean([96, 97, 98, 99, 100])
+    assert aggregate(v, "top1") == 100
+    assert aggregate(v, "q50") == 50.5
+    assert aggregate([3.0], "top5") == 3.0  # at least one point
+    for bad in ("top0", "top150", "worst", "q", 5):
+        with pytest.raises(ValueError, match="aggregate"):
+            aggregate(v, bad)
+
+
+# ---------------------------------------------------------------------------------------------- calibration
+def test_p_values_by_hand_with_ties():
+    cal = [1.0, 2.0, 2.0, 3.0]  # n = 4
+    p = conformal_p_values(cal, [0.5, 1.0, 2.0, 2.5, 3.0, 3.5])
+    # (1 + #{c >= s}) / 5
+    np.testing.assert_allclose(p, [5 / 5, 5 / 5, 4 / 5, 2 / 5, 2 / 5, 1 / 5])
+
+
+def test_threshold_by_hand():
+    cal = np.arange(1.0, 20.0)  # 1..19, n = 19
+    # alpha 0.1: k = floor(0.1 * 20 - 1) = 1 -> flagged iff at most one calibration score >= s -> s > 18
+    assert conformal_threshold(cal, 0.1) == 18.0
+    # alpha 0.05: k = 0 -> s > 19
+    assert conformal_threshold(cal, 0.05) == 19.0
+    # ties at the threshold: with 18 twice, s = 18.5 has two scores >= it and p = 3/20 > 0.1
+    cal2 = np.r_[np.arange(1.0, 18.0), 18.0, 18.0]
+    t = conformal_threshold(cal2, 0.1)
+    assert t == 18.0 and conformal_p_values(cal2, [18.0 + 1e-9])[0] == pytest.approx(1 / 20)
+
+
+def test_threshold_too_few_scans_warns(caplog):
+    with pytest.warns(SmallCalibrationWarning, match="too few"):
+        t = conformal_threshold([1.0, 2.0, 3.0], 0.01)  # 1/(n+1) = 0.25 > 0.01
+    assert t == math.inf
+    assert "too few" in caplog.text
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        conformal_threshold(np.arange(99.0), 0.01)  # 1/100 = alpha: enough, no warning
+
+
+def test_threshold_agrees_with_p_values_randomly():
+    rng = np.random.default_rng(1)
+    for n in (9, 19, 50, 99, 200):
+        cal = np.round(rng.normal(size=n), 1)  # rounded: many ties
+        s = np.round(rng.normal(size=300) * 1.5, 1)
+        for alpha in (0.01, 0.05, 0.1, 0.2):
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", SmallCalibrationWarning)
+                t = conformal_threshold(cal, alpha)
+            np.testing.assert_array_equal(s > t, conformal_p_values(cal, s) <= alpha)
+
+
+def test_alpha_validated():
+    with pytest.raises(ValueError, match="alpha must be in"):
+        conformal_threshold([1.0], 0)
+    with pytest.raises(ValueError, match="alpha must be in"):
+        Inspector(SphereModel(), alpha=1.5).fit([sphere_scan()[0]])
+
+
+# ---------------------------------------------------------------------------------------------- estimator
+@pytest.fixture(scope="module")
+def fitted():
+    good = [sphere_scan(seed=s)[0] for s in range(10, 49)]  # 39 good calibration scans
+    return Inspector(SphereModel(), alpha=0.05).fit(good)
+
+
+def test_flags_deformed_passes_good(fitted):
+    good = [sphere_scan(seed=s)[0] for s in (102, 103, 104)]  # good scans: each passes with probability ~1 - alpha
+    dented = [sphere_scan(seed=s, dent=0.08)[0] for s in (200, 201)]
+    pred = fitted.predict(good + dented)
+    assert pred.tolist() == [1, 1, 1, -1, -1]
+    amap = fitted.anomaly_map(dented[0])
+    top = np.argsort(amap)[-20:]
+    # the worst points are at the dent (near the pole)
+    pts = dented[0] - np.array([0.1, -0.2, 0.05])
+    assert np.all(pts[top, 2] / np.linalg.norm(pts[top], axis=1) > math.cos(0.35))
+
+
+def test_estimator_contract(fitted):
+    scans = [sphere_scan(seed=s)[0] for s in (300, 301)] + [sphere_scan(seed=302, dent=0.05)[0]]
+    assert fitted.offset_ == -fitted.threshold_
+    assert len(fitted.calibration_scores_) == fitted.n_calibration_ == 39
+    ss, df = fitted.score_samples(scans), fitted.decision_function(scans)
+    np.testing.assert_array_equal(df, ss - fitted.offset_)
+    np.testing.assert_array_equal(ss, -fitted.anomaly_scores(scans))
+    pv, pred = fitted.p_values(scans), fitted.predict(scans)
+    np.testing.assert_array_equal(pred == -1, pv <= fitted.alpha)
+    np.testing.assert_array_equal(pred == -1, df < 0)
+    assert set(pred.tolist()) <= {-1, 1}
+
+
+def test_not_fitted_and_params_untouched():
+    insp = Inspector(SphereModel(), alpha=0.05, aggregate="mean")
+    assert insp.get_params() if hasattr(insp, "get_params") else True
+    assert insp.aggregate == "mean" and not hasattr(insp, "threshold_")
+    with pytest.raises(NotFittedError, match="not calibrated"):
+        insp.predict([sphere_scan()[0]])
+    with pytest.raises(NotFittedError):
+        insp.decision_function([sphere_scan()[0]])
+    assert insp.anomaly_scores([sphere_scan()[0]]).shape == (1,)  # scoring itself needs no calibration
+
+
+def test_fit_rejects_empty_and_empty_scans():
+    with pytest.raises(ValueError, match="at least one"):
+        Inspector(SphereModel()).fit([])
+    with pytest.raises(ValueError, match="points"):
+        Inspector(SphereModel()).fit([np.zeros((0, 3))])
+
+
+def test_calibration_roundtrip(fitted):
+    cal = fitted.calibration(source="unit test")
+    again = Calibration.from_dict(cal.as_dict())
+    other = Inspector(SphereModel(), alpha=0.05).set_calibration(again)
+    assert other.threshold_ == fitted.threshold_ and other.aggregate == fitted.aggregate
+    np.testing.assert_array_equal(other.calibration_scores_, fitted.calibration_scores_)
+
+
+def test_fixed_field_and_callable_models():
+    pts, _ = sphere_scan(seed=3, center=(0, 0, 0))
+    field = SphereField()
+    a = Inspector(field).anomaly_scores([pts])
+    b = Inspector(lambda p, n: field).anomaly_scores([pts])
+    np.testing.assert_array_equal(a, b)

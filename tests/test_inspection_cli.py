@@ -1,0 +1,168 @@
+"""inspection command line: calibrate / score outputs (CSV, JSON, PNG, PLY), the stored calibration, bad inputs."""
+import csv
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from datasets import Frame, Scan, ScanCollection, read_cloud
+from inspection.__main__ import main
+from inspection.calibration import read_calibration
+from inspection.report import CSV_COLUMNS
+
+FRAME = Frame(np.array([1.0, 2.0, 3.0]), 0.5)
+
+
+def _scan(name, split, label, defect="", seed=0, n=300, dent=0.0):
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d[:, 2] = np.abs(d[:, 2])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    r = 0.4 - dent * (d[:, 2] > 0.9)
+    labels = None if split == "train" else (d[:, 2] > 0.9).astype(np.uint8) * (label == "defective")
+    return Scan(name=name, points=d * r[:, None], normals=d, split=split, label=label, defect=defect,
+                point_labels=labels)
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+    """A tiny collection (6 train, 3 good + 2 dented test scans) and an (untrained, tiny) field model file."""
+    import torch
+
+    from autodecoder.field import StochasticField
+    from autodecoder.frame import Normalization
+    from autodecoder.networks import build_networks
+    from inspection.model_io import save_reference_field
+
+    root = tmp_path_factory.mktemp("insp")
+    scans = [_scan(f"train/good/{i:03d}", "train", "good", seed=i) for i in range(6)]
+    scans += [_scan(f"test/good/{i:03d}", "test", "good", seed=10 + i) for i in range(3)]
+    scans += [_scan(f"test/dent/{i:03d}", "test", "defective", "dent", seed=20 + i, dent=0.1) for i in range(2)]
+    ScanCollection.create(root / "tree.h5", scans, frame=FRAME)
+    with ScanCollection(root / "tree.h5") as c:
+        fp = c.fingerprint()
+    config = {"width": 16, "depth": 1, "latent_dim": 0, "covariance": "feature", "features": 8, "omega0": 5.0,
+              "lengthscale": 0.05, "box_lo": [-0.6] * 3, "box_hi": [0.6] * 3}
+    torch.manual_seed(0)
+    mean_net, cov_net = build_networks(config)
+    field = StochasticField(mean_net, cov_net, Normalization.identity(), config, noise=0.01)
+    save_reference_field(field, root / "model.pt", frame=FRAME, fingerprint=fp,
+                         train_names=[s.name for s in scans[:3]], heldback_names=[s.name for s in scans[3:6]])
+    return root
+
+
+def test_help_is_fast():
+    t0 = time.perf_counter()
+    r = subprocess.run([sys.executable, "-m", "inspection", "score", "--help"], capture_output=True, text=True)
+    assert r.returncode == 0 and "--align" in r.stdout
+    assert time.perf_counter() - t0 < 5
+
+
+def test_calibrate_then_score(workdir, tmp_path, capsys):
+    model = tmp_path / "model.pt"
+    model.write_bytes((workdir / "model.pt").read_bytes())
+    rc = main(["calibrate", "--model", str(model), "--data", str(workdir / "tree.h5"), "--alpha", "0.3", "--quiet"])
+    assert rc == 0
+    cal = read_calibration(model)
+    assert sorted(cal.names) == [f"train/good/{i:03d}" for i in range(3, 6)]  # the held-back scans only
+    assert len(cal.scores) == 3 and cal.aggregate == "top5" and cal.alpha == 0.3
+    from autodecoder.field import StochasticField
+
+    StochasticField.load(model)  # the model file still loads as before
+
+    out = tmp_path / "results"
+    rc = main(["score", "--model", str(model), "--data", str(workdir / "tree.h5"), "--out", str(out),
+               "--maps", "all", "--quiet"])
+    assert rc == 0
+    with open(out / "scores.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+        assert tuple(csv.reader(open(out / "scores.csv")).__next__()) == CSV_COLUMNS
+    assert len(rows) == 5 and {r["split"] for r in rows} == {"test"}
+    assert {r["label"] for r in rows} == {"good", "defective"}
+    for r in rows:
+        p = float(r["p_value"])
+        assert 0.25 <= p <= 1 and r["verdict"] == ("defective" if p <= 0.3 else "good")
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["n_scans"] == 5 and summary["counts"]["defective"] == 2
+    m = summary["metrics"]
+    for key in ("auroc", "aupr", "precision", "recall", "f1", "confusion_matrix", "point_auroc"):
+        assert key in m
+    assert set(m["auroc_per_defect"]) == {"dent"}
+    for png in ("roc.png", "scores.png", "maps/legend.png"):
+        assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    ply = out / "maps" / "test__dent__000.ply"
+    pts, normals = read_cloud(ply)
+    assert pts.shape == (300, 3) and normals is not None
+    assert "flagged" in capsys.readouterr().out
+    # scoring again into the same results folder replaces its files
+    assert main(["score", "--model", str(model), "--data", str(workdir / "tree.h5"), "--out", str(out),
+                 "--maps", "none", "--quiet"]) == 0
+    assert not list((out / "maps").glob("*.ply"))
+
+
+def _error(argv, capsys):
+    rc = main(argv)
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err.startswith("error: ") and len(err.splitlines()) == 1, err
+    return err
+
+
+def test_uncalibrated_model(workdir, tmp_path, capsys):
+    err = _error(["score", "--model", str(workdir / "model.pt"), "--data", str(workdir / "tree.h5"),
+                  "--out", str(tmp_path / "r")], capsys)
+    assert "not calibrated" in err and "model.pt" in err
+
+
+def test_bad_inputs(workdir, tmp_path, capsys):
+    model = tmp_path / "model.pt"
+    model.write_bytes((workdir / "model.pt").read_bytes())
+    assert main(["calibrate", "--model", str(model), "--data", str(workdir / "tree.h5"), "--quiet"]) == 0
+    capsys.readouterr()
+    # a collection in another frame
+    other = tmp_path / "other.h5"
+    ScanCollection.create(other, [_scan("test/good/000", "test", "good")], frame=Frame(np.zeros(3), 1.0))
+    err = _error(["score", "--model", str(model), "--data", str(other), "--out", str(tmp_path / "r1")], capsys)
+    assert "other.h5" in err and "frame" in err
+    # missing model, missing data, unknown file type
+    assert "nope.pt" in _error(["score", "--model", str(tmp_path / "nope.pt"), "--data", str(other), "--out",
+                                str(tmp_path / "r2")], capsys)
+    assert "nope.h5" in _error(["score", "--model", str(model), "--data", str(tmp_path / "nope.h5"), "--out",
+                                str(tmp_path / "r3")], capsys)
+    weird = tmp_path / "scan.foo"
+    weird.write_text("1 2 3\n")
+    assert "scan.foo" in _error(["score", "--model", str(model), "--data", str(weird), "--out",
+                                 str(tmp_path / "r4")], capsys)
+    # an empty scan file, in a folder of scanner files
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    (folder / "part.xyz").write_text("")
+    assert "part.xyz" in _error(["score", "--model", str(model), "--data", str(folder), "--out",
+                                 str(tmp_path / "r5")], capsys)
+    # a model file that is not a model
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"not a torch file")
+    assert "junk.pt" in _error(["calibrate", "--model", str(junk), "--data", str(workdir / "tree.h5")], capsys)
+    # refusing to write into a folder that is not a results folder
+    busy = tmp_path / "busy"
+    busy.mkdir()
+    (busy / "notes.txt").write_text("mine")
+    assert "busy" in _error(["score", "--model", str(model), "--data", str(workdir / "tree.h5"), "--out",
+                             str(busy)], capsys)
+
+
+def test_scanner_file_in_model_frame(workdir, tmp_path, capsys):
+    """One cloud file in file units is moved into the model's frame and scored (label unknown)."""
+    model = tmp_path / "model.pt"
+    model.write_bytes((workdir / "model.pt").read_bytes())
+    assert main(["calibrate", "--model", str(model), "--data", str(workdir / "tree.h5"), "--quiet"]) == 0
+    s = _scan("x", "test", "good", seed=5)
+    cloud = tmp_path / "part.npy"
+    np.save(cloud, np.c_[FRAME.to_file(s.points), s.normals])
+    out = tmp_path / "r"
+    assert main(["score", "--model", str(model), "--data", str(cloud), "--out", str(out), "--quiet"]) == 0
+    rows = list(csv.DictReader(open(out / "scores.csv")))
+    assert [(r["name"], r["label"]) for r in rows] == [("part", "unknown")]
