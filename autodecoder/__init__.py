@@ -9,6 +9,15 @@ _EXPORTS = {
     "FitOptions": "autodecoder.fit",
     "StochasticField": "autodecoder.field",
     "GPPosterior": "autodecoder.gp_targets",
+    # latent model: training over collections, checkpoints, test-time projection
+    "LatentModel": "autodecoder.latent_model",
+    "load_model": "autodecoder.latent_model",
+    "LatentOptions": "autodecoder.latent_train",
+    "train_latent": "autodecoder.latent_train",
+    "Projection": "autodecoder.projection",
+    "ProjectionOptions": "autodecoder.projection",
+    "project": "autodecoder.projection",
+    "project_many": "autodecoder.projection",
 }
 
 __all__ = sorted(_EXPORTS)
@@ -18,3 +27,4 @@ def __getattr__(name):
     if name in _EXPORTS:
         return getattr(importlib.import_module(_EXPORTS[name]), name)
     raise AttributeError(f"module 'autodecoder' has no attribute {name!r}")
+

@@ -40,9 +40,13 @@ class StochasticField:
         Default measurement noise (world units) added to the variance in :meth:`nll`.
     info : dict, optional
         Free-form provenance (fit time, losses); plain Python values only.
+    training_points, training_normals : (n, 3) arrays, optional
+        The oriented cloud the field was fitted to (world frame), kept as float32 tensors and saved with the field
+        so that :meth:`update` can fine-tune on old + new data; None when unknown.
     """
 
-    def __init__(self, mean_net, cov_net, normalization, config, code=None, noise=0.0, info=None):
+    def __init__(self, mean_net, cov_net, normalization, config, code=None, noise=0.0, info=None,
+                 training_points=None, training_normals=None):
         self.mean_net = mean_net.eval()
         self.cov_net = cov_net.eval()
         self.normalization = normalization
@@ -50,6 +54,17 @@ class StochasticField:
         self.code = None if code is None else code.detach().float().reshape(-1)
         self.noise = float(noise)
         self.info = dict(info or {})
+        as_t = lambda a: None if a is None else torch.as_tensor(np.asarray(a), dtype=torch.float32).reshape(-1, 3)
+        self.training_points, self.training_normals = as_t(training_points), as_t(training_normals)
+
+    def update(self, points, normals, epochs=50, **kwargs):
+        """Fine-tune on old + new points; returns a new field (this one is unchanged).
+
+        See :func:`autodecoder.update.update_field` for the parameters and the choices made (frame, box).
+        """
+        from .update import update_field
+
+        return update_field(self, points, normals, epochs=epochs, **kwargs)
 
     # ----------------------------------------------------------------------------------- torch, differentiable
     def _model_x(self, x):
@@ -171,6 +186,8 @@ class StochasticField:
             "normalization": self.normalization.as_dict(),
             "noise": self.noise,
             "info": self.info,
+            "training_points": self.training_points,
+            "training_normals": self.training_normals,
         }
 
     def save(self, path):
@@ -188,7 +205,8 @@ class StochasticField:
         mean_net.load_state_dict(state["mean_state"])
         cov_net.load_state_dict(state["cov_state"])
         return cls(mean_net, cov_net, Normalization.from_dict(state["normalization"]), state["config"],
-                   code=state["code"], noise=state["noise"], info=state.get("info"))
+                   code=state["code"], noise=state["noise"], info=state.get("info"),
+                   training_points=state.get("training_points"), training_normals=state.get("training_normals"))
 
     @classmethod
     def load(cls, path):

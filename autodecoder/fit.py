@@ -248,7 +248,8 @@ def fit_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, width=12
     if noise is None:
         noise = float(np.sqrt(np.mean(residual**2)))
     info = {"fit_seconds": time.perf_counter() - t0, "steps": options.steps, "n_points": len(points),
-            "final_losses": history[-1] if history else {}, "options": asdict(options)}
+            "final_losses": history[-1] if history else {}, "options": asdict(options),
+            "history": history}
     return StochasticField(mean_net, cov_net, normalization, config, noise=noise, info=info)
 
 

@@ -70,11 +70,11 @@ class LatentOptions:
     """
 
     latent_dim: int = 32
-    width: int = 128
+    width: int = 64
     depth: int = 3
     features: int = 64
     omega0: float = 30.0
-    epochs: int = 300
+    epochs: int = 160
     batch: int = 8
     lr: float = 1e-3
     code_lr: float = 1e-3

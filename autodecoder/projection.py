@@ -51,11 +51,11 @@ class ProjectionOptions:
         Peak learning rate of the fine-tuning.
     """
 
-    steps: int = 150
-    lr: float = 0.02
-    sample: int = 512
+    steps: int = 60
+    lr: float = 0.05
+    sample: int = 256
     starts: int = 4
-    explore: int = 30
+    explore: int = 15
     max_candidates: int = 64
     score_points: int = 128
     code_reg: Optional[float] = None

@@ -17,8 +17,13 @@ Writes WORK/<run>/pointscores_<scan>.png pictures of the per-point scores of the
 import argparse
 import hashlib
 import json
+import os
+import sys
 import time
 from pathlib import Path
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch: spinning OpenMP threads crawl on a shared CPU
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np
 
@@ -75,18 +80,16 @@ def _aligned_copy(path, args):
 
 
 def _train(data, args, work, key):
-    model = Path(args.model) if args.model else work / f"model_{key}{'_al' if args.align else ''}.pt"
+    tag = f"_e{args.epochs}" if args.epochs else ""
+    model = Path(args.model) if args.model else work / f"model_{key}{'_al' if args.align else ''}{tag}.pt"
     if model.is_file():
         return model
-    import train_latent
+    from inspection.training import train_model
 
     t0 = time.perf_counter()
-    argv = ["--data", str(data), "--out", str(model), "--seed", str(args.seed), "--calibration-fraction",
-            str(args.calibration_fraction)] + (["--epochs", str(args.epochs)] if args.epochs else [])
-    rc = train_latent.main(argv + list(args.train_args))
-    if rc not in (0, None):
-        raise SystemExit(f"train_latent.py failed ({rc})")
-    print(f"trained {model} in {time.perf_counter() - t0:.0f} s")
+    how = train_model(data, model, calibration_fraction=args.calibration_fraction, seed=args.seed,
+                      epochs=args.epochs, quiet=False)
+    print(f"trained {model} in {time.perf_counter() - t0:.0f} s ({'train_latent.py' if how == 'cli' else 'API'})")
     return model
 
 
@@ -154,20 +157,20 @@ def main(argv=None):
     parser.add_argument("--alpha", type=float, default=0.01)
     parser.add_argument("--calibration-fraction", type=float, default=0.2)
     parser.add_argument("--epochs", type=int, default=None, help="train_latent epochs (default: its own)")
-    parser.add_argument("--train-args", nargs=argparse.REMAINDER, default=[], help="more train_latent arguments")
+    parser.add_argument("--projection", default="default", help="'default' (inspection's), 'model' (the "
+                                                                 "projector's defaults) or a JSON dict")
     parser.add_argument("--model", default=None, help="score this model instead of training one")
     parser.add_argument("--work", default="results/inspect_fandisk")
     args = parser.parse_args(argv)
 
     from datasets import ScanCollection
 
-    from inspection.estimator import field_for
+    from inspection.estimator import DEFAULT_PROJECTION, field_for
     from inspection.model_io import load_model
     from inspection.scores import aggregate, point_scores
 
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
-    import os
 
     print(f"load average at start: {os.getloadavg()}")
     data, key = _synth(args, work)
@@ -192,13 +195,16 @@ def main(argv=None):
         out, seconds = [], []
         for s in scans:
             t0 = time.perf_counter()
-            field = field_for(handle.model, s.points, s.normals)
+            field = field_for(handle.model, s.points, s.normals, projection)
             mean, var = field.mean(s.points), field.variance(s.points)
             seconds.append(time.perf_counter() - t0)
             out.append((mean, var))
         print(f"projected {len(scans)} {what} scans: {np.mean(seconds):.3f} s per scan")
         return out, float(np.mean(seconds))
 
+    projection = None if args.projection == "model" else \
+        (DEFAULT_PROJECTION if args.projection == "default" else json.loads(args.projection))
+    print(f"projection options: {projection or 'the model defaults'}")
     cal_fields, _ = project_all(cal_scans, "calibration")
     test_fields, sec = project_all(test_scans, "test")
     noise = handle.model.noise

@@ -8,17 +8,11 @@ import time
 from pathlib import Path
 
 # Sizes measured to keep the whole demo under 5 minutes on a 2-core CPU (see the module docstring of run_demo).
-DEMO_SIZES = dict(n_train=24, n_test_good=8, n_test_defective=6, n_points=2500)
-QUICK_SIZES = dict(n_train=8, n_test_good=4, n_test_defective=2, n_points=800)
-DEMO_TRAIN_ARGS = ["--epochs", "30"]
-QUICK_TRAIN_ARGS = ["--epochs", "2"]
-
-
-def _latent_available():
-    import autodecoder
-    import train_latent
-
-    return hasattr(autodecoder, "load_model") and "not yet implemented" not in (train_latent.__doc__ or "")
+DEMO_SIZES = dict(n_train=24, n_validation=10, n_test_good=8, n_test_defective=6, n_points=2500)
+QUICK_SIZES = dict(n_train=8, n_validation=4, n_test_good=4, n_test_defective=2, n_points=800)
+DEMO_EPOCHS = 40
+QUICK_EPOCHS = 3
+DEMO_ALPHA = 0.1
 
 
 def run_demo(out="demo_output", seed=0, quick=False, progress=True, echo=print):
@@ -39,23 +33,18 @@ def run_demo(out="demo_output", seed=0, quick=False, progress=True, echo=print):
     ScanCollection.create(data, scans, frame=frame, provenance={"source": "inspection demo", "seed": seed,
                                                                 **sizes}, overwrite=True)
     t1 = time.perf_counter()
-    if _latent_available():
-        import train_latent
+    from .training import train_model
 
-        echo("[2/4] training the latent model (train_latent.py)")
-        args = ["--data", str(data), "--out", str(model), "--seed", str(seed), "--calibration-fraction", "0.2"]
-        rc = train_latent.main(args + (QUICK_TRAIN_ARGS if quick else DEMO_TRAIN_ARGS))
-        if rc not in (0, None):
-            raise RuntimeError(f"train_latent.py exited with status {rc}")
-    else:
-        from .reference import fit_reference_field
-
-        echo("[2/4] no latent model in this toolkit yet: fitting one reference field to the good training scans")
-        fit_reference_field(data, model, calibration_fraction=0.2, seed=seed, quiet=not progress,
-                            steps=60 if quick else 600)
+    echo(f"[2/4] training the latent model ({DEMO_EPOCHS if not quick else QUICK_EPOCHS} epochs; the validation "
+         f"scans are held back for calibration)")
+    how = train_model(data, model, calibration_fraction=0.2, seed=seed, quiet=not progress, overwrite=True,
+                      epochs=QUICK_EPOCHS if quick else DEMO_EPOCHS)
+    echo(f"      trained with {'train_latent.py' if how == 'cli' else 'autodecoder.latent_train'} -> {model}")
     t2 = time.perf_counter()
-    echo("[3/4] calibrating on the held-back good training scans")
-    insp, info = calibrate(model, data, alpha=0.01 if not quick else 0.2, progress=progress)
+    echo("[3/4] calibrating on the held-back good training scans and the validation scans")
+    # ~5 held-back training scans + the validation scans: with n calibration scans the smallest p-value is
+    # 1/(n+1), so alpha = 0.01 would need 99 of them; the demo uses alpha = DEMO_ALPHA
+    insp, info = calibrate(model, data, alpha=DEMO_ALPHA, progress=progress)
     echo(f"      {info['n']} calibration scans ({info['how']}), threshold {info['threshold']:.4g}")
     t3 = time.perf_counter()
     echo("[4/4] scoring the test split")

@@ -5,13 +5,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from .calibration import Calibration, check_alpha, conformal_p_values, conformal_threshold
-from .scores import POINT_SCORES, aggregate as aggregate_scores, check_aggregate, point_scores
+from .scores import POINT_SCORES, LocalReference, aggregate as aggregate_scores, check_aggregate, point_scores
 
 log = logging.getLogger(__name__)
 
 DEFAULT_AGGREGATE = "top5"
 DEFAULT_POINT_SCORE = "residual"
+# Projection settings for inspection (autodecoder.projection.ProjectionOptions fields): measured on fandisk, the
+# projection loss after 60 steps from the 2 best of 16 candidate starts matches the trainer's defaults (150 steps,
+# 4 of 64 starts) to 3 digits at ~1/10 of the time (see benchmarks/inspect_fandisk.py).
+DEFAULT_PROJECTION = {"steps": 60, "starts": 2, "explore": 20, "max_candidates": 16}
 
+
+from sklearn.base import BaseEstimator
 
 try:  # scikit-learn's own class, so `except sklearn.exceptions.NotFittedError` catches ours
     from sklearn.exceptions import NotFittedError
@@ -42,15 +48,16 @@ def _scan_name(scan, i):
     return getattr(scan, "name", None) or f"scan #{i}"
 
 
-def field_for(model, points, normals=None):
+def field_for(model, points, normals=None, options=None):
     """The stochastic field that explains one scan under ``model``.
 
     ``model`` may be a latent model (``model.project(points, normals)`` -> a projection with ``.field``, e.g.
     :func:`autodecoder.load_model`'s), a fixed field (anything with ``mean``/``variance``, e.g. a ``fit_cloud``
     field: every scan is scored against the same surface), or a callable ``(points, normals) -> field``.
+    ``options`` (dict) go to ``model.project`` (e.g. ``{"steps": 60}``).
     """
     if hasattr(model, "project"):
-        projection = model.project(points, normals)
+        projection = model.project(points, normals, **(options or {}))
         return getattr(projection, "field", projection)
     if hasattr(model, "mean") and hasattr(model, "variance"):
         return model
@@ -61,7 +68,7 @@ def field_for(model, points, normals=None):
                     f"got {type(model).__name__}")
 
 
-class Inspector:
+class Inspector(BaseEstimator):
     """Defect detector over scans: per-point scores under the projected field, one score per scan, and a threshold
     calibrated on good scans (split-conformal p-values, false-alarm rate at most ``alpha``).
 
@@ -74,10 +81,15 @@ class Inspector:
     aggregate : str
         Per-scan aggregate of the point scores (:func:`inspection.scores.aggregate`): ``'top5'`` (default: mean of
         the worst 5 % of the points), ``'mean'`` (the paper's), ``'max'``, ``'median'``, ``'top<P>'``, ``'q<P>'``.
-    point_score : {'residual', 'nll'}
-        Per-point score (:func:`inspection.scores.point_scores`): the standardized residual (default) or the NLL.
+    point_score : {'residual', 'local', 'nll'}
+        Per-point score (:func:`inspection.scores.point_scores`): the standardized residual (default), the residual
+        standardized against good scans at the same place (``'local'``: :meth:`fit` then needs
+        ``reference_scans``, e.g. the model's training scans), or the paper's NLL.
     noise : float, optional
         Noise floor (measurement noise standard deviation, model frame units); default the field's own.
+    projection : dict, optional
+        Options of ``model.project`` (latent models), e.g. ``DEFAULT_PROJECTION``; None: the model's defaults.
+        Scores depend on them, so the calibration stores them and :meth:`set_calibration` restores them.
 
     Attributes (after :meth:`fit`)
     ------------------------------
@@ -89,10 +101,14 @@ class Inspector:
     offset_ : float
         ``-threshold_``, so that ``decision_function = score_samples - offset_`` is negative exactly for defects.
     n_calibration_ : int
+    reference_ : LocalReference or None
+        Per-location statistics of good scans (point score ``'local'`` only).
     """
 
-    def __init__(self, model, alpha=0.01, aggregate=DEFAULT_AGGREGATE, point_score=DEFAULT_POINT_SCORE, noise=None):
+    def __init__(self, model, alpha=0.01, aggregate=DEFAULT_AGGREGATE, point_score=DEFAULT_POINT_SCORE, noise=None,
+                 projection=None):
         self.model = model
+        self.projection = projection
         self.alpha = alpha
         self.aggregate = aggregate
         self.point_score = point_score
@@ -119,8 +135,12 @@ class Inspector:
         points, normals = _points_normals(scan)
         if points.ndim != 2 or points.shape[-1] != 3 or len(points) == 0:
             raise ValueError(f"{_scan_name(scan, 0)}: a scan needs (m >= 1, 3) points, got shape {points.shape}")
-        field = field_for(self.model, points, normals)
-        values = point_scores(field, points, kind=self.point_score, noise=self.noise)
+        field = field_for(self.model, points, normals, self.projection)
+        reference = getattr(self, "reference_", None)
+        if self.point_score == "local" and reference is None:
+            raise NotFittedError("point_score 'local' needs the per-location reference: call "
+                                 "fit(good_scans, reference_scans=...) or fit_reference(scans) first")
+        values = point_scores(field, points, kind=self.point_score, noise=self.noise, reference=reference)
         return ScanResult(aggregate_scores(values, self.aggregate), values, field)
 
     def anomaly_scores(self, scans):
@@ -132,7 +152,19 @@ class Inspector:
         return self.inspect(scan).point_scores
 
     # ------------------------------------------------------------------------------------------------ fitting
-    def fit(self, good_scans, y=None, names=None):
+    def fit_reference(self, scans, max_points=60000, seed=0):
+        """Build ``reference_`` (for point score ``'local'``) from good scans, each projected as a test scan would
+        be; the model's training scans are the natural choice. Returns self."""
+        pairs = []
+        for scan in scans:
+            points, normals = _points_normals(scan)
+            pairs.append((points, field_for(self.model, points, normals, self.projection)))
+        if not pairs:
+            raise ValueError("fit_reference needs at least one good scan, got none")
+        self.reference_ = LocalReference.from_fields(pairs, max_points=max_points, seed=seed)
+        return self
+
+    def fit(self, good_scans, y=None, names=None, reference_scans=None):
         """Calibrate on good scans the model did NOT train on (held-back or validation scans).
 
         Parameters
@@ -141,12 +173,19 @@ class Inspector:
         y : ignored
         names : list of str, optional
             Default: the scans' names.
+        reference_scans : sequence of Scan, optional
+            Good scans for the per-location reference (point score ``'local'``; required then, unless
+            ``reference_`` is already set): usually the model's training scans.
 
         Returns
         -------
         self
         """
         self._check_params()
+        if reference_scans is not None:
+            self.fit_reference(reference_scans)
+        elif self.point_score == "local" and getattr(self, "reference_", None) is None:
+            raise ValueError("point_score='local' needs reference_scans (good scans, e.g. the training scans)")
         good_scans = list(good_scans)
         if not good_scans:
             raise ValueError("fit needs at least one good calibration scan, got none")
@@ -171,6 +210,9 @@ class Inspector:
         self.aggregate = calibration.aggregate
         self.point_score = calibration.point_score
         self.noise = calibration.noise
+        self.projection = (calibration.extra or {}).get("projection")
+        ref = (calibration.extra or {}).get("reference")
+        self.reference_ = None if ref is None else LocalReference.from_dict(ref)
         self._check_params()
         return self._set(calibration.scores, calibration.names)
 
@@ -180,7 +222,10 @@ class Inspector:
         return Calibration(scores=self.calibration_scores_.tolist(), names=list(self.calibration_names_),
                            aggregate=self.aggregate, point_score=self.point_score,
                            noise=None if self.noise is None else float(self.noise), alpha=float(self.alpha),
-                           source=source, fingerprint=fingerprint)
+                           source=source, fingerprint=fingerprint,
+                           extra={"projection": None if self.projection is None else dict(self.projection),
+                                  "reference": None if getattr(self, "reference_", None) is None
+                                  else self.reference_.as_dict()})
 
     # ------------------------------------------------------------------------------------ sklearn outlier API
     def p_values_from_scores(self, anomaly_scores):
@@ -210,7 +255,3 @@ class Inspector:
     def predict(self, scans):
         """+1 for good scans, -1 for defective ones (p-value <= alpha, i.e. decision_function < 0)."""
         return self.predict_from_scores(self.anomaly_scores(scans))
-
-    def __repr__(self):
-        return (f"Inspector(alpha={self.alpha!r}, aggregate={self.aggregate!r}, point_score={self.point_score!r}, "
-                f"noise={self.noise!r})")

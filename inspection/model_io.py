@@ -104,7 +104,10 @@ def load_model(path):
 
     loader = getattr(autodecoder, "load_model", None)
     if loader is None:
-        raise ValueError(f"{path}: a latent checkpoint, but this toolkit has no autodecoder.load_model yet")
+        try:
+            from autodecoder.latent_model import load_model as loader
+        except ImportError:
+            raise ValueError(f"{path}: not a field file, and this toolkit has no latent model loader") from None
     try:
         model = loader(path)
     except (FileNotFoundError, ValueError):

@@ -174,19 +174,47 @@ def calibration_scans(handle, data, split=None, frame_check=True):
     return scans, info, how
 
 
+def reference_scans(handle, data, info, max_scans=32):
+    """Up to ``max_scans`` of the model's training scans (evenly spread), read from ``data`` when it is the model's
+    training collection; None otherwise."""
+    if not info.get("same_as_training") or not handle.train_names:
+        return None
+    from datasets import ScanCollection
+
+    with ScanCollection(data) as c:
+        names = set(c.names)
+        present = [n for n in handle.train_names if n in names]
+        if not present:
+            return None
+        pick = np.unique(np.linspace(0, len(present) - 1, min(max_scans, len(present))).round().astype(int))
+        return c.read_many([c.index_of(present[i]) for i in pick])
+
+
 def calibrate(model, data, alpha=0.01, aggregate=None, point_score=None, noise=None, split=None, progress=True,
-              write=True):
+              write=True, projection="default"):
     """Calibrate ``model`` on good scans and store the calibration in the model file. Returns (Inspector, info)."""
     from tqdm import tqdm
 
     from .calibration import write_calibration
-    from .estimator import DEFAULT_AGGREGATE, DEFAULT_POINT_SCORE, Inspector
+    from .estimator import DEFAULT_AGGREGATE, DEFAULT_POINT_SCORE, DEFAULT_PROJECTION, Inspector
     from .model_io import load_model
 
     handle = load_model(model)
     scans, info, how = calibration_scans(handle, data, split=split)
+    reference = None
+    if point_score in (None, "local"):
+        reference = reference_scans(handle, data, info)
+        if reference is None and point_score == "local":
+            raise InspectionError(f"{data}: point score 'local' needs the model's training scans, and this is not "
+                                  f"its training collection (or the model records no training scan names)")
+    if point_score is None:
+        point_score = "local" if reference else DEFAULT_POINT_SCORE
     insp = Inspector(handle.model, alpha=alpha, aggregate=aggregate or DEFAULT_AGGREGATE,
-                     point_score=point_score or DEFAULT_POINT_SCORE, noise=noise)
+                     point_score=point_score, noise=noise,
+                     projection=(DEFAULT_PROJECTION if projection == "default" else projection)
+                     if handle.kind == "latent" else None)
+    if point_score == "local":
+        insp.fit_reference(tqdm(reference, desc="reference", unit="scan", disable=not progress))
     scores = [insp.inspect(s).score for s in tqdm(scans, desc="calibrate", unit="scan", disable=not progress)]
     insp._set(scores, [s.name for s in scans])
     if write:
@@ -249,7 +277,7 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
             n_maps += 1
     extra = {"model": str(handle.path), "model_kind": handle.kind, "data": str(data), "split": split,
              "aggregate": insp.aggregate, "point_score": insp.point_score, "noise": insp.noise,
-             "n_calibration": insp.n_calibration_, "calibration_source": cal.source, "aligned": bool(align),
+             "projection": insp.projection, "n_calibration": insp.n_calibration_, "calibration_source": cal.source, "aligned": bool(align),
              "seconds_per_scan": float(np.mean(seconds)), "maps": n_maps,
              "higher_score_means": "more anomalous"}
     summary = summarize(rows, insp.threshold_, alpha, point_labels, point_vals, extra)

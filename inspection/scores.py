@@ -8,12 +8,13 @@ import re
 
 import numpy as np
 
-POINT_SCORES = ("residual", "nll")
+POINT_SCORES = ("residual", "nll", "local")
+REFERENCE_NEIGHBOURS = 16
 _MIN_VARIANCE = 1e-20
 _AGGREGATE_RE = re.compile(r"^(mean|max|median|top(\d+(?:\.\d+)?)|q(\d+(?:\.\d+)?))$")
 
 
-def point_scores(field, points, kind="residual", noise=None):
+def point_scores(field, points, kind="residual", noise=None, reference=None):
     """Per-point anomaly scores of ``points`` under ``field`` (higher = more anomalous).
 
     With m = E f(p), v = Var f(p) and total = v + noise^2 (the noise floor):
@@ -23,6 +24,11 @@ def point_scores(field, points, kind="residual", noise=None):
       It drops the log-variance term, which varies from view to view with how densely training covered a region
       (DESIGN.md) and carries no information about the point itself, and it is unitless (in standard deviations),
       so one colour range serves every part.
+    * ``'local'``: the residual standardized against good scans at the same place, |m - m_ref| /
+      sqrt(s_ref^2 + noise^2), where m_ref and s_ref are the mean and standard deviation of E f over the
+      ``REFERENCE_NEIGHBOURS`` nearest points of good scans, each under its own projected field (a
+      :class:`LocalReference`). A field that misses the part in the same way on every good scan (a rounded edge, a
+      drifting face) then stops looking anomalous there: the noise floor is modelled per location.
 
     Parameters
     ----------
@@ -34,6 +40,8 @@ def point_scores(field, points, kind="residual", noise=None):
     noise : float, optional
         Measurement noise standard deviation (the noise floor), in the field's length units; default
         ``field.noise``.
+    reference : LocalReference
+        Needed by ``'local'``.
 
     Returns
     -------
@@ -50,6 +58,11 @@ def point_scores(field, points, kind="residual", noise=None):
     if not noise >= 0:
         raise ValueError(f"noise must be >= 0, got {noise}")
     mean = np.asarray(field.mean(points), dtype=np.float64)
+    if kind == "local":
+        if reference is None:
+            raise ValueError("point_score 'local' needs a LocalReference (calibrate with the training scans)")
+        m_ref, s_ref = reference.stats(points)
+        return np.abs(mean - m_ref) / np.sqrt(s_ref**2 + max(noise**2, _MIN_VARIANCE))
     var = np.maximum(np.asarray(field.variance(points), dtype=np.float64), 0.0)
     total = np.maximum(var + noise**2, _MIN_VARIANCE)
     if kind == "residual":
@@ -98,3 +111,61 @@ def aggregate(values, how="top5"):
         k = max(1, int(math.ceil(float(how[3:]) / 100 * len(values))))
         return float(np.partition(values, len(values) - k)[len(values) - k:].mean())
     return float(np.percentile(values, float(how[1:])))
+
+
+class LocalReference:
+    """What E f looks like at the points of good scans, each under its own projected field: the per-location noise
+    floor of the ``'local'`` point score.
+
+    Parameters
+    ----------
+    points : (n, 3) array
+        Points of good scans (model frame).
+    values : (n,) array
+        E f at each point under its own scan's projected field.
+    k : int
+        Neighbours averaged per query point.
+    """
+
+    def __init__(self, points, values, k=REFERENCE_NEIGHBOURS):
+        self.points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+        self.values = np.asarray(values, dtype=np.float32).reshape(-1)
+        if len(self.points) != len(self.values) or len(self.points) < k:
+            raise ValueError(f"LocalReference needs >= {k} points with one value each, got {len(self.points)} "
+                             f"points and {len(self.values)} values")
+        self.k = int(k)
+        self._tree = None
+
+    @classmethod
+    def from_fields(cls, scans_and_fields, max_points=60000, seed=0, k=REFERENCE_NEIGHBOURS):
+        """Build from (points (m, 3), field) pairs; randomly subsampled to ``max_points`` (seeded)."""
+        pts, vals = [], []
+        for points, field in scans_and_fields:
+            points = np.asarray(points, dtype=np.float64)
+            pts.append(points)
+            vals.append(np.asarray(field.mean(points), dtype=np.float64))
+        pts, vals = np.concatenate(pts), np.concatenate(vals)
+        if len(pts) > max_points:
+            keep = np.sort(np.random.default_rng(seed).choice(len(pts), max_points, replace=False))
+            pts, vals = pts[keep], vals[keep]
+        return cls(pts, vals, k)
+
+    def stats(self, points):
+        """Local mean and standard deviation of the reference values around each point: (m,), (m,)."""
+        from scipy.spatial import cKDTree
+
+        if self._tree is None:
+            self._tree = cKDTree(self.points)
+        _, idx = self._tree.query(np.asarray(points, dtype=np.float64), self.k)
+        v = self.values[idx].astype(np.float64)  # (m, k)
+        return v.mean(1), v.std(1)
+
+    def as_dict(self):
+        import torch
+
+        return {"points": torch.from_numpy(self.points.copy()), "values": torch.from_numpy(self.values.copy()),
+                "k": self.k}
+
+    @classmethod
+    def from_dict(cls, d):
+        return cls(np.asarray(d["points"]), np.asarray(d["values"]), int(d.get("k", REFERENCE_NEIGHBOURS)))

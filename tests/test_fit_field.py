@@ -37,6 +37,15 @@ def test_mean_surface_lies_on_the_sphere(sphere_field):
     assert (outward > 0).mean() > 0.99
 
 
+def test_training_lowers_every_loss(sphere_field):
+    history = sphere_field.info["history"]
+    first, last = history[0], history[-1]
+    for key in ("mean_dirichlet", "cov_dirichlet"):
+        assert last[key] < 0.5 * first[key], key
+    # the screening terms start near zero (small initial outputs) and must stay small, not necessarily fall
+    assert last["mean_screening"] < 0.05 * first["mean_dirichlet"]
+
+
 def test_sign_convention_and_prob_inside(sphere_field):
     inside, far = CENTER[None], CENTER[None] + [[0, 0, 1.6 * RADIUS]]
     assert sphere_field.mean(inside)[0] < 0 < sphere_field.mean(far)[0]

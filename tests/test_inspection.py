@@ -169,7 +169,7 @@ def test_estimator_contract(fitted):
 
 def test_not_fitted_and_params_untouched():
     insp = Inspector(SphereModel(), alpha=0.05, aggregate="mean")
-    assert insp.get_params() if hasattr(insp, "get_params") else True
+    assert insp.get_params()["alpha"] == 0.05  # scikit-learn BaseEstimator: get_params / set_params / clone
     assert insp.aggregate == "mean" and not hasattr(insp, "threshold_")
     with pytest.raises(NotFittedError, match="not calibrated"):
         insp.predict([sphere_scan()[0]])
@@ -199,3 +199,10 @@ def test_fixed_field_and_callable_models():
     a = Inspector(field).anomaly_scores([pts])
     b = Inspector(lambda p, n: field).anomaly_scores([pts])
     np.testing.assert_array_equal(a, b)
+
+
+def test_sklearn_clone_keeps_params_drops_fit(fitted):
+    from sklearn.base import clone
+
+    c = clone(fitted)
+    assert c.get_params()["alpha"] == fitted.alpha and not hasattr(c, "threshold_")

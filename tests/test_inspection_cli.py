@@ -1,6 +1,7 @@
 """inspection command line: calibrate / score outputs (CSV, JSON, PNG, PLY), the stored calibration, bad inputs."""
 import csv
 import json
+import os
 import subprocess
 import sys
 import time
@@ -8,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # effective only if torch is not loaded yet; see inspection.__main__
 
 from datasets import Frame, Scan, ScanCollection, read_cloud
 from inspection.__main__ import main
@@ -166,3 +169,30 @@ def test_scanner_file_in_model_frame(workdir, tmp_path, capsys):
     assert main(["score", "--model", str(model), "--data", str(cloud), "--out", str(out), "--quiet"]) == 0
     rows = list(csv.DictReader(open(out / "scores.csv")))
     assert [(r["name"], r["label"]) for r in rows] == [("part", "unknown")]
+
+
+def test_latent_model_end_to_end(tmp_path, capsys):
+    """A tiny latent model trained on half-spheres: calibrated on its held-back scans, it scores a dented one worse
+    than good ones, and the score command writes its outputs."""
+    pytest.importorskip("autodecoder.latent_train")
+    from inspection.training import train_model
+
+    scans = [_scan(f"train/good/{i:03d}", "train", "good", seed=i, n=200) for i in range(6)]
+    scans += [_scan(f"test/good/{i:03d}", "test", "good", seed=10 + i, n=200) for i in range(2)]
+    scans += [_scan(f"test/dent/{i:03d}", "test", "defective", "dent", seed=20 + i, dent=0.25, n=200)
+              for i in range(2)]
+    data, model = tmp_path / "tiny.h5", tmp_path / "tiny.pt"
+    ScanCollection.create(data, scans, frame=FRAME)
+    train_model(data, model, calibration_fraction=0.5, epochs=20, width=32, depth=2, features=16, latent_dim=4,
+                mean_samples=256, screen_samples=128, pair_clusters=8, batch=3, lr=3e-3, code_lr=3e-3)
+    assert main(["calibrate", "--model", str(model), "--data", str(data), "--alpha", "0.3", "--quiet",
+                 "--projection", "steps=15,starts=1,max_candidates=4"]) == 0
+    cal = read_calibration(model)
+    assert len(cal.names) == 3 and all(n.startswith("train/") for n in cal.names)
+    assert cal.extra["projection"] == {"steps": 15, "starts": 1, "max_candidates": 4}
+    out = tmp_path / "res"
+    assert main(["score", "--model", str(model), "--data", str(data), "--out", str(out), "--quiet"]) == 0
+    rows = list(csv.DictReader(open(out / "scores.csv")))
+    score = {r["name"]: float(r["score"]) for r in rows}
+    assert min(score["test/dent/000"], score["test/dent/001"]) > max(score["test/good/000"], score["test/good/001"])
+    assert json.loads((out / "summary.json").read_text())["model_kind"] == "latent"

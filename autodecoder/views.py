@@ -1,0 +1,205 @@
+"""Next-best-view: score depth-camera placements by the field's variance where their rays are expected to hit.
+
+Score of a camera at position p looking along d: over a bundle of n x n rays of a pinhole camera with field of view
+``fov_deg``, cast with :func:`autodecoder.rays.cast_rays` (correlated first hits),
+
+    score(p, d) = sum_rays P(hit) Var f(x_hat) / n^2,     x_hat = p + E[T | hit] d_ray,
+
+i.e. the variance at the expected hit point, with rays that are expected to miss the part weighted down by their
+hit probability (a ray into empty space would otherwise report the prior variance far from the data). World frame,
+variance in world units squared. The optimiser (:func:`next_best_views`) maximises it by Adam from many random
+starts on a sphere around the part (the global multi-start the paper recommends), projecting the stand-off distance
+into a range after every step and penalising an optical axis that passes far from the part's centre.
+"""
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .rays import cast_rays
+
+
+@dataclass
+class ViewCandidate:
+    """A ranked camera placement (world frame).
+
+    Attributes
+    ----------
+    position : (3,) float array
+    direction : (3,) float array, unit
+    score : float
+        :func:`camera_score` (world units squared), evaluated without penalties.
+    look_at : (3,) float array
+        The point on the optical axis closest to the part's centre (for scanners that take a target).
+    """
+
+    position: np.ndarray
+    direction: np.ndarray
+    score: float
+    look_at: np.ndarray
+
+    def as_dict(self):
+        return {"position": [float(v) for v in self.position], "direction": [float(v) for v in self.direction],
+                "look_at": [float(v) for v in self.look_at], "score": float(self.score)}
+
+
+def part_sphere(field):
+    """Centre (3,) and radius of the sphere through the corners of the field's box (world frame)."""
+    lo, hi = np.asarray(field.bounds, dtype=np.float64)
+    return (lo + hi) / 2, float(np.linalg.norm(hi - lo) / 2)
+
+
+def camera_rays(positions, directions, fov_deg=30.0, n_side=3):
+    """Ray bundle of pinhole cameras, differentiable in positions and directions.
+
+    Parameters
+    ----------
+    positions, directions : (C, 3) tensors
+        Camera centres and optical axes (normalised here).
+    fov_deg : float
+        Full field of view (square image).
+    n_side : int
+        Rays per image side (n_side^2 rays per camera, pixel centres).
+
+    Returns
+    -------
+    origins (C, R, 3), ray directions (C, R, 3) unit, R = n_side^2.
+    """
+    d = directions / directions.norm(dim=1, keepdim=True).clamp_min(1e-30)
+    up0 = torch.tensor([0.0, 0.0, 1.0], dtype=d.dtype).expand_as(d)
+    alt = torch.tensor([1.0, 0.0, 0.0], dtype=d.dtype).expand_as(d)
+    up0 = torch.where((d[:, 2].abs() > 0.99)[:, None], alt, up0)
+    right = torch.linalg.cross(d, up0)
+    right = right / right.norm(dim=1, keepdim=True)
+    up = torch.linalg.cross(right, d)
+    half = float(np.tan(np.radians(fov_deg) / 2))
+    g = ((torch.arange(n_side, dtype=d.dtype) + 0.5) / n_side * 2 - 1) * half
+    u, v = torch.meshgrid(g, g, indexing="ij")
+    u, v = u.reshape(-1), v.reshape(-1)  # (R,)
+    rays = d[:, None] + u[None, :, None] * right[:, None] + v[None, :, None] * up[:, None]
+    rays = rays / rays.norm(dim=2, keepdim=True)
+    return positions[:, None].expand_as(rays), rays
+
+
+def camera_score(field, positions, directions, center, radius, fov_deg=30.0, n_side=3, n_samples=24,
+                 method="genz", qmc_samples=128, seed=0):
+    """Variance at the expected hit points of each camera's ray bundle (see the module docstring).
+
+    Parameters
+    ----------
+    field : StochasticField or a toy with ``torch_mean``/``torch_variance``/``torch_covariance`` (world frame)
+    positions, directions : (C, 3) tensors
+    center : (3,) array, radius : float
+        Bounding sphere of the part: each ray is sampled where it can meet the sphere, from
+        max(|p - c| - radius, 0) to |p - c| + radius (the range is not differentiated).
+    fov_deg, n_side : see :func:`camera_rays`.
+    n_samples : int
+        Samples per ray (K).
+    method, qmc_samples, seed : see :func:`autodecoder.rays.cast_rays`.
+
+    Returns
+    -------
+    (C,) tensor, world units squared.
+    """
+    C = len(positions)
+    origins, rays = camera_rays(positions, directions, fov_deg, n_side)
+    R = rays.shape[1]
+    c = torch.as_tensor(center, dtype=positions.dtype)
+    dist = (positions - c).norm(dim=1).detach()
+    t_near = (dist - radius).clamp_min(0.0)[:, None].expand(C, R).reshape(-1)
+    t_far = (dist + radius)[:, None].expand(C, R).reshape(-1)
+    cast = cast_rays(field, origins.reshape(-1, 3), rays.reshape(-1, 3), t_near, t_far, n_samples=n_samples,
+                     method=method, qmc_samples=qmc_samples, seed=seed)
+    var = field.torch_variance(cast.expected_point).to(positions.dtype)
+    return (cast.p_hit.to(positions.dtype) * var).reshape(C, R).mean(1)
+
+
+def _sphere_starts(n, rng):
+    v = rng.normal(size=(n, 3))
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), fov_deg=30.0, n_side=3,
+                    n_samples=24, lr=0.05, aim_weight=1.0, aim_tolerance=0.25, min_separation_deg=15.0,
+                    method="genz", qmc_samples=128, seed=0):
+    """Rank camera placements by :func:`camera_score` after multi-start gradient ascent.
+
+    Parameters
+    ----------
+    field : StochasticField (or a toy with the same torch methods)
+    n_views : int
+        Views returned (at most ``starts``).
+    starts : int
+        Random starting cameras, uniform on the sphere of mid stand-off radius, aimed at the centre.
+    steps : int
+        Adam steps.
+    standoff : (2,) floats
+        Allowed distance from the part's centre, in multiples of its bounding-sphere radius (projected after every
+        step).
+    fov_deg, n_side, n_samples : see :func:`camera_score`.
+    lr : float
+        Adam learning rate; positions move in units of the bounding-sphere radius, directions are unit vectors.
+    aim_weight, aim_tolerance : float
+        Penalty aim_weight * max(0, dist(centre, optical axis) / radius - aim_tolerance)^2 on the normalised score.
+    min_separation_deg : float
+        Returned views are at least this far apart in angle around the centre (greedy by score).
+    method, qmc_samples : see :func:`autodecoder.rays.cast_rays`.
+    seed : int
+
+    Returns
+    -------
+    list of ViewCandidate, best first.
+    """
+    if starts < 1 or n_views < 1:
+        raise ValueError(f"starts and n_views must be >= 1, got {starts} and {n_views}")
+    lo_r, hi_r = float(standoff[0]), float(standoff[1])
+    if not 0 < lo_r <= hi_r:
+        raise ValueError(f"standoff must be (min, max) with 0 < min <= max, got {standoff}")
+    rng = np.random.default_rng(seed)
+    center, radius = part_sphere(field)
+    c = torch.as_tensor(center, dtype=torch.float32)
+    dirs0 = _sphere_starts(starts, rng)
+    # optimise in units of the radius around the centre, so one learning rate fits parts of any size
+    q = torch.tensor(dirs0 * (lo_r + hi_r) / 2, dtype=torch.float32, requires_grad=True)
+    a = torch.tensor(-dirs0, dtype=torch.float32, requires_grad=True)
+    opt = torch.optim.Adam([q, a], lr=lr)
+
+    def score_of(q_, a_):
+        return camera_score(field, c + q_ * radius, a_, center, radius, fov_deg, n_side, n_samples, method,
+                            qmc_samples, seed)
+
+    with torch.no_grad():
+        scale = score_of(q, a).mean().clamp_min(1e-30)
+    for _ in range(steps):
+        opt.zero_grad(set_to_none=True)
+        s = score_of(q, a) / scale
+        d = a / a.norm(dim=1, keepdim=True)
+        # distance of the centre from the optical axis, in radii: |(-q) - ((-q).d) d|
+        off_axis = (-q - ((-q) * d).sum(1, keepdim=True) * d).norm(dim=1)
+        penalty = aim_weight * torch.relu(off_axis - aim_tolerance) ** 2
+        (-(s - penalty).sum()).backward()
+        opt.step()
+        with torch.no_grad():
+            r = q.norm(dim=1, keepdim=True)
+            q.mul_(r.clamp(lo_r, hi_r) / r.clamp_min(1e-12))
+            a.div_(a.norm(dim=1, keepdim=True))
+    with torch.no_grad():
+        final = score_of(q, a).double().numpy()
+    positions = center + q.detach().double().numpy() * radius
+    directions = a.detach().double().numpy()
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    order = np.argsort(-final)
+    chosen = []
+    cos_sep = np.cos(np.radians(min_separation_deg))
+    for i in order:
+        u = (positions[i] - center) / np.linalg.norm(positions[i] - center)
+        if all(np.dot(u, (positions[j] - center) / np.linalg.norm(positions[j] - center)) < cos_sep for j in chosen):
+            chosen.append(i)
+        if len(chosen) == n_views:
+            break
+    out = []
+    for i in chosen:
+        p, d = positions[i], directions[i]
+        look_at = p + np.dot(center - p, d) * d
+        out.append(ViewCandidate(position=p, direction=d, score=float(final[i]), look_at=look_at))
+    return out

@@ -1,0 +1,81 @@
+"""Sweep fit_cloud's network size and step count on fandisk: fit time and Chamfer distance of the mean surface.
+
+The figures behind fit_cloud's defaults (width, depth, steps). Run by hand:
+
+    .venv/bin/python benchmarks/fit_defaults.py [--widths 64,128,256] [--depths 3] [--steps 300,600,1000] [--jobs 1]
+
+``--jobs N`` runs N fits side by side (each with 2 torch threads): only for quality sweeps on a big machine; fit
+times are only comparable between runs with ``--jobs 1`` on an otherwise idle machine.
+"""
+import argparse
+import itertools
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
+
+
+def chamfer(mesh_a, mesh_b, n=30_000, seed=0):
+    """Symmetric Chamfer distance between two surfaces: the mean of the two one-sided mean distances from n
+    area-uniform samples of one mesh to the other mesh's surface (exact point-to-triangle distances, so there is no
+    sampling floor: two samplings of the same mesh score 0)."""
+    a = trimesh.sample.sample_surface(mesh_a, n, seed=seed)[0]
+    b = trimesh.sample.sample_surface(mesh_b, n, seed=seed + 1)[0]
+    return 0.5 * (trimesh.proximity.closest_point(mesh_b, a)[1].mean()
+                  + trimesh.proximity.closest_point(mesh_a, b)[1].mean())
+
+
+def run_one(job):
+    import torch
+
+    from autodecoder import fit_cloud
+
+    torch.set_num_threads(job["threads"])
+    mesh = trimesh.load(job["mesh"], force="mesh")
+    points, faces = trimesh.sample.sample_surface(mesh, job["points"], seed=0)
+    t0 = time.perf_counter()
+    from autodecoder.targets import point_spacing
+
+    lengthscale = job["h_factor"] * point_spacing(points)
+    field = fit_cloud(points, mesh.face_normals[faces], seed=0, quiet=True, width=job["width"], depth=job["depth"],
+                      steps=job["steps"], lengthscale=lengthscale)
+    seconds = time.perf_counter() - t0
+    diag = float(np.linalg.norm(mesh.extents))
+    return {**job, "seconds": seconds, "chamfer": chamfer(field.mesh(job["resolution"]), mesh) / diag}
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--mesh", default=str(SHARED / "fandisk.obj"))
+    parser.add_argument("--points", type=int, default=20_000)
+    parser.add_argument("--widths", default="64,128,256")
+    parser.add_argument("--depths", default="3")
+    parser.add_argument("--steps", default="300,600,1000")
+    parser.add_argument("--h-factors", default="2", help="kernel lengthscale / point spacing")
+    parser.add_argument("--resolution", type=int, default=256, help="marching-cubes grid")
+    parser.add_argument("--jobs", type=int, default=1)
+    parser.add_argument("--threads", type=int, default=None, help="torch threads per fit (default: 2 if --jobs>1)")
+    args = parser.parse_args(argv)
+    import torch
+
+    threads = args.threads or (2 if args.jobs > 1 else torch.get_num_threads())
+    grid = itertools.product(map(int, args.widths.split(",")), map(int, args.depths.split(",")),
+                             map(int, args.steps.split(",")), map(float, args.h_factors.split(",")))
+    jobs = [{"mesh": args.mesh, "points": args.points, "width": w, "depth": d, "steps": s, "h_factor": h,
+             "threads": threads, "resolution": args.resolution} for w, d, s, h in grid]
+    print(f"{Path(args.mesh).name}, {args.points} points, {len(jobs)} fits, {args.jobs} at a time, "
+          f"{threads} torch threads each")
+    print(f"{'width':>5} {'depth':>5} {'steps':>5} {'h/spacing':>9} {'fit s':>8} {'Chamfer/diag':>13}")
+    with ProcessPoolExecutor(args.jobs) as pool:
+        for r in pool.map(run_one, jobs):
+            print(f"{r['width']:5d} {r['depth']:5d} {r['steps']:5d} {r['h_factor']:9.2f} {r['seconds']:8.1f} "
+                  f"{r['chamfer']:13.3e}",
+                  flush=True)
+
+
+if __name__ == "__main__":
+    main()

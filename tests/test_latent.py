@@ -1,0 +1,226 @@
+"""Latent training over scan collections and test-time projection (autodecoder.latent_*, projection, train_latent)."""
+import numpy as np
+import pytest
+import torch
+
+from autodecoder.latent_model import LATENT_FORMAT, load_model, read_checkpoint
+from autodecoder.latent_train import log_paths, train_latent
+from datasets.scan import Scan
+
+# tiny nets and batches: the whole file runs in well under a minute on 2 cores
+TINY = dict(latent_dim=2, width=32, depth=2, features=16, mean_samples=256, screen_samples=128, pair_clusters=8,
+            lr=3e-3, code_lr=1e-2, batch=2)
+RADII = (0.15, 0.2, 0.3, 0.35)
+
+
+def sphere_scan(name, radius, n=500, seed=0, partial=False, split="train", center=(0.0, 0.0, 0.0)):
+    """n points of a sphere (the cap z > -0.5 r when partial) with outward normals, in the unit cube."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(4 * n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    if partial:
+        d = d[d[:, 2] > -0.5]
+    d = d[:n]
+    return Scan(name, radius * d + np.asarray(center), d, split=split)
+
+
+def sphere_scans(radii=RADII, partial=False):
+    return [sphere_scan(f"train/{i:03d}", r, seed=i, partial=partial) for i, r in enumerate(radii)]
+
+
+def zero_crossing_radius(field, n_rays=64, seed=0):
+    """Median distance from the origin at which the mean turns positive, over random rays."""
+    d = np.random.default_rng(seed).normal(size=(n_rays, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    t = np.linspace(0.02, 0.48, 461)
+    values = field.mean((d[:, None, :] * t[None, :, None]).reshape(-1, 3)).reshape(n_rays, -1)
+    first = np.argmax(values > 0, axis=1)
+    ok = (values > 0).any(1) & (values[:, 0] < 0)
+    return float(np.median(t[first[ok]])) if ok.any() else float("nan")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """One torch thread: on a shared 2-core machine, OpenMP threads spinning against other processes' work make
+    these tiny problems 50x slower (see the README's performance notes)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory, one_thread):
+    out = tmp_path_factory.mktemp("latent") / "model.pt"
+    model = train_latent(sphere_scans(), out, epochs=100, seed=0, quiet=True, **TINY)
+    return model, out
+
+
+def test_training_lowers_the_loss_and_writes_log_and_plot(trained):
+    model, out = trained
+    history = model.info["history"]
+    assert len(history) == 100 and model.epoch == 100
+    first, last = np.mean([h["loss"] for h in history[:5]]), np.mean([h["loss"] for h in history[-5:]])
+    assert last < 0.5 * first
+    csv, png = log_paths(out)
+    assert csv.name == "model.log.csv" and png.name == "model.loss.png"
+    assert len(csv.read_text().strip().splitlines()) == 101  # header + one row per epoch
+    assert png.stat().st_size > 1000
+    assert model.codes.shape == (4, 2) and model.noise > 0
+
+
+def test_training_codes_order_the_radii(trained):
+    model, _ = trained
+    radii = [zero_crossing_radius(model.training_field(n)) for n in model.train_names]
+    assert np.all(np.diff(radii) > 0), radii  # the codes tell the spheres apart
+
+
+def test_projection_recovers_an_unseen_radius(trained):
+    model, _ = trained
+    scan = sphere_scan("test/new", 0.25, seed=11)
+    fit = model.project(scan.points, scan.normals, seed=0)
+    assert fit.code.shape == (2,) and np.isfinite(fit.loss)
+    radius = zero_crossing_radius(fit.field)
+    assert abs(radius - 0.25) < 0.1 * 0.25, radius
+    # the field answers every statistical query, in the collection frame
+    var = fit.field.variance(scan.points[:10])
+    assert np.all(var >= 0) and np.all(np.isfinite(fit.field.nll(scan.points[:10])))
+    p = fit.field.prob_inside(np.array([[0.0, 0.0, 0.0], [0.45, 0.45, 0.45]]))
+    assert p[0] > 0.5 > p[1]
+
+
+def test_projection_without_normals_and_batched_projection(trained):
+    model, _ = trained
+    scans = [sphere_scan(f"t{r}", r, seed=20 + i) for i, r in enumerate((0.18, 0.32))]
+    alone = [model.project(s.points, s.normals, seed=5, steps=40) for s in scans]
+    together = model.project_many(scans, seed=5, steps=40, batch=2)
+    # the same subsets are not drawn (one generator per batch), but both reach the same radius
+    for a, b in zip(alone, together):
+        assert abs(zero_crossing_radius(a.field) - zero_crossing_radius(b.field)) < 0.02
+    bare = model.project(scans[1].points, None, seed=0)
+    assert abs(zero_crossing_radius(bare.field) - 0.32) < 0.1 * 0.32
+
+
+def test_finetuning_leaves_the_loaded_model_untouched(trained):
+    model, _ = trained
+    before = {k: v.clone() for k, v in model.mean_net.state_dict().items()}
+    scan = sphere_scan("t", 0.25, seed=3)
+    fit = model.project(scan.points, scan.normals, steps=20, finetune_steps=5)
+    assert fit.field.mean_net is not model.mean_net
+    for k, v in model.mean_net.state_dict().items():
+        assert torch.equal(v, before[k])
+
+
+def test_checkpoint_round_trip_gives_identical_outputs(trained):
+    model, out = trained
+    loaded = load_model(out)
+    assert loaded.train_names == model.train_names and loaded.noise == model.noise
+    assert torch.equal(loaded.codes, model.codes)
+    x = np.random.default_rng(0).uniform(-0.5, 0.5, (100, 3))
+    for name in model.train_names[:2]:
+        a, b = model.training_field(name), loaded.training_field(name)
+        assert np.array_equal(a.mean(x), b.mean(x)) and np.array_equal(a.variance(x), b.variance(x))
+    state = torch.load(out, weights_only=True)  # plain tensors and Python values only
+    assert state["format"] == LATENT_FORMAT and state["frame"] == {"center": [0.0, 0.0, 0.0], "scale": 1.0}
+
+
+def test_resume_gives_the_same_weights_as_an_uninterrupted_run(tmp_path):
+    scans = sphere_scans(radii=(0.2, 0.3, 0.25))
+    kw = dict(epochs=4, seed=3, quiet=True, checkpoint_every=1, **{**TINY, "batch": 2})
+    full = train_latent(scans, tmp_path / "full.pt", **kw)
+    train_latent(scans, tmp_path / "part.pt", stop_after=2, **kw)
+    part = read_checkpoint(tmp_path / "part.pt")
+    assert part["epoch"] == 2
+    resumed = train_latent(scans, tmp_path / "part.pt", resume=part, **kw)
+    a, b = read_checkpoint(tmp_path / "full.pt"), read_checkpoint(tmp_path / "part.pt")
+    assert b["epoch"] == 4
+    for key in ("mean_state", "cov_state"):
+        for name, value in a[key].items():
+            assert torch.equal(value, b[key][name]), (key, name)
+    assert torch.equal(a["codes"], b["codes"]) and torch.equal(full.codes, resumed.codes)
+    assert a["noise"] == b["noise"]
+
+
+def test_resume_against_other_data_is_rejected(trained, tmp_path):
+    _, out = trained
+    state = read_checkpoint(out)
+    with pytest.raises(ValueError, match="another collection"):
+        train_latent(sphere_scans(), None, resume=state, fingerprint="0" * 64, quiet=True)
+    with pytest.raises(ValueError, match="training scans differ"):
+        train_latent(sphere_scans()[:3], None, resume=state, quiet=True)
+
+
+def test_foreign_and_other_version_files_are_rejected(trained, tmp_path):
+    _, out = trained
+    text = tmp_path / "notes.pt"
+    text.write_text("not a checkpoint")
+    with pytest.raises(ValueError, match="notes.pt"):
+        load_model(text)
+    other = tmp_path / "other.pt"
+    torch.save({"format": "something-else", "weights": torch.zeros(3)}, other)
+    with pytest.raises(ValueError, match="other.pt.*not a latent model checkpoint"):
+        load_model(other)
+    state = torch.load(out, weights_only=True)
+    state["version"] = 99
+    newer = tmp_path / "newer.pt"
+    torch.save(state, newer)
+    with pytest.raises(ValueError, match="newer.pt.*version 99"):
+        load_model(newer)
+    with pytest.raises(FileNotFoundError, match="missing.pt"):
+        load_model(tmp_path / "missing.pt")
+
+
+# ---- the command line ------------------------------------------------------------------------------------------
+def _collection(path, scans, **kw):
+    from datasets.collection import ScanCollection
+
+    ScanCollection.create(path, scans, **kw)
+    return path
+
+
+def test_cli_trains_resumes_and_rejects_bad_input(tmp_path, capsys):
+    from train_latent import main
+
+    scans = sphere_scans(radii=(0.15, 0.2, 0.25, 0.3, 0.35)) + [
+        sphere_scan("val/000", 0.22, seed=40, split="validation"), sphere_scan("test/000", 0.3, seed=41, split="test")]
+    data = _collection(tmp_path / "spheres.h5", scans)
+    out = tmp_path / "run" / "model.pt"
+    args = ["--data", str(data), "--out", str(out), "--latent-dim", "2", "--width", "16", "--depth", "1",
+            "--epochs", "2", "--batch", "3", "--quiet"]
+    assert main(args) == 0
+    model = load_model(out)
+    assert model.calibration_names == ["val/000"]  # the validation split is the calibration set
+    assert len(model.train_names) == 5 and "test/000" not in model.train_names
+    assert (tmp_path / "run" / "model.log.csv").is_file() and (tmp_path / "run" / "model.loss.png").is_file()
+    from datasets.collection import ScanCollection
+
+    with ScanCollection(data) as c:
+        assert model.fingerprint == c.fingerprint()
+
+    assert main(args) == 2 and "already exists" in capsys.readouterr().err
+    assert main(args[:-5] + ["--batch", "3", "--epochs", "3", "--resume", "--quiet"]) == 0
+    assert load_model(out).epoch == 3
+
+    other = _collection(tmp_path / "other.h5", sphere_scans(radii=(0.2, 0.3)))
+    assert main(["--data", str(other), "--out", str(out), "--resume", "--quiet"]) == 2
+    assert "another collection" in capsys.readouterr().err
+    assert main(["--data", str(tmp_path / "nope.h5"), "--out", str(out)]) == 2
+    assert "nope.h5" in capsys.readouterr().err
+    junk = tmp_path / "junk.h5"
+    junk.write_text("junk")
+    assert main(["--data", str(junk), "--out", str(tmp_path / "x.pt")]) == 2
+    assert "junk.h5" in capsys.readouterr().err
+    assert main(["--data", str(data), "--out", str(tmp_path / "y.pt"), "--epochs", "0"]) == 2
+    assert main(["--help"]) == 0
+
+
+def test_cli_holds_back_a_calibration_fraction_without_validation_split(tmp_path):
+    from train_latent import main
+
+    data = _collection(tmp_path / "s.h5", sphere_scans(radii=(0.15, 0.2, 0.25, 0.3, 0.35)))
+    out = tmp_path / "m.pt"
+    assert main(["--data", str(data), "--out", str(out), "--latent-dim", "2", "--width", "16", "--depth", "1",
+                 "--epochs", "1", "--quiet", "--calibration-fraction", "0.4"]) == 0
+    model = load_model(out)
+    assert len(model.calibration_names) == 2 and len(model.train_names) == 3
+    assert not set(model.calibration_names) & set(model.train_names)
