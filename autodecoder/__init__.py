@@ -18,6 +18,11 @@ _EXPORTS = {
     "ProjectionOptions": "autodecoder.projection",
     "project": "autodecoder.projection",
     "project_many": "autodecoder.projection",
+    # scanning: correlated ray casting, next-best-view, fine-tuning on new scans
+    "cast_rays": "autodecoder.rays",
+    "orthant_survival": "autodecoder.rays",
+    "next_best_views": "autodecoder.views",
+    "update_field": "autodecoder.update",
 }
 
 __all__ = sorted(_EXPORTS)

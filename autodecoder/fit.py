@@ -250,7 +250,9 @@ def fit_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, width=12
     info = {"fit_seconds": time.perf_counter() - t0, "steps": options.steps, "n_points": len(points),
             "final_losses": history[-1] if history else {}, "options": asdict(options),
             "history": history}
-    return StochasticField(mean_net, cov_net, normalization, config, noise=noise, info=info)
+    # the field keeps its cloud (world frame) so that field.update() can fine-tune on old + new scans
+    return StochasticField(mean_net, cov_net, normalization, config, noise=noise, info=info,
+                           training_points=points, training_normals=normals)
 
 
 def train_single(mean_net, cov_net, targets, options, rng, quiet=False, steps=None, code=None):

@@ -9,7 +9,9 @@ i.e. the variance at the expected hit point, with rays that are expected to miss
 hit probability (a ray into empty space would otherwise report the prior variance far from the data). World frame,
 variance in world units squared. The optimiser (:func:`next_best_views`) maximises it by Adam from many random
 starts on a sphere around the part (the global multi-start the paper recommends), projecting the stand-off distance
-into a range after every step and penalising an optical axis that passes far from the part's centre.
+into a range and the optical axis into a cone around the part's centre after every step. "The part" is the field's
+integration box (its centre and the radius of its corner sphere): a field fitted to one scan has a box around that
+scan, which may be off-centre of the physical part.
 """
 from dataclasses import dataclass
 
@@ -114,13 +116,27 @@ def camera_score(field, positions, directions, center, radius, fov_deg=30.0, n_s
     return (cast.p_hit.to(positions.dtype) * var).reshape(C, R).mean(1)
 
 
+def _project_to_cone(a, to_center, tolerance):
+    """Unit directions a (C, 3) rotated, where needed, into the cone of axes that pass within ``tolerance``
+    (distance / radius, ``to_center`` in radii) of the centre: half-angle asin(min(1, tolerance / |to_center|))."""
+    a = a / a.norm(dim=1, keepdim=True).clamp_min(1e-30)
+    dist = to_center.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    u = to_center / dist
+    cos_max = torch.cos(torch.asin((tolerance / dist).clamp(max=1.0)))
+    cos_a = (a * u).sum(1, keepdim=True)
+    w = a - cos_a * u
+    w = w / w.norm(dim=1, keepdim=True).clamp_min(1e-30)
+    sin_max = (1 - cos_max**2).clamp_min(0.0).sqrt()
+    return torch.where(cos_a >= cos_max, a, cos_max * u + sin_max * w)
+
+
 def _sphere_starts(n, rng):
     v = rng.normal(size=(n, 3))
     return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
 def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), fov_deg=30.0, n_side=3,
-                    n_samples=24, lr=0.05, aim_weight=1.0, aim_tolerance=0.25, min_separation_deg=15.0,
+                    n_samples=24, lr=0.05, aim_weight=1.0, aim_tolerance=0.2, min_separation_deg=15.0,
                     method="genz", qmc_samples=128, seed=0):
     """Rank camera placements by :func:`camera_score` after multi-start gradient ascent.
 
@@ -140,7 +156,9 @@ def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), 
     lr : float
         Adam learning rate; positions move in units of the bounding-sphere radius, directions are unit vectors.
     aim_weight, aim_tolerance : float
-        Penalty aim_weight * max(0, dist(centre, optical axis) / radius - aim_tolerance)^2 on the normalised score.
+        The optical axis must pass within aim_tolerance x radius of the part's centre: enforced by projecting the
+        direction into that cone after every step, with a smooth penalty
+        aim_weight * max(0, dist(centre, axis) / radius - aim_tolerance)^2 on the normalised score during it.
     min_separation_deg : float
         Returned views are at least this far apart in angle around the centre (greedy by score).
     method, qmc_samples : see :func:`autodecoder.rays.cast_rays`.
@@ -182,7 +200,7 @@ def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), 
         with torch.no_grad():
             r = q.norm(dim=1, keepdim=True)
             q.mul_(r.clamp(lo_r, hi_r) / r.clamp_min(1e-12))
-            a.div_(a.norm(dim=1, keepdim=True))
+            a.copy_(_project_to_cone(a, -q, aim_tolerance))
     with torch.no_grad():
         final = score_of(q, a).double().numpy()
     positions = center + q.detach().double().numpy() * radius

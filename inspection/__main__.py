@@ -1,6 +1,6 @@
 """Command line of the inspection package: calibrate a model on good scans, score scans, run the demo.
 
-    python -m inspection calibrate --model model.pt --data good.h5 [--alpha 0.01] [--aggregate top5]
+    python -m inspection calibrate --model model.pt --data good.h5 [--alpha 0.01] [--aggregate top1]
     python -m inspection score --model model.pt --data tree.h5 --out results/ [--split test] [--align]
     python -m inspection demo --out demo_output
 
@@ -28,7 +28,7 @@ def _parser():
                                                  "scans when DATA is its training collection, else every good scan "
                                                  "the model did not train on)")
     c.add_argument("--alpha", type=float, default=0.01, help="default false-alarm rate stored with it (0.01)")
-    c.add_argument("--aggregate", default=None, help="per-scan aggregate: top5 (default), mean, max, median, "
+    c.add_argument("--aggregate", default=None, help="per-scan aggregate: top1 (default), mean, max, median, "
                                                      "top<P>, q<P>")
     c.add_argument("--point-score", choices=("local", "residual", "nll"), default=None,
                    help="per-point score (default: local when DATA is the model's training collection, whose "

@@ -1,8 +1,10 @@
 """Anomaly maps: a scan's points coloured by their standardized residual, written as PLY.
 
 Colour scale (fixed, so maps of different scans and runs compare): colormap ``turbo`` over the standardized residual
-|E f(p)| / sqrt(Var f(p) + noise^2) from 0 (dark blue: on the expected surface) to 5 (dark red: 5 standard deviations
-off, or more; values above 5 are clipped). The legend is written as ``legend.png`` beside the maps.
+from 0 (dark blue: as expected) to 5 (dark red: 5 standard deviations off, or more; values above 5 are clipped).
+The residual is the calibration's point score when it is one of the two standardized ones (``'local'``:
+|E f(p) - m_ref(p)| / sqrt(s_ref(p)^2 + noise^2), ``'residual'``: |E f(p)| / sqrt(Var f(p) + noise^2)), and the plain
+``'residual'`` when the calibration scores the NLL. The legend is written as ``legend.png`` beside the maps.
 """
 from pathlib import Path
 
@@ -10,7 +12,7 @@ import numpy as np
 
 MAP_CMAP = "turbo"
 MAP_RANGE = (0.0, 5.0)
-MAP_LABEL = "standardized residual |mean| / sqrt(var + noise^2)  (clipped at 5)"
+MAP_LABEL = "standardized residual, in standard deviations (clipped at 5)"
 
 
 def colours(values, cmap=MAP_CMAP, vrange=MAP_RANGE):

@@ -156,9 +156,9 @@ def calibration_scans(handle, data, split=None, frame_check=True):
         held = set(handle.heldback_names)
         if split is None:
             if held:
-                val = [s for s in scans if s.split == "validation"]
-                scans = [s for s in scans if s.name in held] + [s for s in val if s.name not in held]
-                how = f"the model's {len(held)} held-back good scans" + (f" and {len(val)} validation scans"
+                val = [s for s in scans if s.split == "validation" and s.name not in held]
+                scans = [s for s in scans if s.name in held] + val
+                how = f"the model's {len(held)} held-back good scans" + (f" and {len(val)} more validation scans"
                                                                          if val else "")
             else:
                 val = [s for s in scans if s.split == "validation"]
@@ -271,7 +271,7 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
             point_labels.append(scan.point_labels)
             point_vals.append(res.point_scores)
         if maps == "all" or (maps == "flagged" and verdict == "defective"):
-            resid = res.point_scores if insp.point_score == "residual" else \
+            resid = res.point_scores if insp.point_score in ("residual", "local") else \
                 point_scores(res.field, scan.points, "residual", insp.noise)
             write_map(maps_dir / f"{safe_name(scan.name)}.ply", scan.points, scan.normals, resid)
             n_maps += 1

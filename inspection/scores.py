@@ -82,7 +82,7 @@ def check_aggregate(name):
     return name
 
 
-def aggregate(values, how="top5"):
+def aggregate(values, how="top1"):
     """One score per scan from its per-point scores (higher = more anomalous).
 
     Parameters

@@ -206,3 +206,50 @@ def test_sklearn_clone_keeps_params_drops_fit(fitted):
 
     c = clone(fitted)
     assert c.get_params()["alpha"] == fitted.alpha and not hasattr(c, "threshold_")
+
+
+def test_local_point_score_by_hand():
+    from inspection.scores import LocalReference
+
+    # reference: E f = 0.02 +- 0.01 around the pole of the unit sphere (a field that is off there on good scans)
+    rng = np.random.default_rng(0)
+    pts = np.c_[rng.normal(0, 0.01, (64, 2)), np.ones(64)]
+    vals = np.where(np.arange(64) % 2 == 0, 0.01, 0.03)
+    ref = LocalReference(pts, vals, k=64)
+    m, s = ref.stats(np.array([[0.0, 0.0, 1.0]]))
+    assert m[0] == pytest.approx(0.02) and s[0] == pytest.approx(0.01)
+    f = SphereField(noise=0.0)
+    x = np.array([[0, 0, 1.02], [0, 0, 1.1]])  # E f = 0.02 (as on good scans) and 0.1
+    np.testing.assert_allclose(point_scores(f, x, "local", reference=ref), [0.0, 0.08 / 0.01], rtol=1e-5, atol=1e-5)  # float32 storage
+    with pytest.raises(ValueError, match="LocalReference"):
+        point_scores(f, x, "local")
+
+
+def test_local_inspector_needs_reference():
+    insp = Inspector(SphereModel(), point_score="local")
+    with pytest.raises(NotFittedError, match="reference"):
+        insp.anomaly_scores([sphere_scan()[0]])
+    with pytest.raises(ValueError, match="reference_scans"):
+        insp.fit([sphere_scan()[0]])
+    good = [sphere_scan(seed=s)[0] for s in range(5)]
+    insp.fit([sphere_scan(seed=s)[0] for s in range(5, 15)], reference_scans=good)
+    assert insp.reference_.points.shape == (10000, 3)
+    restored = Inspector(SphereModel()).set_calibration(insp.calibration())
+    assert restored.point_score == "local"
+    np.testing.assert_array_equal(restored.anomaly_scores(good[:2]), insp.anomaly_scores(good[:2]))
+
+
+def test_aligner_recovers_a_small_rotation():
+    from scipy.spatial.transform import Rotation
+
+    from inspection.align import Aligner
+
+    rng = np.random.default_rng(0)
+    # an asymmetric part: a box-ish cloud with a bump, so the pose is well defined
+    p = rng.uniform(-1, 1, (6000, 3)) * [1.0, 0.6, 0.3]
+    p[:, 2] = np.where(rng.random(6000) < 0.5, 0.3, -0.3)
+    p[:, 2] += 0.3 * np.exp(-((p[:, 0] - 0.5) ** 2 + p[:, 1] ** 2) / 0.05)
+    R = Rotation.from_euler("xyz", [3, -2, 4], degrees=True).as_matrix()
+    moved = (p[:3000] - 0.02) @ R.T
+    aligned, _, T = Aligner(p, seed=0).align(moved)
+    assert np.abs(aligned - p[:3000]).max() < 0.01

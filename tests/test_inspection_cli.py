@@ -72,7 +72,7 @@ def test_calibrate_then_score(workdir, tmp_path, capsys):
     assert rc == 0
     cal = read_calibration(model)
     assert sorted(cal.names) == [f"train/good/{i:03d}" for i in range(3, 6)]  # the held-back scans only
-    assert len(cal.scores) == 3 and cal.aggregate == "top5" and cal.alpha == 0.3
+    assert len(cal.scores) == 3 and cal.aggregate == "top1" and cal.alpha == 0.3
     from autodecoder.field import StochasticField
 
     StochasticField.load(model)  # the model file still loads as before

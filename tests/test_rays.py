@@ -28,15 +28,16 @@ def random_cases(K, n, kind, seed):
 
 def scipy_orthant(mean, cov):
     # P(f > 0) for f ~ N(m, C) equals P(X < m) for X ~ N(0, C)
-    return np.array([multivariate_normal(np.zeros(len(m)), C, abseps=1e-6, releps=1e-6).cdf(m)
+    return np.array([multivariate_normal(np.zeros(len(m)), C, abseps=1e-4, releps=1e-4).cdf(m)
                      for m, C in zip(mean, cov)])
 
 
-# Tolerances: ~2x the largest error measured over 100 cases per K (see the table in autodecoder/rays.py).
+# Tolerances: ~2x the largest error measured over 100 cases per K (see the table in autodecoder/rays.py);
+# scipy's own error (abseps 1e-4, for speed) is far below them.
 @pytest.mark.parametrize("kind,tol", [("random", 5e-3), ("ray", 2.5e-2)])
 def test_genz_matches_scipy_mvn_cdf(kind, tol):
-    for K in range(2, 9):
-        mean, cov = random_cases(K, 12, kind, seed=K)
+    for K in (2, 3, 5, 8):
+        mean, cov = random_cases(K, 5, kind, seed=K)
         ref = scipy_orthant(mean, cov)
         got = orthant_probability(torch.tensor(mean), torch.tensor(cov), method="genz").numpy()
         err = np.abs(got - ref)
@@ -143,3 +144,9 @@ def test_ray_gradients_match_finite_differences():
         return c.expected_t_capped, c.expected_point
 
     assert torch.autograd.gradcheck(fn, (origins, dirs), eps=1e-6, atol=1e-5, rtol=1e-3)
+
+
+def test_indefinite_covariance_is_clipped_not_fatal():
+    cov = torch.tensor([[[1.0, 0.9, 0.0], [0.9, 1.0, 0.9], [0.0, 0.9, 1.0]]], dtype=torch.float64)  # eigenvalue < 0
+    s = orthant_survival(torch.full((1, 3), 0.5, dtype=torch.float64), cov)
+    assert torch.isfinite(s).all() and (s[0, 1:] <= s[0, :-1] + 1e-12).all()

@@ -1,0 +1,144 @@
+"""Sequential scanning of fandisk: next-best-view vs random views vs furthest-point views, fine-tuning after each.
+
+Run by hand (not a test; heavy at default sizes, note `uptime`):
+
+    .venv/bin/python benchmarks/next_view.py [--views 6] [--points 3000] [--fit-steps 400] [--update-steps 150]
+        [--starts 12] [--nbv-steps 30] [--mesh-res 64] [--out results/next_view]
+
+Starts every strategy from the same first scan and field; each next view is (a) `next_best_views` (variance at the
+expected correlated first hits), (b) a random view, (c) the candidate on a sphere furthest from all previous
+cameras. After each scan the field is fine-tuned (`StochasticField.update`) on old + new points. Prints the Chamfer
+distance of the mean surface to the true mesh after each view, writes chamfer.png / results.json, and finally
+refits from scratch on the last union cloud of (a) to compare time and error with the chain of fine-tunings.
+"""
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+from scipy.spatial import cKDTree
+
+from autodecoder import fit_cloud
+from autodecoder.views import next_best_views
+from datasets.parts import load_part
+from datasets.scanner import VirtualScanner
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
+
+
+def chamfer(mesh_a, mesh_b, n=30_000, seed=0):
+    a = trimesh.sample.sample_surface(mesh_a, n, seed=seed)[0]
+    b = trimesh.sample.sample_surface(mesh_b, n, seed=seed + 1)[0]
+    return 0.5 * (cKDTree(b).query(a)[0].mean() + cKDTree(a).query(b)[0].mean())
+
+
+def surface_error(field, mesh, res):
+    try:
+        return float(chamfer(field.mesh(res), mesh))
+    except ValueError:
+        return float("nan")
+
+
+def fibonacci_sphere(n):
+    i = np.arange(n) + 0.5
+    phi = np.arccos(1 - 2 * i / n)
+    theta = np.pi * (1 + 5**0.5) * i
+    return np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], 1)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--mesh", type=Path, default=SHARED / "fandisk.obj")
+    ap.add_argument("--views", type=int, default=6, help="scans in total, the first included")
+    ap.add_argument("--points", type=int, default=3000, help="points per scan")
+    ap.add_argument("--noise", type=float, default=0.0, help="depth noise, multiples of the mesh diagonal")
+    ap.add_argument("--fit-steps", type=int, default=400)
+    ap.add_argument("--update-steps", type=int, default=150)
+    ap.add_argument("--width", type=int, default=64)
+    ap.add_argument("--starts", type=int, default=12)
+    ap.add_argument("--nbv-steps", type=int, default=30)
+    ap.add_argument("--mesh-res", type=int, default=64)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", type=Path, default=Path("results/next_view"))
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    mesh = load_part(args.mesh)
+    scanner = VirtualScanner(mesh)
+    radius = 1.8 * scanner.diagonal
+    fit_kw = dict(quiet=True, width=args.width, depth=3, features=64, mean_batch=2048, screen_batch=1024,
+                  pair_clusters=64)
+
+    def scan(position, look_at, k):
+        s = scanner.scan(position, look_at, n_points=args.points, noise=args.noise * scanner.diagonal, seed=k)
+        return s.points.astype(np.float64), s.normals.astype(np.float64)
+
+    first = scanner.random_view(radius_range=(1.8, 1.8), seed=args.seed)
+    p0, n0 = scan(first.camera_position, scanner.center, 0)
+    t0 = time.perf_counter()
+    field0 = fit_cloud(p0, n0, seed=args.seed, steps=args.fit_steps, **fit_kw)
+    field0.training_points, field0.training_normals = torch.tensor(p0).float(), torch.tensor(n0).float()
+    print(f"first fit {time.perf_counter() - t0:.1f}s, chamfer {surface_error(field0, mesh, args.mesh_res):.5f}")
+
+    candidates = scanner.center + radius * fibonacci_sphere(200)
+    rng = np.random.default_rng(args.seed + 1)
+    results = {}
+    last_union = None
+    for strategy in ("nbv", "random", "furthest"):
+        field, cams = field0, [first.camera_position]
+        errors, times = [surface_error(field0, mesh, args.mesh_res)], []
+        for k in range(1, args.views):
+            t_select = time.perf_counter()
+            if strategy == "nbv":
+                v = next_best_views(field, n_views=1, starts=args.starts, steps=args.nbv_steps, standoff=(1.6, 2.4),
+                                    seed=args.seed + k)[0]
+                pos, look = v.position, v.look_at
+            elif strategy == "random":
+                view = scanner.random_view(radius_range=(1.8, 1.8), seed=int(rng.integers(1 << 31)))
+                pos, look = view.camera_position, scanner.center
+            else:
+                d = np.min(np.linalg.norm(candidates[:, None] - np.array(cams)[None], axis=2), axis=1)
+                pos, look = candidates[np.argmax(d)], scanner.center
+            t_select = time.perf_counter() - t_select
+            cams.append(np.asarray(pos))
+            try:
+                p, n = scan(pos, look, k)
+            except ValueError as exc:  # the part is not in view: aim at the part's centre from the same place
+                print(f"  {strategy} view {k + 1}: {exc}; aiming at the part's centre instead")
+                p, n = scan(pos, scanner.center, k)
+            t = time.perf_counter()
+            field = field.update(p, n, steps=args.update_steps, seed=k)
+            times.append(time.perf_counter() - t)
+            errors.append(surface_error(field, mesh, args.mesh_res))
+            print(f"  {strategy} view {k + 1}: chamfer {errors[-1]:.5f} (select {t_select:.1f}s, update {times[-1]:.1f}s)")
+        results[strategy] = {"chamfer": errors, "update_seconds": times, "cameras": [list(map(float, c)) for c in cams]}
+        if strategy == "nbv":
+            last_union = (field.training_points.numpy(), field.training_normals.numpy(), errors[-1], sum(times))
+
+    pts, nrm, err_ft, t_ft = last_union
+    t = time.perf_counter()
+    refit = fit_cloud(pts, nrm, seed=args.seed, steps=args.fit_steps, **fit_kw)
+    t_refit = time.perf_counter() - t
+    err_refit = surface_error(refit, mesh, args.mesh_res)
+    last_ft = results["nbv"]["update_seconds"][-1] if results["nbv"]["update_seconds"] else float("nan")
+    print(f"refit from scratch on the final nbv union ({len(pts)} points): {t_refit:.1f}s, chamfer {err_refit:.5f}; "
+          f"last fine-tune {last_ft:.1f}s, all fine-tunes {t_ft:.1f}s, chamfer {err_ft:.5f}")
+    results["refit"] = {"seconds": t_refit, "chamfer": err_refit, "args": {k: str(v) for k, v in vars(args).items()}}
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "results.json").write_text(json.dumps(results, indent=2))
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    for strategy in ("nbv", "random", "furthest"):
+        ax.plot(range(1, args.views + 1), results[strategy]["chamfer"], marker="o", label=strategy)
+    ax.set_xlabel("views"), ax.set_ylabel("Chamfer to the true mesh"), ax.legend(), fig.tight_layout()
+    fig.savefig(args.out / "chamfer.png", dpi=120)
+    print(f"wrote {args.out / 'chamfer.png'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
