@@ -16,17 +16,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
-
-
-def chamfer(mesh_a, mesh_b, n=30_000, seed=0):
-    """Symmetric Chamfer distance between two surfaces: the mean of the two one-sided mean distances from n
-    area-uniform samples of one mesh to the other mesh's surface (exact point-to-triangle distances, so there is no
-    sampling floor: two samplings of the same mesh score 0)."""
-    a = trimesh.sample.sample_surface(mesh_a, n, seed=seed)[0]
-    b = trimesh.sample.sample_surface(mesh_b, n, seed=seed + 1)[0]
-    return 0.5 * (trimesh.proximity.closest_point(mesh_b, a)[1].mean()
-                  + trimesh.proximity.closest_point(mesh_a, b)[1].mean())
+from fandisk import SHARED, chamfer  # same folder: the Chamfer distance is defined once, in fandisk.py
 
 
 def run_one(job):

@@ -160,7 +160,7 @@ def main(argv=None):
     parser.add_argument("--align", action="store_true", help="register every scan onto the CAD surface first")
     parser.add_argument("--alpha", type=float, default=0.01)
     parser.add_argument("--calibration-fraction", type=float, default=0.2)
-    parser.add_argument("--epochs", type=int, default=None, help="train_latent epochs (default: its own)")
+    parser.add_argument("--epochs", type=int, default=300, help="train_latent epochs (100: AUROC 0.89, 300: 0.96)")
     parser.add_argument("--projection", default="default", help="'default' (inspection's), 'model' (the "
                                                                  "projector's defaults) or a JSON dict")
     parser.add_argument("--model", default=None, help="score this model instead of training one")
