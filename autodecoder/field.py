@@ -94,7 +94,7 @@ class StochasticField:
 
     # ------------------------------------------------------------------------------------------ numpy queries
     def _evaluate(self, fn, *arrays):
-        arrays = [check_points(a, "query points") if a.ndim == 2 else a for a in map(np.asarray, arrays)]
+        arrays = [check_points(a, "query points", min_points=0) for a in arrays]
         n = len(arrays[0])
         out = np.empty(n, dtype=np.float64)
         with torch.no_grad():

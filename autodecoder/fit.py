@@ -154,8 +154,8 @@ def covariance_step_loss(cov_net, targets, options, rng, code=None, pairs=None):
         _, jac = cov_net.features_and_jacobian(x, code)
         dirichlet = covariance_dirichlet_loss_features(jac.unsqueeze(0), sigma.unsqueeze(0), weights.unsqueeze(0))
     else:
-        i, j = _pair_subset(weights.numpy(), options.cluster_size, rng)
-        keep_weight = weights[i, j] * _inverse_keep_probability(weights.numpy(), i, j, options.cluster_size)
+        i, j, keep_factor = _pair_subset(len(weights), options.cluster_size, rng)
+        keep_weight = weights[i, j] * keep_factor
         d_c = cov_net.d_operator(x[i], x[j], code)
         dirichlet = covariance_dirichlet_loss_pairs(d_c, sigma[i, j], keep_weight)
     screen_pts = torch.from_numpy(targets.screen_batch(options.screen_batch, rng))
@@ -163,30 +163,26 @@ def covariance_step_loss(cov_net, targets, options, rng, code=None, pairs=None):
     return dirichlet + screening, dirichlet, screening
 
 
-def _pair_subset(weights, cluster_size, rng):
-    """For the pair network, which costs one evaluation per pair: every within-cluster pair plus as many
-    cross-cluster pairs drawn uniformly (their weights are divided by the keep probability, so the estimate stays
-    unbiased)."""
-    m = len(weights)
+def _pair_subset(m, cluster_size, rng):
+    """The pairs the paper's pair network is evaluated on (it costs one evaluation per pair, unlike the feature net):
+    every within-cluster ordered pair of the m clustered points plus as many cross-cluster pairs drawn uniformly.
+
+    Returns
+    -------
+    i, j : (P,) int arrays
+        Row and column of each kept pair in the (m, m) weight matrix.
+    keep_factor : (P,) float32 tensor
+        1 for within-cluster pairs, n_cross / n_cross_kept for the sampled cross pairs: multiplying their weights by
+        it keeps the loss an unbiased estimate of the sum over all pairs.
+    """
     cluster = np.arange(m) // cluster_size
     ii, jj = np.nonzero((cluster[:, None] == cluster[None, :]) & ~np.eye(m, dtype=bool))
-    n_cross = m * m - m * cluster_size
-    ci = rng.integers(0, m, 4 * len(ii))
-    cj = rng.integers(0, m, 4 * len(ii))
+    ci, cj = rng.integers(0, m, 4 * len(ii)), rng.integers(0, m, 4 * len(ii))
     cross = cluster[ci] != cluster[cj]
     ci, cj = ci[cross][: len(ii)], cj[cross][: len(ii)]
-    del n_cross
-    return np.concatenate([ii, ci]), np.concatenate([jj, cj])
-
-
-def _inverse_keep_probability(weights, i, j, cluster_size):
-    m = len(weights)
-    n_within = m * (cluster_size - 1)
-    n_cross = m * m - m * cluster_size
-    cross_kept = len(i) - n_within
-    factor = np.ones(len(i), dtype=np.float32)
-    factor[n_within:] = n_cross / max(cross_kept, 1)
-    return torch.from_numpy(factor)
+    keep_factor = np.ones(len(ii) + len(ci), dtype=np.float32)
+    keep_factor[len(ii):] = (m * m - m * cluster_size) / max(len(ci), 1)
+    return np.concatenate([ii, ci]), np.concatenate([jj, cj]), torch.from_numpy(keep_factor)
 
 
 def fit_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, width=128, depth=3,

@@ -17,3 +17,14 @@ def shared_meshes():
     if not SHARED_MESHES.is_dir():
         pytest.skip(f"{SHARED_MESHES} not present: this test needs the shared real meshes")
     return SHARED_MESHES
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """Tiny tensors: intra-op threads only add overhead, and oversubscribe a shared CPU badly. Restored after."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

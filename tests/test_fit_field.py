@@ -130,3 +130,37 @@ def test_same_seed_same_field():
 def test_bad_input_gives_one_clear_error(points, normals, message):
     with pytest.raises(ValueError, match=message):
         fit_cloud(points, normals, quiet=True, steps=1)
+
+
+def test_pair_subset_estimates_the_sum_over_all_ordered_pairs():
+    from autodecoder.fit import _pair_subset
+
+    m, cluster_size = 24, 4
+    rng = np.random.default_rng(7)
+    values = rng.random((m, m))
+    exact = values.sum() - np.trace(values)
+    estimates = []
+    for _ in range(3000):
+        i, j, factor = _pair_subset(m, cluster_size, rng)
+        assert np.all(i != j)
+        estimates.append(float((values[i, j] * factor.numpy()).sum()))
+    standard_error = np.std(estimates) / np.sqrt(len(estimates))
+    assert abs(np.mean(estimates) - exact) < 4 * standard_error
+
+
+def test_paper_pair_covariance_fits_and_stays_symmetric():
+    points, normals = sphere_cloud(300)
+    field = fit_cloud(points, normals, seed=0, quiet=True, covariance="pair", width=16, depth=1, steps=20,
+                      mean_batch=128, screen_batch=64, pair_clusters=8)
+    rng = np.random.default_rng(8)
+    a, b = CENTER + rng.uniform(-4, 4, (30, 3)), CENTER + rng.uniform(-4, 4, (30, 3))
+    np.testing.assert_allclose(field.covariance(a, b), field.covariance(b, a), rtol=1e-5, atol=1e-12)
+    assert np.all(field.variance(a) > 0) and np.all(np.isfinite(field.mean(a)))
+
+
+def test_queries_reject_malformed_points(sphere_field):
+    with pytest.raises(ValueError, match=r"query points must be an \(n, 3\) array"):
+        sphere_field.mean(np.zeros(3))
+    with pytest.raises(ValueError, match="NaN"):
+        sphere_field.variance(np.full((2, 3), np.nan))
+    assert sphere_field.mean(np.zeros((0, 3))).shape == (0,)

@@ -16,13 +16,7 @@ from autodecoder.networks import FeatureCovarianceNet
 from autodecoder.sampling import Box, sample_mean_targets, sample_pair_clusters
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Tiny tensors: intra-op threads only add overhead, and oversubscribe a shared CPU badly. Restored after."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 # ------------------------------------------------------------------------------------------------------------ losses
