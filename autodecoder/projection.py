@@ -45,6 +45,9 @@ class ProjectionOptions:
         Points on which the candidates are scored.
     code_reg : float, optional
         lambda_z (default: the training's ``code_reg``).
+    trim : float in [0, 1)
+        Fraction of the points with the largest loss left out of every step's loss (a trimmed mean): the code then
+        explains the good majority of a scan and a defect cannot pull it towards itself. 0: plain mean.
     finetune_steps : int
         Steps of fine-tuning copies of both nets on the scan's GP targets after the projection (0: none).
     finetune_lr : float
@@ -59,6 +62,7 @@ class ProjectionOptions:
     max_candidates: int = 64
     score_points: int = 128
     code_reg: Optional[float] = None
+    trim: float = 0.0
     finetune_steps: int = 0
     finetune_lr: float = 1e-4
 
@@ -119,8 +123,8 @@ def _prepare(scan_like, index):
     return points.astype(np.float32), (normals / length).astype(np.float32), True
 
 
-def _data_loss(mean_net, x, normals, oriented, z, screening_weight):
-    """Per-group projection loss: x, normals (G, n, 3), z (G, L), oriented (G,) bool -> (G,)."""
+def _point_losses(mean_net, x, normals, oriented, z, screening_weight):
+    """Per-point projection losses: x, normals (G, n, 3), z (G, L), oriented (G,) bool -> (G, n)."""
     g_, n_, _ = x.shape
     zz = z[:, None, :].expand(g_, n_, z.shape[1]).reshape(g_ * n_, -1)
     g, grad = mean_net.value_and_gradient(x.reshape(-1, 3), zz)
@@ -128,7 +132,23 @@ def _data_loss(mean_net, x, normals, oriented, z, screening_weight):
     plus = (grad - normals).square().sum(-1)
     minus = (grad + normals).square().sum(-1)
     align = torch.where(oriented[:, None], plus, torch.minimum(plus, minus))
-    return screening_weight * g.square().mean(1) + align.mean(1)
+    return screening_weight * g.square() + align
+
+
+def _trimmed_mean(per_point, trim):
+    """Mean of the (1 - trim) fraction of each row's smallest values: (G, n) -> (G,).
+
+    With ``trim`` > 0 a defect covering a small part of the scan cannot pull the code towards itself (the projection
+    then explains the good majority of the points, which is what makes the defect stand out)."""
+    if trim > 0:
+        keep = max(1, int(round((1.0 - trim) * per_point.shape[1])))
+        per_point = torch.topk(per_point, keep, dim=1, largest=False).values
+    return per_point.mean(1)
+
+
+def _data_loss(mean_net, x, normals, oriented, z, screening_weight, trim=0.0):
+    """Per-group projection loss: x, normals (G, n, 3), z (G, L), oriented (G,) bool -> (G,) (trimmed mean)."""
+    return _trimmed_mean(_point_losses(mean_net, x, normals, oriented, z, screening_weight), trim)
 
 
 def project_many(model, scans, *, seed=0, batch=16, workers=None, quiet=True, **options):
@@ -158,6 +178,8 @@ def project_many(model, scans, *, seed=0, batch=16, workers=None, quiet=True, **
         raise ValueError(f"steps must be >= 0, starts and sample >= 1; got {opts.steps}, {opts.starts}, {opts.sample}")
     if batch < 1:
         raise ValueError(f"batch must be >= 1, got {batch}")
+    if not 0 <= opts.trim < 1:
+        raise ValueError(f"trim must be in [0, 1), got {opts.trim}")
     old_threads = torch.get_num_threads()
     if workers is not None:
         torch.set_num_threads(int(workers))
@@ -229,7 +251,7 @@ def _project_batch(model, prepared, opts, seed):
         n = ns[:, None].expand(b, c, *ns.shape[1:]).reshape(b * c, -1, 3)
         o = oriented[:, None].expand(b, c).reshape(-1)
         z = cand[None].expand(b, c, latent).reshape(b * c, latent)
-        score = _data_loss(net, x, n, o, z, lam_s).view(b, c)
+        score = _data_loss(net, x, n, o, z, lam_s, opts.trim).view(b, c)
         best = torch.topk(-score, starts, dim=1).indices  # (B, starts)
     z = torch.nn.Parameter(cand[best].clone())  # (B, starts, L)
     start_index = cand_index[best.numpy()]  # (B, starts)
@@ -243,7 +265,7 @@ def _project_batch(model, prepared, opts, seed):
         x = xs[:, None].expand(b, k, *xs.shape[1:]).reshape(b * k, -1, 3)
         n = ns[:, None].expand(b, k, *ns.shape[1:]).reshape(b * k, -1, 3)
         o = oriented[:, None].expand(b, k).reshape(-1)
-        data = _data_loss(net, x, n, o, z.reshape(b * k, latent), lam_s).view(b, k)
+        data = _data_loss(net, x, n, o, z.reshape(b * k, latent), lam_s, opts.trim).view(b, k)
         loss = data.sum() + lam_z * z.square().sum()
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -260,7 +282,8 @@ def _project_batch(model, prepared, opts, seed):
             start_index = start_index[rows.numpy(), keep.numpy()][:, None]
     z = z.detach()
     with torch.no_grad():  # final loss on all points, per start; keep the best
-        losses = torch.stack([_full_loss(net, pts[i], nrm[i], bool(oriented[i]), z[i], lam_s) for i in range(b)])
+        losses = torch.stack([_full_loss(net, pts[i], nrm[i], bool(oriented[i]), z[i], lam_s, opts.trim)
+                              for i in range(b)])
     keep = losses.argmin(1)
     seconds = (time.perf_counter() - t0) / b
     out = []
@@ -272,15 +295,15 @@ def _project_batch(model, prepared, opts, seed):
     return out
 
 
-def _full_loss(net, pts, nrm, oriented, z, lam_s, chunk=8192):
-    """Projection loss of each of k codes z (k, L) on all of a scan's points -> (k,)."""
-    total = torch.zeros(len(z), dtype=torch.float64)
+def _full_loss(net, pts, nrm, oriented, z, lam_s, trim=0.0, chunk=8192):
+    """Projection loss (trimmed mean) of each of k codes z (k, L) on all of a scan's points -> (k,)."""
+    parts = []
     for s in range(0, len(pts), chunk):
         x = pts[s:s + chunk][None].expand(len(z), -1, 3)
         n = nrm[s:s + chunk][None].expand(len(z), -1, 3)
         o = torch.full((len(z),), oriented)
-        total += _data_loss(net, x, n, o, z, lam_s).double() * x.shape[1]
-    return (total / len(pts)).float()
+        parts.append(_point_losses(net, x, n, o, z, lam_s).double())
+    return _trimmed_mean(torch.cat(parts, 1), trim).float()
 
 
 def _finetune(model, projection, prepared, opts, seed, quiet):

@@ -224,3 +224,53 @@ def test_cli_holds_back_a_calibration_fraction_without_validation_split(tmp_path
     model = load_model(out)
     assert len(model.calibration_names) == 2 and len(model.train_names) == 3
     assert not set(model.calibration_names) & set(model.train_names)
+
+
+def test_trimmed_mean_matches_numpy_and_trim_is_validated(trained):
+    from autodecoder.projection import _trimmed_mean
+
+    values = torch.rand(3, 50, generator=torch.Generator().manual_seed(0))
+    expected = np.sort(values.numpy(), axis=1)[:, :40].mean(1)
+    assert np.allclose(_trimmed_mean(values, 0.2).numpy(), expected, rtol=1e-6)
+    assert np.allclose(_trimmed_mean(values, 0.0).numpy(), values.numpy().mean(1), rtol=1e-6)
+    model, _ = trained
+    with pytest.raises(ValueError, match="trim"):
+        model.project(sphere_scan("t", 0.25).points, trim=1.0)
+
+
+def test_trimmed_projection_is_not_pulled_by_a_defect(trained):
+    """15 % of a 0.25-sphere's points pushed out to 0.4 (a gross bump): the trimmed projection keeps the radius of
+    the good majority, the plain mean is dragged outwards."""
+    model, _ = trained
+    scan = sphere_scan("test/bumped", 0.25, seed=12)
+    points = scan.points.copy()
+    bump = scan.normals[:, 2] > 0.7  # a cap of ~15 % of the points
+    points[bump] *= 0.4 / 0.25
+    plain = model.project(points, scan.normals, seed=0)
+    trimmed = model.project(points, scan.normals, seed=0, trim=0.2)
+    r_plain, r_trim = zero_crossing_radius(plain.field), zero_crossing_radius(trimmed.field)
+    assert abs(r_trim - 0.25) < abs(r_plain - 0.25), (r_trim, r_plain)
+    assert abs(r_trim - 0.25) < 0.1 * 0.25, r_trim
+
+
+def test_target_pools_are_a_function_of_scan_and_epoch_and_reuse_samples():
+    from autodecoder.scan_pools import ScanTargetPool
+    from autodecoder.targets import CloudTargets
+
+    scan = sphere_scan("a", 0.3, n=300)
+    targets = CloudTargets(scan.points, scan.normals, 0.05)
+    kw = dict(seed=3, mean_samples=64, refresh=2, passes=3, pair_clusters=4, cluster_size=3)
+    a, b = ScanTargetPool(targets, 6, **kw), ScanTargetPool(targets, 6, **kw)  # 6: cycles start at epoch 0
+    for e in (0, 1, 5, 6, 2):  # b sees only these epochs, a sees them again below: no hidden state
+        assert all(np.array_equal(u, v) for u, v in zip(a.mean_batch(e), b.mean_batch(e)))
+    epochs = [a.mean_batch(e)[0] for e in range(6)]  # one pool of 128 samples serves 6 epochs
+    pool = {tuple(r) for r in np.concatenate(epochs[:2])}
+    assert len(pool) == 128 and all({tuple(r) for r in np.concatenate(epochs[k:k + 2])} == pool for k in (2, 4))
+    assert not np.array_equal(epochs[0], epochs[2])  # a new shuffle each pass
+    assert not np.array_equal(a.mean_batch(6)[0], epochs[0])  # a new pool after `passes` passes
+    x0 = a.pair_batch(0)[0]
+    assert np.array_equal(a.pair_batch(2)[0], x0) and not np.array_equal(a.pair_batch(3)[0], x0)
+    other = ScanTargetPool(targets, 1, **kw)  # another scan draws other samples, on a staggered cycle
+    assert not np.array_equal(other.mean_batch(0)[0], a.mean_batch(0)[0])
+    first = {tuple(r) for e in range(5) for r in other.mean_batch(e)[0]}
+    assert len(first) == 128 and not first & {tuple(r) for r in other.mean_batch(5)[0]}
