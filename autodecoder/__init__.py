@@ -21,6 +21,8 @@ _EXPORTS = {
     # scanning: correlated ray casting, next-best-view, fine-tuning on new scans
     "cast_rays": "autodecoder.rays",
     "orthant_survival": "autodecoder.rays",
+    "blocked_probability": "autodecoder.free_space",
+    "missing_return_probability": "autodecoder.free_space",
     "next_best_views": "autodecoder.views",
     "update_field": "autodecoder.update",
 }

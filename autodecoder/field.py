@@ -78,6 +78,14 @@ class StochasticField:
         """E f(x) for world points x (m, 3) tensor -> (m,), differentiable with respect to x."""
         return self.mean_net(self._model_x(x), self._code_for(x)) / self.normalization.scale
 
+    def torch_mean_and_gradient(self, x):
+        """E f(x) and its gradient for world points x (m, 3) tensor -> (m,), (m, 3).
+
+        The gradient is unitless (world length over world length), so E f / |grad E f| is a first-order distance to
+        the mean surface in world units."""
+        value, grad = self.mean_net.value_and_gradient(self._model_x(x), self._code_for(x))
+        return value / self.normalization.scale, grad
+
     def torch_covariance(self, x1, x2):
         """Cov(f(x1_i), f(x2_i)) for world points taken row by row: (m, 3), (m, 3) -> (m,)."""
         s2 = self.normalization.scale**2
@@ -106,6 +114,16 @@ class StochasticField:
     def mean(self, x):
         """E f(x) at world points x (m, 3) -> (m,) array (world length units)."""
         return self._evaluate(self.torch_mean, x)
+
+    def mean_gradient(self, x):
+        """grad E f(x) at world points x (m, 3) -> (m, 3) array (unitless)."""
+        x = check_points(x, "query points", min_points=0)
+        out = np.empty((len(x), 3), dtype=np.float64)
+        with torch.no_grad():
+            for start in range(0, len(x), _CHUNK):
+                chunk = torch.as_tensor(x[start:start + _CHUNK], dtype=torch.float32)
+                out[start:start + _CHUNK] = self.torch_mean_and_gradient(chunk)[1].double().numpy()
+        return out
 
     def variance(self, x):
         """Var f(x) at world points x (m, 3) -> (m,) array (world units squared)."""

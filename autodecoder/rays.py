@@ -111,20 +111,28 @@ def _genz_survival(m, C, n_samples, seed):
     factor e_i = P(z_i > a_i) = Phi(-a_i); z_i is drawn from N(0, 1) truncated to z_i > a_i by inversion,
     z_i = -Phi^-1(u_i e_i). The mean over samples of prod_{i<=k} e_i estimates S_k without bias (for every k, since
     later variables do not enter the first k factors); with the uniforms u fixed it is a smooth function of m and L.
-    Matrices that are not positive definite have their spectrum clipped at 1e-7 x the largest eigenvalue.
+    Matrices that are not positive definite get the smallest diagonal jitter (1e-7, 1e-6, ... x their largest
+    variance) that lets the Cholesky factorization succeed.
     """
     B, K = m.shape
+    if not bool(torch.isfinite(C).all()) or not bool(torch.isfinite(m).all()):
+        raise ValueError("orthant_survival: the means or covariances are not finite")
     L, info = torch.linalg.cholesky_ex(C)  # (B, K, K)
     if bool((info > 0).any()):
-        # not positive definite (a pair covariance net need not be PSD, float32 round-off): clip the spectrum of
-        # the failing matrices at the jitter level
+        # not positive definite (a pair covariance net need not be PSD; float32 round-off on near-singular ray
+        # covariances): add a diagonal jitter to the failing matrices, from 1e-7 of their largest variance up, until
+        # the factorization succeeds. (Clipping the spectrum by eigh was tried first; eigh itself fails to converge
+        # on some of these matrices.)
+        eye = torch.eye(K, dtype=C.dtype, device=C.device)
+        scale = C.diagonal(dim1=-2, dim2=-1).abs().amax(-1).clamp_min(1e-300)  # (B,)
         bad = info > 0
-        w, V = torch.linalg.eigh(C[bad])
-        floor = 1e-7 * w.abs().amax(-1, keepdim=True).clamp_min(1e-300)
-        fixed = (V * w.clamp_min(0.0).add(floor)[:, None, :]) @ V.transpose(1, 2)
-        C = torch.where(bad[:, None, None], torch.zeros_like(C), C)
-        C = C.index_put((bad.nonzero()[:, 0],), fixed)
-        L = torch.linalg.cholesky(C)
+        for power in range(-7, 1):
+            jitter = torch.where(bad, scale * 10.0**power, torch.zeros_like(scale))
+            L, info = torch.linalg.cholesky_ex(C + jitter[:, None, None] * eye)
+            if not bool((info > 0).any()):
+                break
+        else:
+            raise ValueError("orthant_survival: a covariance matrix is far from positive semi-definite")
     u = torch.quasirandom.SobolEngine(K, scramble=True, seed=seed).draw(n_samples, dtype=m.dtype)  # (N, K)
     u = u.clamp(1e-12, 1 - 1e-12).to(m.device)
     z = m.new_zeros(B, n_samples, 0)

@@ -21,6 +21,8 @@ _EXPORTS = {
     "load_model": "inspection.model_io",
     "save_reference_field": "inspection.model_io",
     "Aligner": "inspection.align",
+    "ray_evidence": "inspection.ray_evidence",
+    "Combination": "inspection.combine",
 }
 
 __all__ = sorted(_EXPORTS)

@@ -1,6 +1,6 @@
 """Command line of the inspection package: calibrate a model on good scans, score scans, run the demo.
 
-    python -m inspection calibrate --model model.pt --data good.h5 [--alpha 0.01] [--aggregate top1]
+    python -m inspection calibrate --model model.pt --data good.h5 [--alpha 0.01] [--aggregate top1] [--rays]
     python -m inspection score --model model.pt --data tree.h5 --out results/ [--split test] [--align]
     python -m inspection demo --out demo_output
 
@@ -30,14 +30,20 @@ def _parser():
     c.add_argument("--alpha", type=float, default=0.01, help="default false-alarm rate stored with it (0.01)")
     c.add_argument("--aggregate", default=None, help="per-scan aggregate: top1 (default), mean, max, median, "
                                                      "top<P>, q<P>")
-    c.add_argument("--point-score", choices=("local", "residual", "nll"), default=None,
-                   help="per-point score (default: local when DATA is the model's training collection, whose "
+    c.add_argument("--point-score", choices=("distance", "local", "residual", "nll"), default=None,
+                   help="per-point score (default: distance when DATA is the model's training collection, whose "
                         "training scans then give the per-location reference, else residual)")
     c.add_argument("--noise", type=float, default=None, help="noise floor (model frame units; default the model's)")
     c.add_argument("--projection", default="default", help="latent projection options as KEY=VALUE,... (fields of "
                                                            "autodecoder.projection.ProjectionOptions), 'default' "
                                                            "(inspection's: steps=60,starts=2,explore=20,"
                                                            "max_candidates=16) or 'model' (the projector's own)")
+    c.add_argument("--rays", action="store_true",
+                   help="add the ray score (material the model expects where the sensor saw free space, e.g. a "
+                        "hole in a thin wall), combined with the point score; scans need a sensor origin")
+    c.add_argument("--ray-options", default="", help="ray score settings as KEY=VALUE,... (n_rays=384, "
+                                                      "n_empty=128, gap=2.0, aggregate=top1, seed=0, clearance=WORLD "
+                                                      "UNITS; default: the field's lengthscale)")
     c.add_argument("--quiet", action="store_true")
 
     s = sub.add_parser("score", help="score scans, write scores.csv, summary.json, roc.png, scores.png, maps/")
@@ -79,6 +85,22 @@ def _projection(text):
     return out
 
 
+def _ray_options(text):
+    """KEY=VALUE,... -> dict (ints where they parse, then floats, else strings); validated by the Inspector."""
+    out = {}
+    for item in filter(None, text.split(",")):
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"--ray-options: expected KEY=VALUE pairs, got {item!r}")
+        for cast in (int, float, str):
+            try:
+                out[key.strip()] = cast(value.strip())
+                break
+            except ValueError:
+                continue
+    return out
+
+
 def main(argv=None):
     """Run the command line; returns the exit status (0 ok, 2 bad input)."""
     args = _parser().parse_args(argv)
@@ -98,12 +120,20 @@ def main(argv=None):
 
             if args.projection not in ("default", "model"):
                 _projection(args.projection)  # validate before any work
+            ray_options = _ray_options(args.ray_options)
+            if ray_options and not args.rays:
+                raise ValueError("--ray-options needs --rays")
+            if args.rays:
+                from .ray_evidence import check_ray_options
+
+                check_ray_options(ray_options)  # validate before any work
             insp, info = calibrate(args.model, args.data, alpha=args.alpha, aggregate=args.aggregate,
                                    point_score=args.point_score, noise=args.noise, split=args.split,
-                                   progress=not args.quiet, projection=_projection(args.projection))
+                                   progress=not args.quiet, projection=_projection(args.projection),
+                                   rays=args.rays, ray_options=ray_options or None)
             t = info["threshold"]
             print(f"calibrated {args.model} on {info['n']} scans ({info['how']}): aggregate {insp.aggregate}, "
-                  f"point score {insp.point_score}, threshold at alpha={insp.alpha:g}: "
+                  f"point score {insp.point_score}{' + ray score' if insp.rays else ''}, threshold at alpha={insp.alpha:g}: "
                   f"{'none (too few scans)' if t == float('inf') else f'{t:.4g}'}")
         elif args.command == "score":
             from .run import score

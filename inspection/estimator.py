@@ -5,7 +5,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .calibration import Calibration, check_alpha, conformal_p_values, conformal_threshold
-from .scores import POINT_SCORES, LocalReference, aggregate as aggregate_scores, check_aggregate, point_scores
+from .scores import (POINT_SCORES, REFERENCE_QUANTITY, LocalReference, aggregate as aggregate_scores, check_aggregate,
+                     point_scores)
 
 log = logging.getLogger(__name__)
 
@@ -28,11 +29,19 @@ except ImportError:  # pragma: no cover
 
 @dataclass
 class ScanResult:
-    """One scan's inspection: its anomaly score (higher = more anomalous) and per-point scores (m,)."""
+    """One scan's inspection: its anomaly score (higher = more anomalous) and per-point scores (m,).
+
+    ``components`` holds the per-scan scores that make ``score``: ``{"points": ...}`` (the aggregate of the point
+    scores), plus ``"rays"`` (the ray score) when rays are used; then ``rays`` is the
+    :class:`~inspection.ray_evidence.RayEvidence` (its ``point_map`` is the per-point ray map) and ``score`` the
+    combination (:mod:`inspection.combine`).
+    """
 
     score: float
     point_scores: np.ndarray
     field: object = None
+    components: dict = None
+    rays: object = None
 
 
 def _points_normals(scan):
@@ -42,6 +51,12 @@ def _points_normals(scan):
     if isinstance(scan, tuple) and len(scan) == 2:
         return np.asarray(scan[0]), None if scan[1] is None else np.asarray(scan[1])
     return np.asarray(scan), None
+
+
+def _sensor_origin(scan, i):
+    from .ray_evidence import sensor_origin
+
+    return sensor_origin(scan if hasattr(scan, "points") else None, _scan_name(scan, i))
 
 
 def _scan_name(scan, i):
@@ -83,16 +98,25 @@ class Inspector(BaseEstimator):
         the worst 1 % of the points; chosen on benchmarks/inspect_fandisk.py, where it separated best: defects
         cover 1.5-5 % of a scan's points, so the paper's ``'mean'`` dilutes them), ``'mean'`` (the paper's),
         ``'max'``, ``'median'``, ``'top<P>'``, ``'q<P>'``.
-    point_score : {'residual', 'local', 'nll'}
+    point_score : {'residual', 'distance', 'local', 'nll'}
         Per-point score (:func:`inspection.scores.point_scores`): the standardized residual (default here, as it
-        needs nothing more; the command line picks ``'local'`` when it can reach the training scans), the residual
-        standardized against good scans at the same place (``'local'``: :meth:`fit` then needs
-        ``reference_scans``, e.g. the model's training scans), or the paper's NLL.
+        needs nothing more; the command line picks ``'distance'`` when it can reach the training scans), the
+        first-order distance to the mean surface standardized against good scans at the same place
+        (``'distance'``: :meth:`fit` then needs ``reference_scans``, e.g. the model's training scans), the same on
+        E f itself (``'local'``), or the paper's NLL.
     noise : float, optional
         Noise floor (measurement noise standard deviation, model frame units); default the field's own.
     projection : dict, optional
         Options of ``model.project`` (latent models), e.g. ``DEFAULT_PROJECTION``; None: the model's defaults.
         Scores depend on them, so the calibration stores them and :meth:`set_calibration` restores them.
+    rays : bool
+        Also score the sensor's rays (:mod:`inspection.ray_evidence`: material the field expects where the
+        sensor saw free space, e.g. a hole in a thin wall) and combine that score with the point score
+        (:mod:`inspection.combine`: the larger of the two, each standardized on the calibration scans). Scans
+        need a ``sensor_origin``; the combined score needs calibration (:meth:`fit`) before it can be computed.
+    ray_options : dict, optional
+        Settings of the ray score (keys of ``inspection.ray_evidence.RAY_DEFAULTS``: ``n_rays``, ``n_empty``,
+        ``gap``, ``aggregate``, ``seed``, ``clearance``); stored with the calibration like ``projection``.
 
     Attributes (after :meth:`fit`)
     ------------------------------
@@ -105,17 +129,21 @@ class Inspector(BaseEstimator):
         ``-threshold_``, so that ``decision_function = score_samples - offset_`` is negative exactly for defects.
     n_calibration_ : int
     reference_ : LocalReference or None
-        Per-location statistics of good scans (point score ``'local'`` only).
+        Per-location statistics of good scans (point scores ``'distance'`` and ``'local'`` only).
+    combination_ : Combination or None
+        The standardization of the components on the calibration scans (``rays=True`` only).
     """
 
     def __init__(self, model, alpha=0.01, aggregate=DEFAULT_AGGREGATE, point_score=DEFAULT_POINT_SCORE, noise=None,
-                 projection=None):
+                 projection=None, rays=False, ray_options=None):
         self.model = model
         self.projection = projection
         self.alpha = alpha
         self.aggregate = aggregate
         self.point_score = point_score
         self.noise = noise
+        self.rays = rays
+        self.ray_options = ray_options
 
     # ------------------------------------------------------------------------------------------------ checks
     def _check_params(self):
@@ -125,6 +153,12 @@ class Inspector(BaseEstimator):
             raise ValueError(f"point_score must be one of {POINT_SCORES}, got {self.point_score!r}")
         if self.noise is not None and not float(self.noise) >= 0:
             raise ValueError(f"noise must be None or >= 0, got {self.noise!r}")
+        if self.rays not in (True, False):
+            raise ValueError(f"rays must be True or False, got {self.rays!r}")
+        if self.rays:
+            from .ray_evidence import check_ray_options
+
+            check_ray_options(self.ray_options)
 
     def _check_is_fitted(self):
         if not hasattr(self, "calibration_scores_"):
@@ -133,38 +167,72 @@ class Inspector(BaseEstimator):
 
     # ------------------------------------------------------------------------------------------------ scoring
     def inspect(self, scan):
-        """Project one scan and score it. Returns a :class:`ScanResult` (score, per-point scores, field)."""
+        """Project one scan and score it. Returns a :class:`ScanResult` (score, per-point scores, field,
+        components, ray evidence). With ``rays=True`` the score is the combination, which needs calibration."""
+        combination = self._combination() if self.rays else None  # before the work: fail fast
+        result = self.inspect_components(scan)
+        if combination is not None:
+            result.score = float(combination.score([result.components])[0])
+        return result
+
+    def inspect_components(self, scan):
+        """Like :meth:`inspect`, but ``score`` is the point score's aggregate alone; works unfitted (except for
+        point scores ``'distance'`` and ``'local'``, which need their reference)."""
         self._check_params()
         points, normals = _points_normals(scan)
         if points.ndim != 2 or points.shape[-1] != 3 or len(points) == 0:
             raise ValueError(f"{_scan_name(scan, 0)}: a scan needs (m >= 1, 3) points, got shape {points.shape}")
+        origin = _sensor_origin(scan, 0) if self.rays else None  # before the projection: fail fast
         field = field_for(self.model, points, normals, self.projection)
         reference = getattr(self, "reference_", None)
-        if self.point_score == "local" and reference is None:
-            raise NotFittedError("point_score 'local' needs the per-location reference: call "
+        if self.point_score in REFERENCE_QUANTITY and reference is None:
+            raise NotFittedError(f"point_score {self.point_score!r} needs the per-location reference: call "
                                  "fit(good_scans, reference_scans=...) or fit_reference(scans) first")
         values = point_scores(field, points, kind=self.point_score, noise=self.noise, reference=reference)
-        return ScanResult(aggregate_scores(values, self.aggregate), values, field)
+        score = aggregate_scores(values, self.aggregate)
+        result = ScanResult(score, values, field, components={"points": score})
+        if self.rays:
+            from .ray_evidence import check_ray_options, ray_evidence
+
+            result.rays = ray_evidence(field, points, origin, **check_ray_options(self.ray_options))
+            result.components["rays"] = result.rays.score
+        return result
+
+    def _combination(self):
+        combination = getattr(self, "combination_", None)
+        if combination is None:
+            raise NotFittedError("rays=True: the combined score standardizes the point and ray scores on the "
+                                 "calibration scans; call fit(good_scans) or set_calibration(...) first "
+                                 "(inspect_components works unfitted)")
+        return combination
 
     def anomaly_scores(self, scans):
-        """Per-scan anomaly scores (n,) (higher = more anomalous). Works unfitted."""
+        """Per-scan anomaly scores (n,) (higher = more anomalous). Works unfitted, except with ``rays=True``."""
         return np.array([self.inspect(s).score for s in scans], dtype=np.float64)
 
     def anomaly_map(self, scan):
         """Per-point scores (m,) of one scan (higher = more anomalous). Works unfitted."""
-        return self.inspect(scan).point_scores
+        return self.inspect_components(scan).point_scores
+
+    def ray_map(self, scan):
+        """Per-point ray scores (m,) in [0, 1] of one scan (``rays=True``; see :mod:`inspection.ray_evidence`).
+        Works unfitted."""
+        if not self.rays:
+            raise ValueError("ray_map needs an Inspector made with rays=True")
+        return self.inspect_components(scan).rays.point_map
 
     # ------------------------------------------------------------------------------------------------ fitting
     def fit_reference(self, scans, max_points=60000, seed=0):
-        """Build ``reference_`` (for point score ``'local'``) from good scans, each projected as a test scan would
-        be; the model's training scans are the natural choice. Returns self."""
+        """Build ``reference_`` (for point scores ``'distance'`` and ``'local'``) from good scans, each projected as
+        a test scan would be; the model's training scans are the natural choice. Returns self."""
         pairs = []
         for scan in scans:
             points, normals = _points_normals(scan)
             pairs.append((points, field_for(self.model, points, normals, self.projection)))
         if not pairs:
             raise ValueError("fit_reference needs at least one good scan, got none")
-        self.reference_ = LocalReference.from_fields(pairs, max_points=max_points, seed=seed)
+        self.reference_ = LocalReference.from_fields(pairs, max_points=max_points, seed=seed,
+                                                     quantity=REFERENCE_QUANTITY.get(self.point_score, "mean"))
         return self
 
     def fit(self, good_scans, y=None, names=None, reference_scans=None):
@@ -177,7 +245,7 @@ class Inspector(BaseEstimator):
         names : list of str, optional
             Default: the scans' names.
         reference_scans : sequence of Scan, optional
-            Good scans for the per-location reference (point score ``'local'``; required then, unless
+            Good scans for the per-location reference (point scores ``'distance'``, ``'local'``; required then, unless
             ``reference_`` is already set): usually the model's training scans.
 
         Returns
@@ -187,14 +255,37 @@ class Inspector(BaseEstimator):
         self._check_params()
         if reference_scans is not None:
             self.fit_reference(reference_scans)
-        elif self.point_score == "local" and getattr(self, "reference_", None) is None:
-            raise ValueError("point_score='local' needs reference_scans (good scans, e.g. the training scans)")
+        elif self.point_score in REFERENCE_QUANTITY and getattr(self, "reference_", None) is None:
+            raise ValueError(f"point_score={self.point_score!r} needs reference_scans (good scans, e.g. the training "
+                             "scans)")
         good_scans = list(good_scans)
         if not good_scans:
             raise ValueError("fit needs at least one good calibration scan, got none")
-        scores = self.anomaly_scores(good_scans)
+        components = [self.inspect_components(s).components for s in good_scans]
         names = [_scan_name(s, i) for i, s in enumerate(good_scans)] if names is None else list(names)
-        return self._set(scores, names)
+        return self.fit_components(components, names)
+
+    def fit_components(self, components, names):
+        """Calibrate from the ``components`` of :meth:`inspect_components` (one dict per good calibration scan).
+
+        Without rays the calibration scores are the point scores' aggregates. With rays the components are
+        standardized on these scans (``combination_``) and the calibration scores are their leave-one-out
+        combinations (:meth:`inspection.combine.Combination.calibration_scores`). Returns self.
+        """
+        components = list(components)
+        if not components:
+            raise ValueError("calibration needs at least one good scan, got none")
+        if not self.rays:
+            self.combination_ = None
+            return self._set([c["points"] for c in components], names)
+        from .combine import Combination
+
+        missing = [i for i, c in enumerate(components) if "rays" not in c]
+        if missing:
+            raise ValueError(f"rays=True: {len(missing)} calibration scan(s) have no ray score (inspect them with "
+                             f"this Inspector)")
+        self.combination_ = Combination(components, names=("points", "rays"))
+        return self._set(self.combination_.calibration_scores(), names)
 
     def _set(self, scores, names):
         scores = np.asarray(scores, dtype=np.float64).reshape(-1)
@@ -216,6 +307,15 @@ class Inspector(BaseEstimator):
         self.projection = (calibration.extra or {}).get("projection")
         ref = (calibration.extra or {}).get("reference")
         self.reference_ = None if ref is None else LocalReference.from_dict(ref)
+        rays = (calibration.extra or {}).get("rays")
+        self.rays = rays is not None
+        self.ray_options = None if rays is None else dict(rays["options"])
+        if rays is not None:
+            from .combine import Combination
+
+            self.combination_ = Combination.from_dict(rays["components"])
+        else:
+            self.combination_ = None
         self._check_params()
         return self._set(calibration.scores, calibration.names)
 
@@ -228,7 +328,16 @@ class Inspector(BaseEstimator):
                            source=source, fingerprint=fingerprint,
                            extra={"projection": None if self.projection is None else dict(self.projection),
                                   "reference": None if getattr(self, "reference_", None) is None
-                                  else self.reference_.as_dict()})
+                                  else self.reference_.as_dict(),
+                                  "rays": self._ray_record()})
+
+    def _ray_record(self):
+        """What the calibration stores about rays: None, or the options and the calibration component scores."""
+        if not self.rays:
+            return None
+        from .ray_evidence import check_ray_options
+
+        return {"options": check_ray_options(self.ray_options), "components": self._combination().as_dict()}
 
     # ------------------------------------------------------------------------------------ sklearn outlier API
     def p_values_from_scores(self, anomaly_scores):

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 CSV_COLUMNS = ("name", "split", "label", "defect", "score", "p_value", "verdict")
+RAY_CSV_COLUMNS = CSV_COLUMNS + ("score_points", "score_rays")  # with rays: the two components of the score
 
 
 def atomic_write_text(path, text):
@@ -30,13 +31,15 @@ def atomic_write_text(path, text):
     return path
 
 
-def write_scores_csv(path, rows):
-    """``rows``: dicts with the keys of CSV_COLUMNS (score and p_value floats). Written atomically."""
+def write_scores_csv(path, rows, columns=CSV_COLUMNS):
+    """``rows``: dicts with the keys of ``columns`` (CSV_COLUMNS, or RAY_CSV_COLUMNS; scores and p_value
+    floats). Written atomically."""
     buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=CSV_COLUMNS, extrasaction="ignore", lineterminator="\n")
+    writer = csv.DictWriter(buf, fieldnames=columns, extrasaction="ignore", lineterminator="\n")
     writer.writeheader()
     for r in rows:
-        writer.writerow({**r, "score": f"{r['score']:.9g}", "p_value": f"{r['p_value']:.6g}"})
+        floats = {k: f"{r[k]:.9g}" for k in ("score", "score_points", "score_rays") if k in r}
+        writer.writerow({**r, **floats, "p_value": f"{r['p_value']:.6g}"})
     return atomic_write_text(path, buf.getvalue())
 
 
@@ -143,7 +146,7 @@ def format_table(rows, summary, max_rows=60):
                  f"(threshold {'none' if t is None else f'{t:.4g}'})")
     m = summary.get("metrics", {})
     bits = []
-    for key in ("auroc", "aupr", "point_auroc", "precision", "recall", "f1", "false_alarm_rate"):
+    for key in ("auroc", "aupr", "point_auroc", "ray_point_auroc", "precision", "recall", "f1", "false_alarm_rate"):
         if key in m:
             bits.append(f"{key} {m[key]:.3f}")
     if bits:

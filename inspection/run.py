@@ -139,7 +139,7 @@ def prepare_out(out, overwrite=False):
                                   f"or pass --overwrite")
         maps = out / "maps"
         if maps.is_dir():
-            for p in maps.glob("*.ply"):
+            for p in [*maps.glob("*.ply"), *maps.glob("rays/*.ply")]:
                 p.unlink()
     out.mkdir(parents=True, exist_ok=True)
     return out
@@ -190,33 +190,50 @@ def reference_scans(handle, data, info, max_scans=32):
         return c.read_many([c.index_of(present[i]) for i in pick])
 
 
+def check_sensor_origins(scans, data):
+    """An InspectionError naming the data and a scan when any scan lacks the sensor origin the ray score needs."""
+    missing = [s.name for s in scans if s.sensor_origin is None]
+    if missing:
+        raise InspectionError(f"{data}: {len(missing)} of {len(scans)} scans have no sensor origin (e.g. "
+                              f"{missing[0]!r}); the ray score (--rays) needs where the sensor was (scanner files: a "
+                              f"<stem>.json sidecar {{\"sensor_origin\": [x, y, z]}}); calibrate without --rays")
+
+
 def calibrate(model, data, alpha=0.01, aggregate=None, point_score=None, noise=None, split=None, progress=True,
-              write=True, projection="default"):
-    """Calibrate ``model`` on good scans and store the calibration in the model file. Returns (Inspector, info)."""
+              write=True, projection="default", rays=False, ray_options=None):
+    """Calibrate ``model`` on good scans and store the calibration in the model file. Returns (Inspector, info).
+
+    ``rays=True`` adds the ray score (:mod:`inspection.ray_evidence`, settings ``ray_options``) and calibrates
+    its combination with the point score; every calibration scan then needs a sensor origin."""
     from tqdm import tqdm
 
     from .calibration import write_calibration
     from .estimator import DEFAULT_AGGREGATE, DEFAULT_POINT_SCORE, DEFAULT_PROJECTION, Inspector
     from .model_io import load_model
+    from .scores import REFERENCE_QUANTITY
 
     handle = load_model(model)
     scans, info, how = calibration_scans(handle, data, split=split)
+    if rays:
+        check_sensor_origins(scans, data)
     reference = None
-    if point_score in (None, "local"):
+    if point_score is None or point_score in REFERENCE_QUANTITY:
         reference = reference_scans(handle, data, info)
-        if reference is None and point_score == "local":
-            raise InspectionError(f"{data}: point score 'local' needs the model's training scans, and this is not "
-                                  f"its training collection (or the model records no training scan names)")
+        if reference is None and point_score is not None:
+            raise InspectionError(f"{data}: point score {point_score!r} needs the model's training scans, and this "
+                                  f"is not its training collection (or the model records no training scan names)")
     if point_score is None:
-        point_score = "local" if reference else DEFAULT_POINT_SCORE
+        point_score = "distance" if reference else DEFAULT_POINT_SCORE
     insp = Inspector(handle.model, alpha=alpha, aggregate=aggregate or DEFAULT_AGGREGATE,
                      point_score=point_score, noise=noise,
                      projection=(DEFAULT_PROJECTION if projection == "default" else projection)
-                     if handle.kind == "latent" else None)
-    if point_score == "local":
+                     if handle.kind == "latent" else None, rays=bool(rays), ray_options=ray_options)
+    insp._check_params()  # bad ray options fail before any work
+    if point_score in REFERENCE_QUANTITY:
         insp.fit_reference(tqdm(reference, desc="reference", unit="scan", disable=not progress))
-    scores = [insp.inspect(s).score for s in tqdm(scans, desc="calibrate", unit="scan", disable=not progress)]
-    insp._set(scores, [s.name for s in scans])
+    components = [insp.inspect_components(s).components
+                  for s in tqdm(scans, desc="calibrate", unit="scan", disable=not progress)]
+    insp.fit_components(components, [s.name for s in scans])
     if write:
         write_calibration(handle.path, insp.calibration(source=f"{how}", fingerprint=info.get("fingerprint", "")))
     return insp, {"n": len(scans), "how": how, "threshold": insp.threshold_}
@@ -233,10 +250,10 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
     from tqdm import tqdm
 
     from .estimator import Inspector
-    from .maps import safe_name, write_legend, write_map
+    from .maps import RAY_MAP_LABEL, RAY_MAP_RANGE, safe_name, write_legend, write_map
     from .model_io import load_model
     from .plots import plot_roc, plot_score_histograms
-    from .report import format_table, summarize, write_json, write_scores_csv
+    from .report import CSV_COLUMNS, RAY_CSV_COLUMNS, format_table, summarize, write_json, write_scores_csv
     from .scores import point_scores
 
     if maps not in ("flagged", "all", "none"):
@@ -251,9 +268,11 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
     scans, info = load_scans(data, handle.frame, split=split, model_fingerprint=handle.fingerprint)
     if not scans:
         raise InspectionError(f"{data}: no scans" + (f" in split {split!r}" if split else ""))
+    if insp.rays:
+        check_sensor_origins(scans, data)
     out = prepare_out(out, overwrite=overwrite)
     aligner = make_aligner(handle, info, reference) if align else None
-    rows, point_labels, point_vals = [], [], []
+    rows, point_labels, point_vals, ray_vals = [], [], [], []
     maps_dir = out / "maps"
     n_maps = 0
     seconds = []
@@ -267,21 +286,37 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
         verdict = "defective" if insp.predict_from_scores([res.score])[0] == -1 else "good"
         rows.append({"name": scan.name, "split": scan.split, "label": scan.label, "defect": scan.defect,
                      "score": res.score, "p_value": p, "verdict": verdict})
+        if insp.rays:
+            rows[-1].update(score_points=res.components["points"], score_rays=res.components["rays"])
         if scan.point_labels is not None:
             point_labels.append(scan.point_labels)
             point_vals.append(res.point_scores)
+            if insp.rays:
+                ray_vals.append(res.rays.point_map)
         if maps == "all" or (maps == "flagged" and verdict == "defective"):
-            resid = res.point_scores if insp.point_score in ("residual", "local") else \
+            resid = res.point_scores if insp.point_score in ("residual", "local", "distance") else \
                 point_scores(res.field, scan.points, "residual", insp.noise)
             write_map(maps_dir / f"{safe_name(scan.name)}.ply", scan.points, scan.normals, resid)
+            if insp.rays:
+                write_map(maps_dir / "rays" / f"{safe_name(scan.name)}.ply", scan.points, scan.normals,
+                          res.rays.point_map, vrange=RAY_MAP_RANGE)
             n_maps += 1
     extra = {"model": str(handle.path), "model_kind": handle.kind, "data": str(data), "split": split,
              "aggregate": insp.aggregate, "point_score": insp.point_score, "noise": insp.noise,
              "projection": insp.projection, "n_calibration": insp.n_calibration_, "calibration_source": cal.source, "aligned": bool(align),
              "seconds_per_scan": float(np.mean(seconds)), "maps": n_maps,
-             "higher_score_means": "more anomalous"}
+             "higher_score_means": "more anomalous",
+             "rays": None if not insp.rays else {
+                 "options": insp._ray_record()["options"],
+                 "score": "max of the point and ray scores, each standardized on the calibration scans"}}
     summary = summarize(rows, insp.threshold_, alpha, point_labels, point_vals, extra)
-    write_scores_csv(out / "scores.csv", rows)
+    if ray_vals:
+        from sklearn.metrics import roc_auc_score
+
+        yl = np.concatenate(point_labels).astype(int)
+        if 0 < yl.sum() < len(yl):
+            summary["metrics"]["ray_point_auroc"] = float(roc_auc_score(yl, np.concatenate(ray_vals)))
+    write_scores_csv(out / "scores.csv", rows, RAY_CSV_COLUMNS if insp.rays else CSV_COLUMNS)
     write_json(out / "summary.json", summary)
     labels = np.array([r["label"] for r in rows])
     sc = np.array([r["score"] for r in rows])
@@ -291,6 +326,8 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
     plot_score_histograms(out / "scores.png", sc, labels, insp.threshold_, insp.calibration_scores_)
     if n_maps:
         write_legend(maps_dir / "legend.png")
+        if insp.rays:
+            write_legend(maps_dir / "rays" / "legend.png", RAY_MAP_RANGE, RAY_MAP_LABEL)
     echo(format_table(rows, summary))
     echo(f"results in {out}/: scores.csv, summary.json, roc.png, scores.png"
          + (f", maps/ ({n_maps} coloured PLY + legend.png)" if n_maps else ""))

@@ -164,3 +164,12 @@ def test_queries_reject_malformed_points(sphere_field):
     with pytest.raises(ValueError, match="NaN"):
         sphere_field.variance(np.full((2, 3), np.nan))
     assert sphere_field.mean(np.zeros((0, 3))).shape == (0,)
+
+
+def test_mean_gradient_matches_finite_differences(sphere_field):
+    """grad E f in world units (the cloud is not in the unit cube: the normalization's scale must cancel)."""
+    x = np.random.default_rng(3).uniform(-0.3, 0.3, (20, 3)) + sphere_field.normalization.center
+    eps = 1e-3
+    fd = np.stack([(sphere_field.mean(x + eps * e) - sphere_field.mean(x - eps * e)) / (2 * eps)
+                   for e in np.eye(3)], 1)
+    np.testing.assert_allclose(sphere_field.mean_gradient(x), fd, rtol=2e-2, atol=2e-3 * np.abs(fd).max())

@@ -23,6 +23,25 @@ class SphereField:
     def variance(self, x):
         return np.full(len(x), self.var)
 
+    def mean_gradient(self, x):
+        d = np.asarray(x) - self.center
+        return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+class SaturatingSphereField(SphereField):
+    """E f = w tanh((|x - c| - r) / w): a distance near the sphere that saturates at +-w, like a fitted field whose
+    GP normal field vanishes a few lengthscales off the points."""
+
+    def __init__(self, width=0.02, **kw):
+        super().__init__(**kw)
+        self.width = width
+
+    def mean(self, x):
+        return self.width * np.tanh(super().mean(x) / self.width)
+
+    def mean_gradient(self, x):
+        return (1 - np.tanh(super().mean(x) / self.width) ** 2)[:, None] * super().mean_gradient(x)
+
 
 class SphereModel:
     """A one-shape 'latent' model: projecting a scan fits a sphere's centre and radius (4 numbers) to it."""
@@ -225,6 +244,32 @@ def test_local_point_score_by_hand():
         point_scores(f, x, "local")
 
 
+def test_distance_point_score_undoes_saturation():
+    from inspection.scores import GRADIENT_FLOOR, LocalReference, field_quantity
+
+    f = SaturatingSphereField(width=0.02, noise=0.0)
+    depth = np.array([0.0, 0.004, 0.03, 0.06, 0.12])
+    x = np.c_[np.zeros((5, 2)), 1 + depth]
+    # closed form: E f / max(|grad E f|, floor) with E f = w tanh(t / w), |grad| = 1 - tanh^2(t / w)
+    th = np.tanh(depth / 0.02)
+    expected = 0.02 * th / np.maximum(1 - th**2, GRADIENT_FLOOR)
+    np.testing.assert_allclose(field_quantity(f, x, "distance"), expected, rtol=1e-12)
+    assert field_quantity(f, x[:2], "distance")[1] == pytest.approx(0.004, rel=0.05)  # ~ the distance near the surface
+    # good scans put E f = 0 at the pole (sd 0.001): E f saturates past ~1.5 w; the distance follows the depth
+    # until |grad E f| reaches the floor and then stays at |E f| / floor, 1 / floor = 5 x the plateau
+    rng = np.random.default_rng(0)
+    pts = np.c_[rng.normal(0, 0.01, (64, 2)), np.ones(64)]
+    vals = np.where(np.arange(64) % 2 == 0, -0.001, 0.001)
+    local = point_scores(f, x, "local", reference=LocalReference(pts, vals, k=64))
+    dist = point_scores(f, x, "distance", reference=LocalReference(pts, vals, k=64, quantity="distance"))
+    assert local[4] < 1.01 * local[3]  # saturated: a pit twice as deep scores the same
+    assert np.all(np.diff(dist) > 0)
+    # relative to a point near the surface, a deep point is lifted by ~1 / floor
+    assert (dist[4] / dist[1]) > 0.7 / GRADIENT_FLOOR * (local[4] / local[1])
+    with pytest.raises(ValueError, match="'distance' values"):
+        point_scores(f, x, "distance", reference=LocalReference(pts, vals, k=64))
+
+
 def test_local_inspector_needs_reference():
     insp = Inspector(SphereModel(), point_score="local")
     with pytest.raises(NotFittedError, match="reference"):
@@ -236,6 +281,12 @@ def test_local_inspector_needs_reference():
     assert insp.reference_.points.shape == (10000, 3)
     restored = Inspector(SphereModel()).set_calibration(insp.calibration())
     assert restored.point_score == "local"
+    np.testing.assert_array_equal(restored.anomaly_scores(good[:2]), insp.anomaly_scores(good[:2]))
+    # the distance score builds its reference on distances, and the calibration remembers which
+    insp = Inspector(SphereModel(), point_score="distance").fit(good[:3], reference_scans=good[3:])
+    assert insp.reference_.quantity == "distance"
+    restored = Inspector(SphereModel()).set_calibration(insp.calibration())
+    assert restored.point_score == "distance" and restored.reference_.quantity == "distance"
     np.testing.assert_array_equal(restored.anomaly_scores(good[:2]), insp.anomaly_scores(good[:2]))
 
 

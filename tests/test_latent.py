@@ -239,17 +239,17 @@ def test_trimmed_mean_matches_numpy_and_trim_is_validated(trained):
 
 
 def test_trimmed_projection_is_not_pulled_by_a_defect(trained):
-    """15 % of a 0.25-sphere's points pushed out to 0.4 (a gross bump): the trimmed projection keeps the radius of
-    the good majority, the plain mean is dragged outwards."""
+    """A quarter of a 0.25-sphere's points moved out to 0.33 (close enough for E f not to saturate there, so that
+    they pull a plain least-squares projection): the trimmed projection keeps the radius of the good majority."""
     model, _ = trained
     scan = sphere_scan("test/bumped", 0.25, seed=12)
     points = scan.points.copy()
-    bump = scan.normals[:, 2] > 0.7  # a cap of ~15 % of the points
-    points[bump] *= 0.4 / 0.25
+    moved = np.random.default_rng(1).random(len(points)) < 0.25
+    points[moved] *= 0.33 / 0.25
     plain = model.project(points, scan.normals, seed=0)
-    trimmed = model.project(points, scan.normals, seed=0, trim=0.2)
+    trimmed = model.project(points, scan.normals, seed=0, trim=0.3)
     r_plain, r_trim = zero_crossing_radius(plain.field), zero_crossing_radius(trimmed.field)
-    assert abs(r_trim - 0.25) < abs(r_plain - 0.25), (r_trim, r_plain)
+    assert abs(r_plain - 0.25) > abs(r_trim - 0.25) + 0.01, (r_trim, r_plain)  # measured: 0.258 vs 0.277
     assert abs(r_trim - 0.25) < 0.1 * 0.25, r_trim
 
 

@@ -91,6 +91,21 @@ def test_perfectly_correlated_segment_the_paper_didactic_case():
     assert abs(indep[0, 0].item() - exact) < 1e-3
 
 
+def test_singular_and_slightly_indefinite_covariances_are_repaired():
+    """Exactly rank one (f one number repeated, float32) and a float32 round-off below zero: the factorization is
+    repaired with a small jitter and S_K stays P(f > 0); non-finite input is refused."""
+    K, mu = 24, 0.1
+    exact = 0.5 * (1 + torch.erf(torch.tensor(mu / np.sqrt(2)))).item()
+    mean = torch.full((2, K), mu, dtype=torch.float32)
+    ones = torch.ones(K, K, dtype=torch.float32)
+    cov = torch.stack([ones, ones - 1e-6 * torch.eye(K)])  # the second has a negative eigenvalue
+    s = orthant_survival(mean, cov)
+    assert torch.all(torch.isfinite(s))
+    assert np.allclose(s[:, -1].numpy(), exact, atol=0.02), s[:, -1]
+    with pytest.raises(ValueError, match="not finite"):
+        orthant_survival(mean, cov * float("nan"))
+
+
 class Sphere:
     """Toy field: f = |x| - 1, std 0.1 (1 + x_0) / 2 + 0.02, squared-exponential correlation (lengthscale 0.3)."""
 

@@ -1,0 +1,359 @@
+"""Missing material from the sensor's rays: free-space probabilities on toy fields with known answers, image holes,
+the max-of-standardized combination, the Inspector with rays, and the command line round trip."""
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from autodecoder.free_space import blocked_probability, box_interval, missing_return_probability
+from autodecoder.rays import monte_carlo_survival
+from inspection import Inspector, NotFittedError
+from inspection.calibration import Calibration
+from inspection.combine import Combination
+from inspection.ray_evidence import check_ray_options, image_holes, ray_evidence
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+SENSOR = np.array([0.0, 0.0, 2.0])
+
+
+# ---------------------------------------------------------------------------------------------- a toy field
+class WallField:
+    """A thin horizontal wall |z| <= thickness / 2 over a solid floor z <= floor, optionally with a round hole
+    through the wall (radius ``hole`` about the z axis), or ending at x = ``edge``. Mean: min of the two solids' signed distances (exact
+    distances away from the hole's rim); covariance: sd^2 exp(-|a - b|^2 / (2 ell^2)); box [-1, 1]^3."""
+
+    def __init__(self, thickness=0.04, hole=0.0, floor=-0.5, sd=0.005, ell=0.05, offset=0.0, edge=None):
+        self.thickness, self.hole, self.floor, self.edge = thickness, hole, floor, edge
+        self.sd, self.ell, self.offset = sd, ell, offset
+        self.noise = 0.0
+        self.config = {"lengthscale": 0.02}
+        self.bounds = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+
+    def torch_mean(self, x):
+        wall = x[:, 2].abs() - self.thickness / 2
+        if self.hole > 0:
+            wall = torch.maximum(wall, self.hole - x[:, :2].norm(dim=1))
+        if self.edge is not None:  # the wall ends at x = edge
+            wall = torch.maximum(wall, x[:, 0] - self.edge)
+        return torch.minimum(wall, x[:, 2] - self.floor) + self.offset
+
+    def torch_covariance(self, a, b):
+        return self.sd**2 * torch.exp(-((a - b) ** 2).sum(1) / (2 * self.ell**2))
+
+    def torch_variance(self, x):
+        return torch.full((len(x),), self.sd**2, dtype=x.dtype)
+
+    # numpy queries, for the point scores
+    def mean(self, x):
+        return self.torch_mean(torch.as_tensor(np.asarray(x), dtype=torch.float64)).numpy()
+
+    def variance(self, x):
+        return np.full(len(x), self.sd**2)
+
+
+def wall_scan(hole=0.0, n=4000, seed=0, noise=0.0):
+    """A depth scan of the WallField's part from SENSOR: the rays of a pinhole grid, each stopped at the part's first
+    surface (the wall's top face, or the floor through the hole). Returns (points (m, 3), labels (m,) 1 through the
+    hole)."""
+    rng = np.random.default_rng(seed)
+    side = int(np.ceil(np.sqrt(n / 0.9)))
+    u = (np.arange(side) + 0.5) / side * 2 - 1
+    uu, vv = np.meshgrid(u * 0.3, u * 0.3)  # directions spanning [-0.3, 0.3]^2 on the plane 1 below the sensor
+    d = np.c_[uu.ravel(), vv.ravel(), -np.ones(uu.size)]
+    d = d[rng.random(len(d)) < 0.9]  # the scanner keeps a random ~90 % of its pixels
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    t_wall = (SENSOR[2] - 0.02) / -d[:, 2]
+    at_wall = SENSOR + t_wall[:, None] * d
+    through = np.linalg.norm(at_wall[:, :2], axis=1) < hole
+    t_floor = (SENSOR[2] + 0.5) / -d[:, 2]
+    t = np.where(through, t_floor, t_wall) + noise * rng.normal(size=len(d))
+    return SENSOR + t[:, None] * d, through.astype(np.uint8)
+
+
+# ---------------------------------------------------------------------------------------------- free space
+def test_box_interval():
+    t_in, t_out = box_interval(np.array([0.0, 0.0, 3.0]), np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0]]),
+                               np.array([[-1.0, -1, -1], [1, 1, 1]]))
+    np.testing.assert_allclose(t_in, [2.0, 0.0])
+    np.testing.assert_allclose(t_out, [4.0, 0.0])  # the second ray misses the box
+
+
+def test_point_behind_a_wall_is_blocked_and_one_on_it_is_not():
+    field = WallField()
+    behind = np.array([[0.0, 0.0, -0.5], [0.1, -0.05, -0.5]])  # on the floor, straight below the wall
+    front = np.array([[0.0, 0.0, 0.02], [0.2, 0.1, 0.02]])  # on the wall's top face
+    check = blocked_probability(field, SENSOR, np.r_[behind, front])
+    # the wall is 4 sd inside over several samples: blocked beyond doubt. Above the wall the samples up to the
+    # last clearly outside one (E f >= 2 sd) count, so a point on the surface keeps a floor of ~Phi(-2) = 0.023
+    assert (check.p_blocked[:2] > 0.999).all() and (check.p_blocked[2:] < 0.05).all()
+    # log P(free) without cancellation: below the one-sample bound log Phi(-4) = -10.4, where 1 - p_blocked is 0
+    assert (check.log_free[:2] < -10.4).all() and np.isfinite(check.log_free).all()
+    np.testing.assert_allclose(np.exp(check.log_free), 1 - check.p_blocked, atol=1e-12)
+    assert abs(check.t_block[0] - 2.0) < 0.03  # the blocking material is the wall (z ~ 0, 2 below the sensor)
+    # the same point seen through a hole in the wall: the field of that part has no material on its ray
+    assert blocked_probability(WallField(hole=0.1), SENSOR, behind[:1]).p_blocked[0] < 0.05
+
+
+def test_a_point_inside_its_own_expected_surface_is_not_blocked():
+    """The material just before a point is the point's own surface, however far the mean surface is off: a field
+    whose surfaces sit 5 sd (0.025) above the points leaves their rays free (the point score sees that)."""
+    field = WallField(offset=-0.025)
+    pts = np.array([[0.0, 0.0, 0.02], [0.3, 0.2, 0.02]])
+    assert (blocked_probability(field, SENSOR, pts).p_blocked < 0.05).all()
+
+
+def test_material_next_to_an_observed_surface_is_left_out():
+    """A field that blurs the end of a wall 0.03 beyond where the scan saw its end face (x = 0): a ray passing 0.01
+    past the observed edge crosses the blurred material; with the scan's points given, samples within the
+    clearance (the lengthscale, 0.02) of them are left out and the ray is free. Far from the edge the wall counts."""
+    field = WallField(edge=0.03)
+    y, z = np.meshgrid(np.linspace(-0.1, 0.1, 21), np.linspace(-0.02, 0.02, 5))
+    end_face = np.c_[np.zeros(y.size), y.ravel(), z.ravel()]  # the returns on the wall's end face
+    target = np.array([[0.01 * 2.5 / 2.0, 0.0, -0.5],  # passes z = 0 at x = 0.01: inside the blur
+                       [-0.2, 0.0, -0.5]])  # through the middle of the wall (no return there, say a hole)
+    blind = blocked_probability(field, SENSOR, target)
+    seen = blocked_probability(field, SENSOR, target, observed=end_face)
+    assert (blind.p_blocked > 0.99).all()
+    assert seen.p_blocked[0] < 0.05 and seen.p_blocked[1] > 0.99
+    assert blocked_probability(field, SENSOR, target, observed=end_face, clearance=0.0).p_blocked[0] > 0.99
+
+
+def test_blocked_probability_matches_monte_carlo_on_its_samples():
+    """An uncertain wall (mean -0.2 sd inside at its middle, strongly correlated along the ray): the correlated
+    probability over the tested samples against sampling the Gaussian on the same samples; the product of the
+    marginals (independent samples) would be far off."""
+    field = WallField(thickness=0.04, sd=0.01, ell=0.05, offset=0.018)
+    point = np.array([[0.0, 0.0, -0.5]])
+    step = 0.01
+    check = blocked_probability(field, SENSOR, point, step=step, n_select=8, qmc_samples=4096)
+    # the same dense grid (documented: linspace from the box entry to the point, without the point) up to t_end
+    n = int(min(128, max(3, np.ceil((check.t_obs[0] - check.t_near[0]) / step) + 1)))
+    t = np.linspace(check.t_near[0], check.t_obs[0], n)[:-1]
+    t = t[t <= check.t_end[0] + 1e-9]
+    x = torch.as_tensor(SENSOR + t[:, None] * np.array([0.0, 0.0, -1.0]))
+    mean = field.torch_mean(x).numpy()
+    cov = field.torch_covariance(x[:, None].expand(-1, len(x), -1).reshape(-1, 3),
+                                 x[None].expand(len(x), -1, -1).reshape(-1, 3)).numpy().reshape(len(x), len(x))
+    reference = 1 - monte_carlo_survival(mean[None], cov[None], n_samples=200_000, seed=1)[0, -1]
+    q = 0.5 * np.array([math.erfc(m / (math.sqrt(2) * 0.01)) for m in mean])
+    assert check.p_blocked[0] == pytest.approx(reference, abs=0.02)
+    assert check.max_marginal[0] == pytest.approx(q.max(), abs=1e-6)
+    assert 1 - np.prod(1 - q) > reference + 0.1  # independence would overstate it
+
+
+def test_missing_returns_through_a_wall_and_through_a_hole():
+    """Rays that returned nothing: they should have hit the intact wall (P ~ 1), not where the hole is."""
+    intact, holed = WallField(floor=-5.0), WallField(hole=0.1, floor=-5.0)  # no floor in the box
+    d = np.array([[0.0, 0.0, -1.0], [0.02, 0.0, -1.0]])
+    # 2 units through the box at steps of half the lengthscale (0.01): 201 samples, so raise the cap
+    assert (missing_return_probability(intact, SENSOR, d, max_samples=256).p_blocked > 0.999).all()
+    assert (missing_return_probability(holed, SENSOR, d, max_samples=256).p_blocked < 0.05).all()
+
+
+def test_free_space_bad_input():
+    field = WallField()
+    with pytest.raises(ValueError, match="origin"):
+        blocked_probability(field, [0.0, 1.0], np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="coincide"):
+        blocked_probability(field, SENSOR, SENSOR[None])
+    with pytest.raises(ValueError, match=r"points must be an \(n, 3\)"):
+        blocked_probability(field, SENSOR, np.zeros((2, 2)))
+    with pytest.raises(ValueError, match="step"):
+        blocked_probability(field, SENSOR, np.zeros((2, 3)), step=0.0)
+    with pytest.raises(ValueError, match="zero length"):
+        missing_return_probability(field, SENSOR, np.zeros((1, 3)))
+
+
+# ---------------------------------------------------------------------------------------------- scan level
+def test_image_holes_finds_an_enclosed_gap_only():
+    points, through = wall_scan(hole=0.1)
+    blind = points[through == 0]  # a hole with nothing behind it: its returns are missing
+    dirs, uv, _, pitch = image_holes(blind, SENSOR)
+    assert len(dirs) > 10
+    at_wall = SENSOR + dirs * ((SENSOR[2] - 0.02) / -dirs[:, 2])[:, None]
+    assert np.linalg.norm(at_wall[:, :2], axis=1).max() < 0.1  # all inside the hole
+    assert len(image_holes(points, SENSOR)[0]) == 0  # every pixel returned: no hole
+    # a gap at the edge of the image is background around the part, not a hole
+    edge = points[points[:, 0] < 0.3]
+    assert len(image_holes(edge, SENSOR)[0]) == 0
+
+
+def test_hole_in_a_thin_wall_scores_higher_than_no_hole():
+    field = WallField()  # the model of good parts: an intact wall
+    good, _ = wall_scan(seed=1)
+    holed, through = wall_scan(hole=0.1, seed=2)
+    ev_good = ray_evidence(field, good, SENSOR, n_rays=256)
+    ev_holed = ray_evidence(field, holed, SENSOR, n_rays=256)
+    assert ev_good.score < 0.05 and ev_holed.score > 10  # nats: P(free) > 0.95 against < 5e-5
+    # the map: high where the points were seen through the hole, low elsewhere
+    assert ev_holed.point_map[through == 1].min() > 0.99
+    assert np.median(ev_holed.point_map[through == 0]) < 0.05
+    # a hole with nothing behind it: no returns there, the missing-return rays see it; the rim lights up
+    blind = through == 0
+    ev_blind = ray_evidence(field, holed[blind], SENSOR, n_rays=256)
+    assert ev_blind.score > 0.99 and len(ev_blind.empty_values) > 0
+    rim = np.abs(np.linalg.norm(holed[blind][:, :2], axis=1) - 0.1) < 0.02
+    assert ev_blind.point_map[rim].mean() > 0.5 and np.median(ev_blind.point_map[~rim]) < 0.05
+    # seeded: the same result twice
+    again = ray_evidence(field, holed, SENSOR, n_rays=256)
+    np.testing.assert_array_equal(again.point_map, ev_holed.point_map)
+
+
+def test_ray_options_validated():
+    assert check_ray_options(None)["n_rays"] == 384
+    with pytest.raises(ValueError, match="unknown ray option"):
+        check_ray_options({"rays": 3})
+    with pytest.raises(ValueError, match="n_rays"):
+        check_ray_options({"n_rays": 0})
+    with pytest.raises(ValueError, match="gap"):
+        check_ray_options({"gap": 0.5})
+    with pytest.raises(ValueError, match="aggregate"):
+        check_ray_options({"aggregate": "worst"})
+
+
+# ---------------------------------------------------------------------------------------------- combination
+def test_combination_by_hand():
+    cal = {"points": [1.0, 2.0, 3.0, 4.0], "rays": [0.0, 0.0, 0.0, 0.4]}
+    comb = Combination(cal)
+    sd_p, sd_r = np.std([1, 2, 3, 4], ddof=1), np.std([0, 0, 0, 0.4], ddof=1)
+    np.testing.assert_allclose(comb.score({"points": [2.5, 2.5], "rays": [0.1, 0.9]}),
+                               [0.0, (0.9 - 0.1) / sd_r])
+    # leave-one-out: scan 3 against the other three (rays all 0: sd floored, its 0.4 is far out)
+    loo = comb.calibration_scores()
+    assert loo[3] == pytest.approx(0.4 / 1e-9, rel=1e-6)
+    assert loo[0] == pytest.approx(max((1 - 3) / 1.0, (0 - 0.4 / 3) / np.std([0, 0, 0.4], ddof=1)))
+    assert Combination.from_dict(comb.as_dict()).score(cal).tolist() == comb.score(cal).tolist()
+    with pytest.raises(ValueError, match="at least 3"):
+        Combination({"points": [1.0, 2.0], "rays": [0.0, 0.0]})
+    assert sd_p > 0
+
+
+# ---------------------------------------------------------------------------------------------- Inspector
+class WallModel:
+    """Projection of any scan: the intact wall (the latent space of good parts holds no holes)."""
+
+    def project(self, points, normals=None):
+        class Projection:
+            field = WallField()
+
+        return Projection()
+
+
+def _scans(kind, seeds):
+    from datasets import Scan
+
+    out = []
+    for s in seeds:
+        pts, through = wall_scan(hole=0.1 if kind == "hole" else 0.0, seed=s, noise=0.002)
+        out.append(Scan(name=f"test/{kind}/{s:03d}", points=pts, normals=np.tile([0.0, 0, 1], (len(pts), 1)),
+                        split="test", label="good" if kind == "good" else "defective",
+                        defect="" if kind == "good" else "missing", point_labels=through, sensor_origin=SENSOR))
+    return out
+
+
+def test_inspector_with_rays_flags_the_hole_and_round_trips():
+    good = _scans("good", range(6))
+    insp = Inspector(WallModel(), alpha=0.2, rays=True, ray_options={"n_rays": 256}).fit(good)
+    assert insp.combination_.names == ["points", "rays"] and len(insp.calibration_scores_) == 6
+    tests = _scans("good", [50, 51]) + _scans("hole", [60, 61])
+    res = [insp.inspect(s) for s in tests]
+    assert [r.components["rays"] > 0.5 for r in res] == [False, False, True, True]
+    assert insp.predict(tests).tolist() == [1, 1, -1, -1]
+    # the point score alone cannot tell: the points seen through the hole lie on a good surface
+    plain = Inspector(WallModel(), alpha=0.2).fit(good)
+    assert plain.predict(tests[2:]).tolist() == [1, 1]
+    assert insp.ray_map(tests[2]).shape == (len(tests[2].points),)
+    # stored and restored: the same scores without the calibration scans
+    cal = Calibration.from_dict(insp.calibration(source="unit test").as_dict())
+    assert cal.extra["rays"]["options"]["n_rays"] == 256
+    again = Inspector(WallModel(), alpha=0.2).set_calibration(cal)
+    assert again.rays and again.ray_options["n_rays"] == 256
+    np.testing.assert_allclose(again.anomaly_scores(tests), insp.anomaly_scores(tests))
+    assert again.threshold_ == insp.threshold_
+
+
+def test_inspector_rays_errors():
+    good = _scans("good", range(3))
+    with pytest.raises(NotFittedError, match="rays=True"):
+        Inspector(WallModel(), rays=True).anomaly_scores(good[:1])
+    no_origin = good[0]
+    no_origin.sensor_origin = None
+    with pytest.raises(ValueError, match="test/good/000: no sensor origin"):
+        Inspector(WallModel(), rays=True).inspect_components(no_origin)
+    with pytest.raises(ValueError, match="no sensor origin"):
+        Inspector(WallModel(), rays=True).inspect_components(good[1].points)  # a bare array has none
+    with pytest.raises(ValueError, match="unknown ray option"):
+        Inspector(WallModel(), rays=True, ray_options={"bogus": 1}).fit(good)
+    with pytest.raises(ValueError, match="rays must be"):
+        Inspector(WallModel(), rays="yes").fit(good)
+    with pytest.raises(ValueError, match="at least 3"):
+        Inspector(WallModel(), rays=True).fit(good[1:])
+
+
+# ---------------------------------------------------------------------------------------------- command line
+def test_cli_calibrate_and_score_with_rays(tmp_path, capsys):
+    """A field model file (a tiny untrained network: the plumbing, not the detection), scans with sensor origins:
+    calibrate --rays stores the ray record, score writes the two components and the ray maps; scans without an
+    origin are refused in one line."""
+    from autodecoder.field import StochasticField
+    from autodecoder.frame import Normalization
+    from autodecoder.networks import build_networks
+    from datasets import Frame, ScanCollection, read_cloud
+    from inspection.__main__ import main
+    from inspection.calibration import read_calibration
+    from inspection.model_io import save_reference_field
+    from inspection.report import RAY_CSV_COLUMNS
+
+    def scans(kind, split, seeds, origin=True):
+        out = _scans(kind, seeds)
+        for s in out:
+            s.name = f"{split}/{kind}/{s.name[-3:]}"
+            s.split = split
+            s.points = s.points[::6] * 0.2  # ~250 points inside the model's box
+            s.normals, s.point_labels = s.normals[::6], None if split == "train" else s.point_labels[::6]
+            s.sensor_origin = SENSOR * 0.2 if origin else None
+        return out
+
+    frame = Frame(np.zeros(3), 1.0)
+    data = tmp_path / "tree.h5"
+    ScanCollection.create(data, scans("good", "train", range(6)) + scans("good", "test", [10, 11])
+                          + scans("hole", "test", [20]), frame=frame)
+    with ScanCollection(data) as c:
+        fp, names = c.fingerprint(), c.names
+    config = {"width": 16, "depth": 1, "latent_dim": 0, "covariance": "feature", "features": 8, "omega0": 5.0,
+              "lengthscale": 0.05, "box_lo": [-0.6] * 3, "box_hi": [0.6] * 3}
+    torch.manual_seed(0)
+    field = StochasticField(*build_networks(config), Normalization.identity(), config, noise=0.01)
+    model = tmp_path / "model.pt"
+    save_reference_field(field, model, frame=frame, fingerprint=fp, train_names=names[:2],
+                         heldback_names=names[2:6])
+    assert main(["calibrate", "--model", str(model), "--data", str(data), "--alpha", "0.3", "--rays",
+                 "--ray-options", "n_rays=64,n_empty=16,aggregate=top5", "--quiet"]) == 0
+    assert "+ ray score" in capsys.readouterr().out
+    cal = read_calibration(model)
+    assert cal.extra["rays"]["options"]["aggregate"] == "top5" and len(cal.extra["rays"]["components"]["rays"]) == 4
+    out = tmp_path / "res"
+    assert main(["score", "--model", str(model), "--data", str(data), "--out", str(out), "--maps", "all",
+                 "--quiet"]) == 0
+    rows = list(csv.DictReader(open(out / "scores.csv")))
+    assert tuple(rows[0]) == RAY_CSV_COLUMNS and len(rows) == 3
+    assert all(float(r["score_rays"]) >= 0 for r in rows)  # nats
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["rays"]["options"]["n_rays"] == 64 and "ray_point_auroc" in summary["metrics"]
+    pts, _ = read_cloud(out / "maps" / "rays" / "test__hole__020.ply")
+    with ScanCollection(data) as c:
+        assert len(pts) == len(c[c.index_of("test/hole/020")].points)
+    assert (out / "maps" / "rays" / "legend.png").is_file()
+    # scans without a sensor origin: one line naming the data and a scan
+    bare = tmp_path / "bare.h5"
+    ScanCollection.create(bare, scans("good", "test", [30], origin=False), frame=frame)
+    rc = main(["score", "--model", str(model), "--data", str(bare), "--out", str(tmp_path / "r2"), "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and "bare.h5" in err and "no sensor origin" in err
+    # --ray-options without --rays
+    rc = main(["calibrate", "--model", str(model), "--data", str(data), "--ray-options", "n_rays=5", "--quiet"])
+    assert rc == 2 and "--ray-options needs --rays" in capsys.readouterr().err
