@@ -7,7 +7,7 @@ import os
 import sys
 from pathlib import Path
 
-DEFAULTS = dict(latent_dim=32, width=64, depth=3, epochs=160, lr=1e-3, batch=8, seed=0)
+DEFAULTS = dict(latent_dim=32, width=64, depth=3, epochs=None, lr=1e-3, batch=8, seed=0)
 
 
 class _UsageError(Exception):
@@ -29,7 +29,8 @@ def build_parser():
     p.add_argument("--latent-dim", type=int, default=DEFAULTS["latent_dim"],
                    help="dimension of each scan's latent code (default: %(default)s)")
     p.add_argument("--epochs", type=int, default=DEFAULTS["epochs"],
-                   help="passes over the training scans (default: %(default)s); with --resume, the new total")
+                   help="passes over the training scans (default: enough for ~2400 steps, between 150 and 600 "
+                        "epochs); with --resume, the new total (default: the checkpoint's)")
     p.add_argument("--width", type=int, default=DEFAULTS["width"], help="SIREN hidden width (default: %(default)s)")
     p.add_argument("--depth", type=int, default=DEFAULTS["depth"],
                    help="SIREN hidden layers (default: %(default)s)")
@@ -61,7 +62,7 @@ def build_parser():
 def _parse(argv):
     args = build_parser().parse_args(argv)
     for name in ("latent_dim", "epochs", "width", "depth", "batch"):
-        if getattr(args, name) < 1:
+        if getattr(args, name) is not None and getattr(args, name) < 1:
             raise _UsageError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     if not args.lr > 0 or (args.code_lr is not None and not args.code_lr > 0):
         raise _UsageError("--lr and --code-lr must be > 0")

@@ -196,11 +196,20 @@ def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), 
         off_axis = (-q - ((-q) * d).sum(1, keepdim=True) * d).norm(dim=1)
         penalty = aim_weight * torch.relu(off_axis - aim_tolerance) ** 2
         (-(s - penalty).sum()).backward()
+        # a start whose rays graze the part can get a non-finite gradient (the orthant probabilities' derivatives
+        # at the clamped tails); it must not poison the others: zero it, and undo any step that left a start
+        # non-finite
+        for p_ in (q, a):
+            p_.grad = torch.nan_to_num(p_.grad, nan=0.0, posinf=0.0, neginf=0.0)
+        before = q.detach().clone(), a.detach().clone()
         opt.step()
         with torch.no_grad():
             r = q.norm(dim=1, keepdim=True)
             q.mul_(r.clamp(lo_r, hi_r) / r.clamp_min(1e-12))
             a.copy_(_project_to_cone(a, -q, aim_tolerance))
+            broken = ~(torch.isfinite(q).all(1) & torch.isfinite(a).all(1))
+            if bool(broken.any()):
+                q[broken], a[broken] = before[0][broken], before[1][broken]
     with torch.no_grad():
         final = score_of(q, a).double().numpy()
     positions = center + q.detach().double().numpy() * radius

@@ -1,4 +1,6 @@
 """Latent training over scan collections and test-time projection (autodecoder.latent_*, projection, train_latent)."""
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -274,3 +276,16 @@ def test_target_pools_are_a_function_of_scan_and_epoch_and_reuse_samples():
     assert not np.array_equal(other.mean_batch(0)[0], a.mean_batch(0)[0])
     first = {tuple(r) for e in range(5) for r in other.mean_batch(e)[0]}
     assert len(first) == 128 and not first & {tuple(r) for r in other.mean_batch(5)[0]}
+
+
+def test_default_epochs_aim_at_a_step_budget():
+    from autodecoder.latent_train import DEFAULT_STEPS, MAX_DEFAULT_EPOCHS, MIN_DEFAULT_EPOCHS, default_epochs
+
+    assert default_epochs(26, 8) == MAX_DEFAULT_EPOCHS  # 4 steps an epoch: 600 epochs (capped) = 2,400 steps
+    assert default_epochs(100, 8) == math.ceil(DEFAULT_STEPS / 13)  # 13 steps an epoch
+    assert default_epochs(10_000, 8) == MIN_DEFAULT_EPOCHS
+    assert default_epochs(100, 8, world=2) == math.ceil(DEFAULT_STEPS / 7)  # each process: 50 scans, 7 steps
+    assert default_epochs(3, 8) == MAX_DEFAULT_EPOCHS  # a batch larger than the scans: one step an epoch
+    # the resolved count is what the checkpoint records
+    model = train_latent(sphere_scans()[:2], None, seed=0, quiet=True, stop_after=1, **TINY)
+    assert model.config["epochs"] == default_epochs(2, TINY["batch"]) and model.epoch == 1
