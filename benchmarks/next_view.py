@@ -8,8 +8,9 @@ Run by hand (not a test; heavy at default sizes, note `uptime`):
 Starts every strategy from the same first scan and field; each next view is (a) `next_best_views` (variance at the
 expected correlated first hits), (b) a random view, (c) the candidate on a sphere furthest from all previous
 cameras. After each scan the field is fine-tuned (`StochasticField.update`) on old + new points. Prints the Chamfer
-distance of the mean surface to the true mesh after each view, writes chamfer.png / results.json, and finally
-refits from scratch on the last union cloud of (a) to compare time and error with the chain of fine-tunings.
+distance of the mean surface to the true mesh after each view and its mean per strategy, writes chamfer.png /
+results.json, and finally refits from scratch on the last union cloud of (a) and compares at equal error: the field of
+(a) before its last view is fine-tuned on the last scan for 10, 25, 50, ... steps until its error reaches the refit's.
 """
 import argparse
 import json
@@ -88,6 +89,7 @@ def main(argv=None):
     last_union = None
     for strategy in ("nbv", "random", "furthest"):
         field, cams = field0, [first.camera_position]
+        previous = field0
         errors, times = [surface_error(field0, mesh, args.mesh_res)], []
         for k in range(1, args.views):
             t_select = time.perf_counter()
@@ -109,6 +111,7 @@ def main(argv=None):
                 print(f"  {strategy} view {k + 1}: {exc}; aiming at the part's centre instead")
                 p, n = scan(pos, scanner.center, k)
             t = time.perf_counter()
+            previous = field
             field = field.update(p, n, steps=args.update_steps, seed=k)
             times.append(time.perf_counter() - t)
             errors.append(surface_error(field, mesh, args.mesh_res))
@@ -116,7 +119,12 @@ def main(argv=None):
         results[strategy] = {"chamfer": errors, "update_seconds": times, "cameras": [list(map(float, c)) for c in cams]}
         if strategy == "nbv":
             last_union = (field.training_points.numpy(), field.training_normals.numpy(), errors[-1], sum(times))
+            last_step = (previous, p, n)  # the field before the last view, and the last scan
 
+    mean_err = {k: float(np.mean(results[k]["chamfer"][1:])) for k in ("nbv", "random", "furthest")}
+    below = all(a < b for a, b in zip(results["nbv"]["chamfer"][1:], results["random"]["chamfer"][1:]))
+    print("mean Chamfer over views 2.." + str(args.views) + ": " + ", ".join(f"{k} {v:.5f}" for k, v in mean_err.items())
+          + f"; nbv below random at every step: {below}")
     pts, nrm, err_ft, t_ft = last_union
     t = time.perf_counter()
     refit = fit_cloud(pts, nrm, seed=args.seed, steps=args.fit_steps, **fit_kw)
@@ -125,7 +133,26 @@ def main(argv=None):
     last_ft = results["nbv"]["update_seconds"][-1] if results["nbv"]["update_seconds"] else float("nan")
     print(f"refit from scratch on the final nbv union ({len(pts)} points): {t_refit:.1f}s, chamfer {err_refit:.5f}; "
           f"last fine-tune {last_ft:.1f}s, all fine-tunes {t_ft:.1f}s, chamfer {err_ft:.5f}")
-    results["refit"] = {"seconds": t_refit, "chamfer": err_refit, "args": {k: str(v) for k, v in vars(args).items()}}
+    # at equal error: fine-tune the field of the first views on the last scan for more and more steps, until its
+    # error reaches the refit's
+    prev_field, p_last, n_last = last_step
+    equal = None
+    for steps in (10, 25, 50, 100, 150, 300):
+        t = time.perf_counter()
+        tuned = prev_field.update(p_last, n_last, steps=steps, seed=args.views)
+        t_tune = time.perf_counter() - t
+        err = surface_error(tuned, mesh, args.mesh_res)
+        print(f"  fine-tune of the last view, {steps} steps: {t_tune:.1f}s, chamfer {err:.5f}")
+        if err <= err_refit:
+            equal = {"steps": steps, "seconds": t_tune, "chamfer": err}
+            break
+    if equal:
+        print(f"at equal error: fine-tuning {equal['seconds']:.1f}s ({equal['steps']} steps) vs refit "
+              f"{t_refit:.1f}s: {t_refit / equal['seconds']:.1f}x faster")
+    else:
+        print("fine-tuning did not reach the refit's error within 300 steps")
+    results["refit"] = {"seconds": t_refit, "chamfer": err_refit, "equal_error_finetune": equal,
+                        "args": {k: str(v) for k, v in vars(args).items()}}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.json").write_text(json.dumps(results, indent=2))
     import matplotlib
