@@ -101,10 +101,11 @@ class StochasticField:
         return self.normalization.to_world(np.stack([self.config["box_lo"], self.config["box_hi"]]))
 
     # ------------------------------------------------------------------------------------------ numpy queries
-    def _evaluate(self, fn, *arrays):
+    def _evaluate(self, fn, *arrays, shape=()):
+        """fn over the query arrays in chunks, without autograd -> (n, *shape) float64 array."""
         arrays = [check_points(a, "query points", min_points=0) for a in arrays]
         n = len(arrays[0])
-        out = np.empty(n, dtype=np.float64)
+        out = np.empty((n, *shape), dtype=np.float64)
         with torch.no_grad():
             for start in range(0, n, _CHUNK):
                 chunk = [torch.as_tensor(a[start:start + _CHUNK], dtype=torch.float32) for a in arrays]
@@ -117,13 +118,7 @@ class StochasticField:
 
     def mean_gradient(self, x):
         """grad E f(x) at world points x (m, 3) -> (m, 3) array (unitless)."""
-        x = check_points(x, "query points", min_points=0)
-        out = np.empty((len(x), 3), dtype=np.float64)
-        with torch.no_grad():
-            for start in range(0, len(x), _CHUNK):
-                chunk = torch.as_tensor(x[start:start + _CHUNK], dtype=torch.float32)
-                out[start:start + _CHUNK] = self.torch_mean_and_gradient(chunk)[1].double().numpy()
-        return out
+        return self._evaluate(lambda x_: self.torch_mean_and_gradient(x_)[1], x, shape=(3,))
 
     def variance(self, x):
         """Var f(x) at world points x (m, 3) -> (m,) array (world units squared)."""

@@ -353,8 +353,7 @@ def train_latent(scans, out=None, options=None, *, names=None, frame=None, finge
             for g in opt_codes.param_groups:
                 g["lr"] = options.code_lr * f
             pos = order[k * batch:(k + 1) * batch]
-            inputs = stack_inputs([(pools[local[p]], targets[local[p]]) for p in pos], epoch,
-                                  options.screen_samples, rng, device)
+            inputs = stack_inputs([pools[local[p]] for p in pos], epoch, options.screen_samples, rng, device)
             z = codes[torch.as_tensor(pos, device=device)]  # (S, L)
             n, m, q = options.mean_samples, inputs["sigma"].shape[1], inputs["screen"].shape[0] // len(pos)
             terms = module(inputs["x"], z.repeat_interleave(n, 0), inputs["mu"], inputs["omega"], inputs["screen"],

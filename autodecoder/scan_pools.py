@@ -76,7 +76,7 @@ def stack_inputs(pools, epoch, screen_samples, rng, device):
 
     Parameters
     ----------
-    pools : list of (ScanTargetPool, CloudTargets)
+    pools : list of ScanTargetPool
     epoch : int
     screen_samples : int
         Cloud points per scan for the screening terms (capped at the smallest scan's size).
@@ -90,12 +90,12 @@ def stack_inputs(pools, epoch, screen_samples, rng, device):
     weights (S, m, m)
     """
     xs, mus, omegas, screens, pxs, sigmas, weights = [], [], [], [], [], [], []
-    n_screen = min([screen_samples] + [len(t.points32) for _, t in pools])
-    for pool, t in pools:
+    n_screen = min([screen_samples] + [len(p.targets.points32) for p in pools])
+    for pool in pools:
         x, mu, omega = pool.mean_batch(epoch)
         px, sigma, w = pool.pair_batch(epoch)
         xs.append(x), mus.append(mu), omegas.append(omega), pxs.append(px), sigmas.append(sigma), weights.append(w)
-        screens.append(t.screen_batch(n_screen, rng))
+        screens.append(pool.targets.screen_batch(n_screen, rng))
 
     def cat(a, stack=False):
         return torch.from_numpy(np.stack(a) if stack else np.concatenate(a)).to(device)

@@ -95,6 +95,9 @@ def field_quantity(field, points, quantity):
     if quantity == "mean":
         return mean
     if quantity == "distance":
+        if not hasattr(field, "mean_gradient"):
+            raise ValueError(f"the 'distance' point score needs a field with mean_gradient(x); "
+                             f"{type(field).__name__} has none (use point_score 'local' or 'residual')")
         grad = np.linalg.norm(np.asarray(field.mean_gradient(points), dtype=np.float64), axis=1)
         return mean / np.maximum(grad, GRADIENT_FLOOR)
     raise ValueError(f"reference quantity must be 'mean' or 'distance', got {quantity!r}")

@@ -269,6 +269,15 @@ def test_distance_point_score_undoes_saturation():
     with pytest.raises(ValueError, match="'distance' values"):
         point_scores(f, x, "distance", reference=LocalReference(pts, vals, k=64))
 
+    class MeanOnly:
+        noise = 0.0
+
+        def mean(self, x):
+            return np.zeros(len(x))
+
+    with pytest.raises(ValueError, match="mean_gradient"):
+        field_quantity(MeanOnly(), x, "distance")
+
 
 def test_local_inspector_needs_reference():
     insp = Inspector(SphereModel(), point_score="local")
