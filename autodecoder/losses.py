@@ -50,9 +50,18 @@ def covariance_dirichlet_loss_pairs(d_c, sigma, weights):
 def covariance_dirichlet_loss_features(jac, sigma, weights):
     """sum_{i,j} w_ij ||Sigma_ij I - J_i^T J_j||_F^2 over all ordered pairs of each scan's batch (feature net).
 
-    For c(a, b) = phi(a) . phi(b), D c(a, b) = J(a)^T J(b) with J the (K, 3) Jacobian of phi; one Gram matrix of
-    the stacked Jacobians gives D c for every pair. The Frobenius norm is expanded as
-    ||D c||^2 - 2 Sigma tr(D c) + 3 Sigma^2 so that no (m, m, 3, 3) difference tensor is formed.
+    For c(a, b) = phi(a) . phi(b), D c(a, b) = J(a)^T J(b) with J the (K, 3) Jacobian of phi. The Frobenius norm is
+    expanded as ||D c||^2 - 2 Sigma tr(D c) + 3 Sigma^2, and the weights are split as w_ij = w0 + (w_ij - w0) with
+    w0 the largest weight of the scan: the pair samplers give every pair further apart than the kernel's support
+    that same weight (they have no clustering density), and there Sigma = 0 too. The w0 part over ALL pairs
+    needs no pair at all,
+
+        w0 sum_{i,j} ||J_i^T J_j||_F^2 = w0 ||A||_F^2,    A = sum_i J_i J_i^T  (K x K),
+
+    which costs O(m K^2) instead of the O(m^2 K) of the Gram matrix of every pair; the remainder (w_ij - w0) and the
+    Sigma terms are non-zero only for the few pairs within the support and the diagonal (w_ii = 0), which are
+    gathered explicitly. The result is the same sum, rearranged (exact for any weights; when they are not of this
+    form the dense Gram matrix is used).
 
     Parameters
     ----------
@@ -67,6 +76,28 @@ def covariance_dirichlet_loss_features(jac, sigma, weights):
     -------
     scalar tensor (averaged over scans)
     """
+    s, m, _, k = jac.shape
+    base = weights.amax(dim=(1, 2)).detach()  # (S,)
+    residual_weight = weights - base[:, None, None]
+    scan, i, j = torch.nonzero((residual_weight != 0) | (sigma != 0), as_tuple=True)
+    if len(scan) > s * m * m // 8:  # not a sparse correction: the dense Gram matrix is cheaper
+        return _covariance_loss_dense(jac, sigma, weights)
+    flat = jac.reshape(s, 3 * m, k)
+    moment = flat.transpose(1, 2) @ flat  # (S, K, K)
+    # summed in double: w0 ||A||^2 includes the near pairs, which the correction then takes out again
+    everywhere = base.double() * moment.double().square().sum((1, 2))  # (S,)
+    rows = jac.reshape(s * m, 3, k)
+    d_c = torch.einsum("pak,pbk->pab", rows.index_select(0, scan * m + i), rows.index_select(0, scan * m + j))
+    frob = d_c.square().sum((1, 2))
+    trace = d_c.diagonal(dim1=1, dim2=2).sum(-1)
+    sig = sigma[scan, i, j]
+    near = residual_weight[scan, i, j] * frob + weights[scan, i, j] * (3 * sig.square() - 2 * sig * trace)
+    per_scan = everywhere.index_add(0, scan, near.double())
+    return per_scan.mean().to(jac.dtype)
+
+
+def _covariance_loss_dense(jac, sigma, weights):
+    """The same loss from the Gram matrix of every pair's D c (no assumption on the weights)."""
     s, m, _, k = jac.shape
     flat = jac.reshape(s, 3 * m, k)
     gram = (flat @ flat.transpose(1, 2)).view(s, m, 3, m, 3)  # gram[s, i, k, j, l] = (D c_ij)_kl

@@ -32,7 +32,7 @@ def run_one(job):
 
     lengthscale = job["h_factor"] * point_spacing(points)
     field = fit_cloud(points, mesh.face_normals[faces], seed=0, quiet=True, width=job["width"], depth=job["depth"],
-                      steps=job["steps"], lengthscale=lengthscale)
+                      steps=job["steps"], lengthscale=lengthscale, **job["extra"])
     seconds = time.perf_counter() - t0
     diag = float(np.linalg.norm(mesh.extents))
     return {**job, "seconds": seconds, "chamfer": chamfer(field.mesh(job["resolution"]), mesh) / diag}
@@ -46,6 +46,8 @@ def main(argv=None):
     parser.add_argument("--depths", default="3")
     parser.add_argument("--steps", default="300,600,1000")
     parser.add_argument("--h-factors", default="2", help="kernel lengthscale / point spacing")
+    parser.add_argument("--omega0s", default=None,
+                        help="SIREN first-layer frequencies to sweep (default: fit_cloud's own choice)")
     parser.add_argument("--resolution", type=int, default=256, help="marching-cubes grid")
     parser.add_argument("--jobs", type=int, default=1)
     parser.add_argument("--threads", type=int, default=None, help="torch threads per fit (default: 2 if --jobs>1)")
@@ -53,16 +55,19 @@ def main(argv=None):
     import torch
 
     threads = args.threads or (2 if args.jobs > 1 else torch.get_num_threads())
+    omegas = [None] if args.omega0s is None else [float(o) for o in args.omega0s.split(",")]
     grid = itertools.product(map(int, args.widths.split(",")), map(int, args.depths.split(",")),
-                             map(int, args.steps.split(",")), map(float, args.h_factors.split(",")))
+                             map(int, args.steps.split(",")), map(float, args.h_factors.split(",")), omegas)
     jobs = [{"mesh": args.mesh, "points": args.points, "width": w, "depth": d, "steps": s, "h_factor": h,
-             "threads": threads, "resolution": args.resolution} for w, d, s, h in grid]
+             "threads": threads, "resolution": args.resolution, "extra": {} if o is None else {"omega0": o}}
+            for w, d, s, h, o in grid]
     print(f"{Path(args.mesh).name}, {args.points} points, {len(jobs)} fits, {args.jobs} at a time, "
           f"{threads} torch threads each")
-    print(f"{'width':>5} {'depth':>5} {'steps':>5} {'h/spacing':>9} {'fit s':>8} {'Chamfer/diag':>13}")
+    print(f"{'width':>5} {'depth':>5} {'steps':>5} {'h/spacing':>9} {'omega0':>7} {'fit s':>8} {'Chamfer/diag':>13}")
     with ProcessPoolExecutor(args.jobs) as pool:
         for r in pool.map(run_one, jobs):
-            print(f"{r['width']:5d} {r['depth']:5d} {r['steps']:5d} {r['h_factor']:9.2f} {r['seconds']:8.1f} "
+            print(f"{r['width']:5d} {r['depth']:5d} {r['steps']:5d} {r['h_factor']:9.2f} "
+                  f"{str(r['extra'].get('omega0', 'default')):>7} {r['seconds']:8.1f} "
                   f"{r['chamfer']:13.3e}",
                   flush=True)
 

@@ -50,6 +50,30 @@ def test_covariance_loss_features_equals_explicit_pairs():
     torch.testing.assert_close(loss, ref, rtol=1e-12, atol=0)
 
 
+def test_covariance_loss_features_sparse_route_matches_dense_gram():
+    """With the pair sampler's weights (one constant weight for pairs beyond the support) and a compact Sigma, the
+    loss takes its factored route (w0 ||sum_i J_i J_i^T||^2 plus the few near pairs): value and gradient must equal
+    the dense Gram matrix of every pair's D c, in double precision."""
+    from autodecoder.losses import _covariance_loss_dense
+
+    rng = np.random.default_rng(3)
+    box = Box(np.full(3, -0.5), np.full(3, 0.5))
+    x, w = sample_pair_clusters(box, 24, 4, 0.05, rng)
+    sigma = np.clip(1 - np.abs(x[:, None] - x[None]).max(-1) / 0.1, 0, None)  # zero beyond 0.1, like Sigma
+    assert (w == w.max()).mean() > 0.9  # the sampler's weights have the form the factoring exploits
+    jac0 = torch.randn(2, len(x), 3, 11, dtype=torch.float64)
+    sigma_t = torch.from_numpy(np.stack([sigma, 0.5 * sigma]))
+    w_t = torch.from_numpy(np.stack([w, 2 * w]).astype(np.float64))
+    grads = []
+    for loss_fn in (covariance_dirichlet_loss_features, _covariance_loss_dense):
+        jac = jac0.clone().requires_grad_()
+        loss = loss_fn(jac, sigma_t, w_t)
+        loss.backward()
+        grads.append((loss.detach(), jac.grad))
+    torch.testing.assert_close(grads[0][0], grads[1][0], rtol=1e-10, atol=0)
+    torch.testing.assert_close(grads[0][1], grads[1][1], rtol=1e-9, atol=1e-12)
+
+
 def test_covariance_loss_pairs_closed_form():
     sigma = torch.tensor([0.5, 2.0], dtype=torch.float64)
     w = torch.tensor([3.0, 0.25], dtype=torch.float64)

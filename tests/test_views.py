@@ -57,3 +57,44 @@ def test_cone_projection_keeps_the_axis_near_the_centre():
     off = (-q - ((-q) * d).sum(1, keepdim=True) * d).norm(dim=1)
     assert (off <= 0.2 + 1e-5).all()
     assert torch.allclose(d[1], a[1] / a[1].norm())  # already inside: unchanged
+
+
+class SeenSphere(Sphere):
+    """The toy sphere with a uniform standard deviation, measured on its +x half only (``training_points``)."""
+
+    def __init__(self, dtype=torch.float32):
+        super().__init__(dtype)
+        v = np.random.default_rng(0).normal(size=(2000, 3))
+        v /= np.linalg.norm(v, axis=1, keepdims=True)
+        self.training_points = torch.tensor(v[v[:, 0] > 0], dtype=dtype)
+
+    def _sd(self, x):
+        return torch.full_like(x[:, 0], 0.05)
+
+
+def test_novelty_scores_the_measured_side_below_the_new_side():
+    field = SeenSphere()
+    p = torch.tensor([[3.0, 0.0, 0.0], [-3.0, 0.0, 0.0]])
+    kw = dict(center=np.zeros(3), radius=1.2 * np.sqrt(3), n_side=2, n_samples=16, qmc_samples=64)
+    plain = camera_score(field, p, -p, **kw)
+    assert torch.allclose(plain[0], plain[1], rtol=1e-3)  # uniform variance: no preference without the data
+    s = camera_score(field, p, -p, observed=field.training_points, observed_scale=0.2, **kw)
+    # not zero: the expected hit lies up to one ray step (here ~0.28) behind the surface, away from the points
+    assert s[0] < 0.3 * s[1]
+    assert s[1] > 0.9 * plain[1]  # a ray into unmeasured surface keeps its variance
+
+
+def test_next_best_view_looks_at_the_unmeasured_side_by_default():
+    field = SeenSphere()
+    kw = dict(n_views=1, starts=6, steps=20, n_side=2, n_samples=12, qmc_samples=32, lr=0.1, seed=1)
+    best = next_best_views(field, observed_scale=0.2, **kw)[0]
+    u = best.position / np.linalg.norm(best.position)
+    assert u[0] < -0.5, f"best camera direction from the centre {u}"
+    try:  # a toy field has no kernel lengthscale to default the novelty scale from
+        next_best_views(field, **kw)
+    except ValueError as exc:
+        assert "observed_scale" in str(exc)
+    else:
+        raise AssertionError("expected a ValueError without observed_scale")
+    # observed=None: the variance alone (uniform here), so nothing to prefer; it still runs
+    assert len(next_best_views(field, observed=None, **kw)) == 1
