@@ -1,4 +1,5 @@
 """fit_cloud: neural stochastic screened Poisson reconstruction of one oriented point cloud."""
+import math
 import time
 from dataclasses import asdict, dataclass
 
@@ -58,6 +59,27 @@ class FitOptions:
     pool_passes: int = 4
     pair_pool: int = 8
     pair_reuse: int = 4
+
+
+def even_pool_size(steps, size, passes):
+    """Minibatches per mean-sample pool so that the pools a run draws are all used to the end.
+
+    A run of ``steps`` steps needs ``ceil(steps / (size * passes))`` pools of at most ``size`` minibatches, each
+    served ``passes`` times; sizing them equally (instead of drawing a last full pool for a few steps) keeps the GP
+    target cost at what the steps use. Drawing one minibatch's targets costs about a quarter of a step.
+
+    Parameters
+    ----------
+    steps, size, passes : int
+
+    Returns
+    -------
+    int
+        Between 1 and ``size``.
+    """
+    steps, size, passes = max(1, int(steps)), max(1, int(size)), max(1, int(passes))
+    pools = math.ceil(steps / (size * passes))
+    return max(1, min(size, math.ceil(steps / (pools * passes))))
 
 
 def _cosine_lr(step, total, fraction):
@@ -257,7 +279,8 @@ def train_single(mean_net, cov_net, targets, options, rng, quiet=False, steps=No
     mean_net.train(), cov_net.train()
     opt_mean = torch.optim.Adam(mean_net.parameters(), lr=options.lr, weight_decay=options.weight_decay)
     opt_cov = torch.optim.Adam(cov_net.parameters(), lr=options.lr, weight_decay=options.weight_decay)
-    pool = MeanPool(targets, options.mean_batch, options.refresh, rng, passes=options.pool_passes)
+    refresh = even_pool_size(steps, options.refresh, options.pool_passes)
+    pool = MeanPool(targets, options.mean_batch, refresh, rng, passes=options.pool_passes)
     pairs = PairPool(targets, options.pair_clusters, options.cluster_size, rng, options.pair_pool,
                      options.pair_reuse)
     history = []

@@ -11,7 +11,9 @@ expected correlated first hits, weighted by their novelty against the points mea
 (`StochasticField.update`) on old + new points. Prints the Chamfer
 distance of the mean surface to the true mesh after each view and its mean per strategy, writes chamfer.png /
 results.json, and finally refits from scratch on the last union cloud of (a) and compares at equal error: the field of
-(a) before its last view is fine-tuned on the last scan for 10, 25, 50, ... steps until its error reaches the refit's.
+(a) before its last view is fine-tuned on the last scan for 10, 25, 50, ... steps until its error reaches the refit's
+(within the Chamfer estimate's two standard errors, and at or below); then the other way round, refits with a
+quarter and half the budget, and for each fine-tune the cheapest refit that is as good.
 """
 import argparse
 import json
@@ -164,6 +166,7 @@ def main(argv=None):
     # the Chamfer estimate: the sampled Chamfer distance has its own noise) and (b) at or below it
     prev_field, p_last, n_last = last_step
     equal = {"within_2se": None, "at_or_below": None}
+    tune_records = []
     for steps in (10, 25, 50, 100, 150, 300):
         t = time.perf_counter()
         tuned = prev_field.update(p_last, n_last, steps=steps, seed=args.views)
@@ -173,11 +176,28 @@ def main(argv=None):
         print(f"  fine-tune of the last view, {steps} steps: {t_tune:.1f}s, chamfer {err:.5f} "
               f"(minus the refit's: {diff:+.5f} +- {se:.5f})")
         record = {"steps": steps, "seconds": t_tune, "chamfer": err, "difference": diff, "standard_error": se}
+        tune_records.append(record)
         if equal["within_2se"] is None and diff <= 2 * se:
             equal["within_2se"] = record
         if err <= err_refit:
             equal["at_or_below"] = record
             break
+    # and the other way round: refits from scratch with smaller budgets (each its own cosine schedule), and for each
+    # fine-tune above the cheapest refit whose error is at or below the fine-tune's
+    refits = [(args.fit_steps, t_refit, err_refit)]
+    for budget in (args.fit_steps // 4, args.fit_steps // 2):
+        t = time.perf_counter()
+        short = fit_cloud(pts, nrm, seed=args.seed, steps=budget, **fit_kw)
+        refits.append((budget, time.perf_counter() - t, surface_error(short, mesh, args.mesh_res)))
+    refits.sort()
+    print("refits from scratch: " + ", ".join(f"{b} steps {t_:.1f}s chamfer {e:.5f}" for b, t_, e in refits))
+    tunes = []
+    for record in tune_records:
+        match = next(((b, t_) for b, t_, e in refits if e <= record["chamfer"]), None)
+        tunes.append({**record, "refit_steps": match and match[0], "refit_seconds": match and match[1]})
+        print(f"  fine-tune {record['steps']:3d} steps {record['seconds']:5.1f}s chamfer {record['chamfer']:.5f}: " + (
+            f"cheapest refit as good: {match[0]} steps {match[1]:.1f}s, {match[1] / record['seconds']:.1f}x the time"
+            if match else "no refit above is as good"))
     for kind, label in (("within_2se", "within two standard errors of"), ("at_or_below", "at or below")):
         if equal[kind]:
             print(f"error {label} the refit's: fine-tuning {equal[kind]['seconds']:.1f}s ({equal[kind]['steps']} "
@@ -185,6 +205,8 @@ def main(argv=None):
         else:
             print(f"fine-tuning did not reach an error {label} the refit's within 300 steps")
     results["refit"] = {"seconds": t_refit, "chamfer": err_refit, "equal_error_finetune": equal,
+                        "refit_budgets": [{"steps": b, "seconds": t_, "chamfer": e} for b, t_, e in refits],
+                        "finetune_vs_cheapest_refit": tunes,
                         "args": {k: str(v) for k, v in vars(args).items()}}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.json").write_text(json.dumps(results, indent=2))

@@ -173,3 +173,28 @@ def test_mean_gradient_matches_finite_differences(sphere_field):
     fd = np.stack([(sphere_field.mean(x + eps * e) - sphere_field.mean(x - eps * e)) / (2 * eps)
                    for e in np.eye(3)], 1)
     np.testing.assert_allclose(sphere_field.mean_gradient(x), fd, rtol=2e-2, atol=2e-3 * np.abs(fd).max())
+
+
+@pytest.mark.parametrize("steps", [1, 7, 100, 129, 150, 1000])
+def test_even_pool_size_uses_every_pool_to_the_end(steps):
+    """The mean-sample pools of a run are all served to the end: as few pools as the size cap allows, none with more
+    minibatches than the run still needs (counted by serving a MeanPool for `steps` steps)."""
+    from autodecoder.fit import MeanPool, even_pool_size
+
+    size, passes = 32, 4
+    refresh = even_pool_size(steps, size, passes)
+    assert 1 <= refresh <= size
+
+    class CountingTargets:
+        drawn = 0
+
+        def mean_batch(self, n, rng):
+            CountingTargets.drawn += n
+            return (np.zeros((n, 3), np.float32),) * 2 + (np.ones(n, np.float32),)
+
+    pool = MeanPool(CountingTargets(), 2, refresh, np.random.default_rng(0), passes=passes)
+    for _ in range(steps):
+        pool.next()
+    pools = -(-steps // (size * passes))
+    assert CountingTargets.drawn == 2 * refresh * pools  # no more pools than the cap forces
+    assert refresh * passes * pools - steps < pools * passes  # and no pool holds a minibatch nobody uses
