@@ -17,7 +17,8 @@ when there is one) is timed for three methods on a batch of 512 points drawn in 
     512 explicit pairs per step.
 (c) ``feature``: :class:`FeatureCovarianceNet` (same width/depth, K = 128 features): Jacobians of the 512 points
     from the order-1 jet, then :func:`covariance_dirichlet_loss_features`, which consumes all m (m - 1) = 261,632
-    ordered pairs of the batch through one Gram matrix. Reported both as pairs/s (what the loss consumes) and as
+    ordered pairs of the batch (the far pairs through the K x K matrix sum_i J_i J_i^T, the few pairs within the
+    kernel's support gathered one by one; before stop 9 it formed the Gram matrix of all pairs). Reported both as pairs/s (what the loss consumes) and as
     points/s (network evaluations), since a pair of the feature net is much cheaper than a pair of (a)/(b).
 
 Columns: ms/step; pairs/s; points/s (points pushed through the network: 2 per pair for (a)/(b) -- each pair
@@ -32,7 +33,7 @@ width, d depth = number of sine layers, L latent, a latent code (L,) shared by t
 
     (b) mixed jet, 2B rows (both orders), 16 channels each:  2 (2B) 6 W + (d - 1) 2 (16 * 2B) W^2 + 2 (16 * 2B) W
     (c) order-1 jet, B rows, 4 channels each:                2 B 3 W + (d - 1) 2 (4B) W^2 + 2 (4B) W K
-        + Gram matrix of the (3B, K) stacked Jacobians:      2 (3B)^2 K
+        + sum_i J_i J_i^T of the (3B, K) stacked Jacobians:  2 (3B) K^2   (the Gram matrix was 2 (3B)^2 K)
     (a) forward 2 (2B) 6 W + (d - 1) 2 (2B) W^2 + 2 (2B) W, then one create_graph backward and three more
         backwards through that graph, each roughly 1-2x the forward.
 

@@ -279,6 +279,7 @@ def test_distance_point_score_undoes_saturation():
         field_quantity(MeanOnly(), x, "distance")
 
 
+@pytest.mark.filterwarnings("ignore::inspection.calibration.SmallCalibrationWarning")  # tiny calibration on purpose
 def test_local_inspector_needs_reference():
     insp = Inspector(SphereModel(), point_score="local")
     with pytest.raises(NotFittedError, match="reference"):
