@@ -83,6 +83,8 @@ def main(argv=None):
     ap.add_argument("--starts", type=int, default=12)
     ap.add_argument("--nbv-steps", type=int, default=30)
     ap.add_argument("--n-side", type=int, default=3, help="rays per image side of the NBV camera model")
+    ap.add_argument("--novelty", choices=("auto", "off"), default="auto",
+                    help="NBV novelty weighting against the measured points ('off': the variance alone, the paper's)")
     ap.add_argument("--strategies", default="nbv,random,furthest", help="comma-separated subset to run")
     ap.add_argument("--mesh-res", type=int, default=64)
     ap.add_argument("--seed", type=int, default=0)
@@ -119,7 +121,8 @@ def main(argv=None):
             t_select = time.perf_counter()
             if strategy == "nbv":
                 v = next_best_views(field, n_views=1, starts=args.starts, steps=args.nbv_steps, standoff=(1.6, 2.4),
-                                    n_side=args.n_side, seed=args.seed + k)[0]
+                                    n_side=args.n_side, seed=args.seed + k,
+                                    observed="auto" if args.novelty == "auto" else None)[0]
                 pos, look = v.position, v.look_at
             elif strategy == "random":
                 view = scanner.random_view(radius_range=(1.8, 1.8), seed=int(rng.integers(1 << 31)))
