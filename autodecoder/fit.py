@@ -2,6 +2,7 @@
 import math
 import time
 from dataclasses import asdict, dataclass
+from typing import Optional
 
 import numpy as np
 import torch
@@ -36,6 +37,10 @@ class FitOptions:
         The covariance batch: pair_clusters x cluster_size points, all their ordered pairs.
     screening_weight : float
         lambda_S.
+    covariance_screening_weight : float, optional
+        lambda_S of the covariance's screening term c(p, p)^2 alone; default ``screening_weight``, as in the paper.
+        (The covariance lives at the scale of Sigma h^2, ~1e-4 in the unit cube, so the paper's 100 c(p, p)^2 is
+        small beside its Dirichlet term and pins the variance at the points only loosely.)
     refresh : int
         Minibatches in the mean-sample pool (the pool holds ``mean_batch * refresh`` samples).
     pool_passes : int
@@ -55,6 +60,7 @@ class FitOptions:
     pair_clusters: int = 128
     cluster_size: int = 4
     screening_weight: float = SCREENING_WEIGHT
+    covariance_screening_weight: Optional[float] = None
     refresh: int = 32
     pool_passes: int = 4
     pair_pool: int = 8
@@ -181,7 +187,9 @@ def covariance_step_loss(cov_net, targets, options, rng, code=None, pairs=None):
         d_c = cov_net.d_operator(x[i], x[j], code)
         dirichlet = covariance_dirichlet_loss_pairs(d_c, sigma[i, j], keep_weight)
     screen_pts = torch.from_numpy(targets.screen_batch(options.screen_batch, rng))
-    screening = screening_loss(cov_net.variance(screen_pts, code), options.screening_weight)
+    weight = options.screening_weight if options.covariance_screening_weight is None \
+        else options.covariance_screening_weight
+    screening = screening_loss(cov_net.variance(screen_pts, code), weight)
     return dirichlet + screening, dirichlet, screening
 
 

@@ -83,6 +83,8 @@ def main(argv=None):
     ap.add_argument("--starts", type=int, default=12)
     ap.add_argument("--nbv-steps", type=int, default=30)
     ap.add_argument("--n-side", type=int, default=3, help="rays per image side of the NBV camera model")
+    ap.add_argument("--cov-screening", type=float, default=None,
+                    help="lambda_S of the covariance's screening term (default: the paper's, as the mean's)")
     ap.add_argument("--novelty", choices=("auto", "off"), default="auto",
                     help="NBV novelty weighting against the measured points ('off': the variance alone, the paper's)")
     ap.add_argument("--strategies", default="nbv,random,furthest", help="comma-separated subset to run")
@@ -95,7 +97,7 @@ def main(argv=None):
     scanner = VirtualScanner(mesh)
     radius = 1.8 * scanner.diagonal
     fit_kw = dict(quiet=True, width=args.width, depth=3, features=64, mean_batch=2048, screen_batch=1024,
-                  pair_clusters=64)
+                  pair_clusters=64, covariance_screening_weight=args.cov_screening)
 
     def scan(position, look_at, k):
         s = scanner.scan(position, look_at, n_points=args.points, noise=args.noise * scanner.diagonal, seed=k)
