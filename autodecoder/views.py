@@ -17,7 +17,9 @@ weighted by how new its expected hit point is,
 with s one kernel support (2 lengthscales, the unit the integration box's margin is counted in). Why: the learned
 covariance of a field fitted to one scan keeps a large floor on the surface it has seen (measured on fandisk: the
 variance there is only ~1.4x below the variance on the unseen side, with the spreads overlapping), so the variance
-alone ranks a camera that re-measures the seen side barely below one that looks at the unseen side. A new scan
+alone ranks a camera that re-measures the seen side barely below one that looks at the unseen side. (The floor is
+the covariance net's: its loss fixes only the mixed derivatives of c, and the screening term that pins c(p, p) to 0
+is small at the covariance's scale; ``FitOptions.covariance_screening_weight`` strengthens it.) A new scan
 of surface already measured within a kernel support adds nothing the fit can use; the factor says so explicitly,
 and leaves the variance to rank the cameras that do look at new surface.
 
