@@ -66,6 +66,24 @@ class FitOptions:
     pair_pool: int = 8
     pair_reuse: int = 4
 
+    def __post_init__(self):
+        # one clear error here instead of an empty loop, a zero-size batch or NaN losses deep in training
+        counts = {"steps": 1, "mean_batch": 1, "screen_batch": 1, "pair_clusters": 1, "cluster_size": 2,
+                  "refresh": 1, "pool_passes": 1, "pair_pool": 1, "pair_reuse": 1}
+        for name, least in counts.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+                raise ValueError(f"FitOptions.{name} must be an integer >= {least}, got {value!r}")
+        weights = {"lr": self.lr, "final_lr_fraction": self.final_lr_fraction, "weight_decay": self.weight_decay,
+                   "screening_weight": self.screening_weight}
+        if self.covariance_screening_weight is not None:
+            weights["covariance_screening_weight"] = self.covariance_screening_weight
+        for name, value in weights.items():
+            if not (isinstance(value, (int, float, np.number)) and np.isfinite(value) and value >= 0):
+                raise ValueError(f"FitOptions.{name} must be a finite number >= 0, got {value!r}")
+        if self.lr == 0:
+            raise ValueError("FitOptions.lr must be > 0")
+
 
 def even_pool_size(steps, size, passes):
     """Minibatches per mean-sample pool so that the pools a run draws are all used to the end.
@@ -287,10 +305,11 @@ def train_single(mean_net, cov_net, targets, options, rng, quiet=False, steps=No
     mean_net.train(), cov_net.train()
     opt_mean = torch.optim.Adam(mean_net.parameters(), lr=options.lr, weight_decay=options.weight_decay)
     opt_cov = torch.optim.Adam(cov_net.parameters(), lr=options.lr, weight_decay=options.weight_decay)
+    # target pools sized to this run: a short run (a fine-tune) must not draw targets it never uses
     refresh = even_pool_size(steps, options.refresh, options.pool_passes)
     pool = MeanPool(targets, options.mean_batch, refresh, rng, passes=options.pool_passes)
-    pairs = PairPool(targets, options.pair_clusters, options.cluster_size, rng, options.pair_pool,
-                     options.pair_reuse)
+    pair_slots = max(1, min(options.pair_pool, math.ceil(steps / options.pair_reuse)))
+    pairs = PairPool(targets, options.pair_clusters, options.cluster_size, rng, pair_slots, options.pair_reuse)
     history = []
     bar = tqdm(range(steps), desc="fitting", disable=quiet, leave=False)
     for step in bar:

@@ -10,7 +10,8 @@ Choices (documented here once):
   old box and the default box around the union cloud, so new points outside the old box are covered (the nets then
   see inputs a little beyond the unit cube, where a SIREN extrapolates smoothly; a part that grows far beyond its
   first scan should be refitted).
-- The GP target pools (see :class:`autodecoder.fit.FitOptions`) are sized to what ``steps`` uses.
+- The GP target pools (see :class:`autodecoder.fit.FitOptions`) are sized to what ``steps`` uses (by
+  :func:`autodecoder.fit.train_single`, as for every run).
 - One "epoch" is one pass of the screening batch over the union cloud: steps = epochs * ceil(n / screen_batch),
   unless ``steps`` is given. The learning rate starts at ``lr_fraction`` x the fit's (cosine decay), since the
   weights are already near a solution.
@@ -76,9 +77,6 @@ def update_field(field, points, normals, epochs=50, steps=None, lr_fraction=0.3,
     options.lr = options.lr * lr_fraction
     if steps is None:
         steps = max(1, int(epochs) * math.ceil(len(all_points) / options.screen_batch))
-    # target pools sized for this run (train_single sizes the mean pools to the steps; the pair pool here): a fit's
-    # pools serve hundreds of steps, and drawing them whole for a short fine-tune would cost more than the fine-tune
-    options.pair_pool = max(1, min(options.pair_pool, math.ceil(steps / max(1, options.pair_reuse))))
     t0 = time.perf_counter()
     norm = field.normalization
     model_points = norm.to_model(all_points)

@@ -218,6 +218,8 @@ def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), 
         observed = torch.as_tensor(np.asarray(observed, dtype=np.float32))
         if observed.ndim != 2 or observed.shape[1] != 3 or len(observed) == 0:
             raise ValueError(f"observed must be (m, 3) points with m >= 1, got shape {tuple(observed.shape)}")
+        if not torch.isfinite(observed).all():
+            raise ValueError("observed points contain NaN or infinite coordinates")
         if observed_scale is None:
             config, norm = getattr(field, "config", None), getattr(field, "normalization", None)
             if config is None or "lengthscale" not in config or norm is None:

@@ -54,11 +54,11 @@ def surface_error(field, mesh, res):
         return float("nan")
 
 
-def chamfer_difference(field_1, field_2, mesh, res):
-    """Chamfer(field_1) - Chamfer(field_2) to the true mesh and the standard error of that difference estimate
-    (the true mesh's samples are shared, so that half is a paired difference; the other half's are independent)."""
-    own_1, true_1 = chamfer_samples(field_1.mesh(res), mesh)
-    own_2, true_2 = chamfer_samples(field_2.mesh(res), mesh)
+def chamfer_difference(samples_1, samples_2):
+    """Chamfer(1) - Chamfer(2) to the true mesh from two :func:`chamfer_samples` results, and the standard error of
+    that difference estimate (the true mesh's samples are shared, so that half is a paired difference; the other
+    half's are independent)."""
+    (own_1, true_1), (own_2, true_2) = samples_1, samples_2
     diff = 0.5 * (own_1.mean() - own_2.mean() + (true_1 - true_2).mean())
     var = 0.25 * (own_1.var() / len(own_1) + own_2.var() / len(own_2) + (true_1 - true_2).var() / len(true_1))
     return float(diff), float(np.sqrt(var))
@@ -108,7 +108,8 @@ def main(argv=None):
     t0 = time.perf_counter()
     field0 = fit_cloud(p0, n0, seed=args.seed, steps=args.fit_steps, **fit_kw)
     field0.training_points, field0.training_normals = torch.tensor(p0).float(), torch.tensor(n0).float()
-    print(f"first fit {time.perf_counter() - t0:.1f}s, chamfer {surface_error(field0, mesh, args.mesh_res):.5f}")
+    err0 = surface_error(field0, mesh, args.mesh_res)
+    print(f"first fit {time.perf_counter() - t0:.1f}s, chamfer {err0:.5f}")
 
     candidates = scanner.center + radius * fibonacci_sphere(200)
     rng = np.random.default_rng(args.seed + 1)
@@ -118,7 +119,7 @@ def main(argv=None):
     for strategy in strategies:
         field, cams = field0, [first.camera_position]
         previous = field0
-        errors, times = [surface_error(field0, mesh, args.mesh_res)], []
+        errors, times = [err0], []
         for k in range(1, args.views):
             t_select = time.perf_counter()
             if strategy == "nbv":
@@ -162,7 +163,8 @@ def main(argv=None):
     t = time.perf_counter()
     refit = fit_cloud(pts, nrm, seed=args.seed, steps=args.fit_steps, **fit_kw)
     t_refit = time.perf_counter() - t
-    err_refit = surface_error(refit, mesh, args.mesh_res)
+    refit_samples = chamfer_samples(refit.mesh(args.mesh_res), mesh)
+    err_refit = 0.5 * float(refit_samples[0].mean() + refit_samples[1].mean())
     last_ft = results["nbv"]["update_seconds"][-1] if results["nbv"]["update_seconds"] else float("nan")
     print(f"refit from scratch on the final nbv union ({len(pts)} points): {t_refit:.1f}s, chamfer {err_refit:.5f}; "
           f"last fine-tune {last_ft:.1f}s, all fine-tunes {t_ft:.1f}s, chamfer {err_ft:.5f}")
@@ -176,8 +178,9 @@ def main(argv=None):
         t = time.perf_counter()
         tuned = prev_field.update(p_last, n_last, steps=steps, seed=args.views)
         t_tune = time.perf_counter() - t
-        err = surface_error(tuned, mesh, args.mesh_res)
-        diff, se = chamfer_difference(tuned, refit, mesh, args.mesh_res)
+        tuned_samples = chamfer_samples(tuned.mesh(args.mesh_res), mesh)
+        err = 0.5 * float(tuned_samples[0].mean() + tuned_samples[1].mean())
+        diff, se = chamfer_difference(tuned_samples, refit_samples)
         print(f"  fine-tune of the last view, {steps} steps: {t_tune:.1f}s, chamfer {err:.5f} "
               f"(minus the refit's: {diff:+.5f} +- {se:.5f})")
         record = {"steps": steps, "seconds": t_tune, "chamfer": err, "difference": diff, "standard_error": se}

@@ -215,3 +215,17 @@ def test_covariance_screening_weight_pins_the_variance_at_the_points(sphere_fiel
     assert contrast(strong) < 0.5 * contrast(sphere_field)
     # the mean's screening is the paper's in both: the mean surface stays on the sphere
     assert np.abs(strong.mean(points)).mean() < 0.05 * RADIUS
+
+
+@pytest.mark.parametrize("override, message", [
+    ({"steps": 0}, "steps must be an integer >= 1"),
+    ({"mean_batch": 2.5}, "mean_batch must be an integer"),
+    ({"cluster_size": 1}, "cluster_size must be an integer >= 2"),
+    ({"lr": 0.0}, "lr must be > 0"),
+    ({"screening_weight": float("nan")}, "screening_weight must be a finite number"),
+    ({"covariance_screening_weight": -1.0}, "covariance_screening_weight must be a finite number >= 0"),
+])
+def test_bad_fit_options_give_one_clear_error(override, message):
+    points, normals = sphere_cloud(200)
+    with pytest.raises(ValueError, match=message):
+        fit_cloud(points, normals, quiet=True, **override)

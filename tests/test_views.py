@@ -2,6 +2,7 @@
 import json
 
 import numpy as np
+import pytest
 import torch
 
 from autodecoder.views import camera_rays, camera_score, next_best_views
@@ -90,11 +91,9 @@ def test_next_best_view_looks_at_the_unmeasured_side_by_default():
     best = next_best_views(field, observed_scale=0.2, **kw)[0]
     u = best.position / np.linalg.norm(best.position)
     assert u[0] < -0.5, f"best camera direction from the centre {u}"
-    try:  # a toy field has no kernel lengthscale to default the novelty scale from
+    with pytest.raises(ValueError, match="observed_scale"):  # a toy field has no lengthscale to default it from
         next_best_views(field, **kw)
-    except ValueError as exc:
-        assert "observed_scale" in str(exc)
-    else:
-        raise AssertionError("expected a ValueError without observed_scale")
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        next_best_views(field, observed=np.full((5, 3), np.nan), observed_scale=0.2, **kw)
     # observed=None: the variance alone (uniform here), so nothing to prefer; it still runs
     assert len(next_best_views(field, observed=None, **kw)) == 1
