@@ -21,10 +21,23 @@ from .validation import check_oriented_cloud
 class FitOptions:
     """Optimisation settings of :func:`fit_cloud` (defaults measured on this 2-core CPU, see the README).
 
+    Why many small steps: on fandisk (20k points, Chamfer of the mean surface / diagonal, 256^3 marching cubes,
+    ``benchmarks/fit_defaults.py`` and the README) the error falls with the number of Adam steps far more than with
+    the batch: 1000 steps of 4096 samples 0.90e-3, 2000 of 512 0.81e-3, 4000 of 512 0.72e-3, and width 64 does as
+    well as 128 at equal steps (4000 x 512: 0.74e-3 vs 0.72e-3). A step of width 64 on 256 samples is mostly
+    per-operation overhead (~12 ms on 2 cores, ~1/10 of a 4096-sample width-128 step), so 3000 such steps
+    (0.80e-3) fit in about a minute where 1000 large ones took 220 s.
+
     Attributes
     ----------
     steps : int
-        Adam steps for each net.
+        Adam steps of the mean net.
+    covariance_every : int
+        One covariance step every this many mean steps (``ceil(steps / covariance_every)`` in all). The mean's
+        surface needs many steps; a covariance step costs ~4 mean steps, and more of them do not bring the
+        variance closer to the GP's: the Dirichlet term fixes only c's mixed derivatives, so with long training the
+        variance drifts down everywhere (fandisk, 3000 mean steps: Spearman with gpytoolbox's SPSR variance 0.72 /
+        0.76 / 0.67 / 0.24 for a covariance step every 16 / 8 / 4 / 1 steps).
     lr : float
         Peak learning rate (cosine decay to ``lr * final_lr_fraction``).
     weight_decay : float
@@ -45,30 +58,32 @@ class FitOptions:
         Minibatches in the mean-sample pool (the pool holds ``mean_batch * refresh`` samples).
     pool_passes : int
         Shuffled passes over the mean-sample pool before it is redrawn. GP targets cost ~20 us a sample on this
-        CPU, as much as a training step; a pool served several times keeps that cost to a fraction of a step while
-        every pass is still an unbiased Monte-Carlo estimate of the loss.
+        CPU (a 256-sample minibatch ~40 % of a step); a pool served several times keeps that cost to a few per cent
+        while every pass is still an unbiased Monte-Carlo estimate of the loss (fandisk: 8 passes instead of 4,
+        51 s instead of 59 s, Chamfer/diagonal 0.79e-3 vs 0.80e-3).
     pair_pool, pair_reuse : int
         Covariance batches kept in a pool, and how many steps each serves before it is redrawn (same reason).
     """
 
-    steps: int = 1000
+    steps: int = 3000
+    covariance_every: int = 8
     lr: float = 1e-3
     final_lr_fraction: float = 0.05
     weight_decay: float = 1e-5
-    mean_batch: int = 4096
-    screen_batch: int = 2048
+    mean_batch: int = 256
+    screen_batch: int = 256
     pair_clusters: int = 128
     cluster_size: int = 4
     screening_weight: float = SCREENING_WEIGHT
     covariance_screening_weight: Optional[float] = None
     refresh: int = 32
-    pool_passes: int = 4
+    pool_passes: int = 8
     pair_pool: int = 8
     pair_reuse: int = 4
 
     def __post_init__(self):
         # one clear error here instead of an empty loop, a zero-size batch or NaN losses deep in training
-        counts = {"steps": 1, "mean_batch": 1, "screen_batch": 1, "pair_clusters": 1, "cluster_size": 2,
+        counts = {"steps": 1, "covariance_every": 1, "mean_batch": 1, "screen_batch": 1, "pair_clusters": 1, "cluster_size": 2,
                   "refresh": 1, "pool_passes": 1, "pair_pool": 1, "pair_reuse": 1}
         for name, least in counts.items():
             value = getattr(self, name)
@@ -233,7 +248,7 @@ def _pair_subset(m, cluster_size, rng):
     return np.concatenate([ii, ci]), np.concatenate([jj, cj]), torch.from_numpy(keep_factor)
 
 
-def fit_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, width=128, depth=3,
+def fit_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, width=64, depth=3,
               covariance="feature", features=128, omega0=30.0, options=None, quiet=False, **option_overrides):
     """Fit a stochastic implicit surface f ~ N(g, c) to an oriented point cloud (NSSPR).
 
@@ -254,7 +269,8 @@ def fit_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, width=12
         Default measurement noise (cloud units) of :meth:`StochasticField.nll`; default: the RMS of the fitted
         mean at the cloud's points (how far the surface misses them).
     width, depth : int
-        SIREN size of both nets (the paper's is 512 x 5).
+        SIREN size of both nets (the paper's is 512 x 5; 64 x 3 measured best for time on 2 cores, see
+        :class:`FitOptions`).
     covariance : {'feature', 'pair'}
         Covariance architecture: a feature map phi(a).phi(b) (default, far cheaper) or the paper's symmetrised
         SoftPlus pair network.
@@ -299,16 +315,23 @@ def fit_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, width=12
                            training_points=points, training_normals=normals)
 
 
+def _adam(parameters, options):
+    # the fused kernel updates all tensors in one call: ~10 % of a small step's time goes to the per-tensor loop
+    return torch.optim.Adam(parameters, lr=options.lr, weight_decay=options.weight_decay, fused=True)
+
+
 def train_single(mean_net, cov_net, targets, options, rng, quiet=False, steps=None, code=None):
     """Train both nets on one cloud's targets; returns the loss history (a dict per logged step)."""
     steps = options.steps if steps is None else steps
     mean_net.train(), cov_net.train()
-    opt_mean = torch.optim.Adam(mean_net.parameters(), lr=options.lr, weight_decay=options.weight_decay)
-    opt_cov = torch.optim.Adam(cov_net.parameters(), lr=options.lr, weight_decay=options.weight_decay)
+    opt_mean = _adam(mean_net.parameters(), options)
+    opt_cov = _adam(cov_net.parameters(), options)
     # target pools sized to this run: a short run (a fine-tune) must not draw targets it never uses
     refresh = even_pool_size(steps, options.refresh, options.pool_passes)
     pool = MeanPool(targets, options.mean_batch, refresh, rng, passes=options.pool_passes)
-    pair_slots = max(1, min(options.pair_pool, math.ceil(steps / options.pair_reuse)))
+    every = options.covariance_every
+    cov_steps = math.ceil(steps / every)
+    pair_slots = max(1, min(options.pair_pool, math.ceil(cov_steps / options.pair_reuse)))
     pairs = PairPool(targets, options.pair_clusters, options.cluster_size, rng, pair_slots, options.pair_reuse)
     history = []
     bar = tqdm(range(steps), desc="fitting", disable=quiet, leave=False)
@@ -321,10 +344,11 @@ def train_single(mean_net, cov_net, targets, options, rng, quiet=False, steps=No
         opt_mean.zero_grad(set_to_none=True)
         total_m.backward()
         opt_mean.step()
-        total_c, dir_c, scr_c = covariance_step_loss(cov_net, targets, options, rng, code, pairs)
-        opt_cov.zero_grad(set_to_none=True)
-        total_c.backward()
-        opt_cov.step()
+        if step % every == 0:
+            total_c, dir_c, scr_c = covariance_step_loss(cov_net, targets, options, rng, code, pairs)
+            opt_cov.zero_grad(set_to_none=True)
+            total_c.backward()
+            opt_cov.step()
         if step % 10 == 0 or step == steps - 1:
             record = {"step": step, "mean_dirichlet": dir_m.item(), "mean_screening": scr_m.item(),
                       "cov_dirichlet": dir_c.item(), "cov_screening": scr_c.item()}

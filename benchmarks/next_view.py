@@ -97,7 +97,7 @@ def main(argv=None):
     scanner = VirtualScanner(mesh)
     radius = 1.8 * scanner.diagonal
     fit_kw = dict(quiet=True, width=args.width, depth=3, features=64, mean_batch=2048, screen_batch=1024,
-                  pair_clusters=64, covariance_screening_weight=args.cov_screening)
+                  pair_clusters=64, covariance_every=1, covariance_screening_weight=args.cov_screening)
 
     def scan(position, look_at, k):
         s = scanner.scan(position, look_at, n_points=args.points, noise=args.noise * scanner.diagonal, seed=k)

@@ -217,8 +217,31 @@ def test_covariance_screening_weight_pins_the_variance_at_the_points(sphere_fiel
     assert np.abs(strong.mean(points)).mean() < 0.05 * RADIUS
 
 
+@pytest.mark.parametrize("steps, every", [(10, 1), (10, 3), (7, 7), (5, 20)])
+def test_covariance_every_spreads_covariance_steps_through_the_run(steps, every, monkeypatch):
+    """covariance_every=k: the mean net takes every step, the covariance net ceil(steps / k), the first at step 0
+    (counted on the optimisers' own step counters)."""
+    from autodecoder import fit as fit_module
+
+    steps_taken = []
+    real_step = torch.optim.Adam.step
+
+    def counting_step(self, *args, **kwargs):
+        steps_taken.append(id(self))
+        return real_step(self, *args, **kwargs)
+
+    monkeypatch.setattr(torch.optim.Adam, "step", counting_step)
+    points, normals = sphere_cloud(300)
+    fit_module.fit_cloud(points, normals, quiet=True, width=16, depth=1, features=8, steps=steps, mean_batch=64,
+                         screen_batch=64, pair_clusters=8, covariance_every=every)
+    mean_opt = steps_taken[0]  # the mean net steps first in every iteration
+    assert steps_taken.count(mean_opt) == steps
+    assert len(steps_taken) - steps == -(-steps // every)
+
+
 @pytest.mark.parametrize("override, message", [
     ({"steps": 0}, "steps must be an integer >= 1"),
+    ({"covariance_every": 0}, "covariance_every must be an integer >= 1"),
     ({"mean_batch": 2.5}, "mean_batch must be an integer"),
     ({"cluster_size": 1}, "cluster_size must be an integer >= 2"),
     ({"lr": 0.0}, "lr must be > 0"),
