@@ -83,8 +83,8 @@ class FitOptions:
 
     def __post_init__(self):
         # one clear error here instead of an empty loop, a zero-size batch or NaN losses deep in training
-        counts = {"steps": 1, "covariance_every": 1, "mean_batch": 1, "screen_batch": 1, "pair_clusters": 1, "cluster_size": 2,
-                  "refresh": 1, "pool_passes": 1, "pair_pool": 1, "pair_reuse": 1}
+        counts = {"steps": 1, "covariance_every": 1, "mean_batch": 1, "screen_batch": 1, "pair_clusters": 1,
+                  "cluster_size": 2, "refresh": 1, "pool_passes": 1, "pair_pool": 1, "pair_reuse": 1}
         for name, least in counts.items():
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:

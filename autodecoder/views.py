@@ -23,9 +23,10 @@ is small at the covariance's scale; ``FitOptions.covariance_screening_weight`` s
 of surface already measured within a kernel support adds nothing the fit can use; the factor says so explicitly,
 and leaves the variance to rank the cameras that do look at new surface.
 
-The optimiser (:func:`next_best_views`) maximises the score by Adam from many random starts on a sphere around
-the part (the global multi-start the paper recommends), projecting the stand-off distance into a range and the
-optical axis into a cone around the part's centre after every step. "The part" is the field's
+The optimiser (:func:`next_best_views`) maximises the score by Adam from many starts on a sphere around the part
+(the global multi-start the paper recommends; the starts are the best of a larger set of random cameras scored
+once), projecting the stand-off distance into a range and the optical axis into a cone around the part's centre
+after every step. "The part" is the field's
 integration box (its centre and the radius of its corner sphere): a field fitted to one scan has a box around that
 scan, which may be off-centre of the physical part.
 """
@@ -168,7 +169,7 @@ def _sphere_starts(n, rng):
 
 def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), fov_deg=30.0, n_side=3,
                     n_samples=24, lr=0.05, aim_weight=1.0, aim_tolerance=0.2, min_separation_deg=15.0,
-                    method="genz", qmc_samples=128, seed=0, observed="auto", observed_scale=None):
+                    method="genz", qmc_samples=128, seed=0, observed="auto", observed_scale=None, candidates=None):
     """Rank camera placements by :func:`camera_score` after multi-start gradient ascent.
 
     Parameters
@@ -177,7 +178,8 @@ def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), 
     n_views : int
         Views returned (at most ``starts``).
     starts : int
-        Random starting cameras, uniform on the sphere of mid stand-off radius, aimed at the centre.
+        Starting cameras of the gradient ascent: the best-scoring ``starts`` of ``candidates`` random cameras,
+        uniform on the sphere of mid stand-off radius, aimed at the centre.
     steps : int
         Adam steps.
     standoff : (2,) floats
@@ -200,6 +202,11 @@ def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), 
     observed_scale : float, optional
         s of the novelty factor, world units; default one kernel support, 2 x the field's kernel lengthscale
         (``field.config['lengthscale']`` in the model frame, divided by the normalisation's scale).
+    candidates : int, optional
+        Random cameras scored (one pass, no gradient) to choose the starts from; default ``4 * starts``. Why: the
+        score is a bumpy function of the camera (few rays, each a few samples), and a local ascent moves a camera a
+        few tens of degrees at most, so the starts decide which side of the part is found. Scoring a candidate
+        costs a fraction of an ascent step. ``candidates=starts`` gives plain random starts.
 
     Returns
     -------
@@ -207,6 +214,9 @@ def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), 
     """
     if starts < 1 or n_views < 1:
         raise ValueError(f"starts and n_views must be >= 1, got {starts} and {n_views}")
+    candidates = 4 * starts if candidates is None else int(candidates)
+    if candidates < starts:
+        raise ValueError(f"candidates must be >= starts ({starts}), got {candidates}")
     lo_r, hi_r = float(standoff[0]), float(standoff[1])
     if not 0 < lo_r <= hi_r:
         raise ValueError(f"standoff must be (min, max) with 0 < min <= max, got {standoff}")
@@ -228,15 +238,21 @@ def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), 
     rng = np.random.default_rng(seed)
     center, radius = part_sphere(field)
     c = torch.as_tensor(center, dtype=torch.float32)
-    dirs0 = _sphere_starts(starts, rng)
-    # optimise in units of the radius around the centre, so one learning rate fits parts of any size
-    q = torch.tensor(dirs0 * (lo_r + hi_r) / 2, dtype=torch.float32, requires_grad=True)
-    a = torch.tensor(-dirs0, dtype=torch.float32, requires_grad=True)
-    opt = torch.optim.Adam([q, a], lr=lr)
 
     def score_of(q_, a_):
         return camera_score(field, c + q_ * radius, a_, center, radius, fov_deg, n_side, n_samples, method,
                             qmc_samples, seed, observed, observed_scale)
+
+    dirs0 = _sphere_starts(candidates, rng)
+    if candidates > starts:
+        with torch.no_grad():
+            pool = torch.tensor(dirs0, dtype=torch.float32)
+            first = score_of(pool * (lo_r + hi_r) / 2, -pool).double().numpy()
+        dirs0 = dirs0[np.argsort(-np.nan_to_num(first, nan=-np.inf))[:starts]]
+    # optimise in units of the radius around the centre, so one learning rate fits parts of any size
+    q = torch.tensor(dirs0 * (lo_r + hi_r) / 2, dtype=torch.float32, requires_grad=True)
+    a = torch.tensor(-dirs0, dtype=torch.float32, requires_grad=True)
+    opt = torch.optim.Adam([q, a], lr=lr)
 
     with torch.no_grad():
         scale = score_of(q, a).mean().clamp_min(1e-30)

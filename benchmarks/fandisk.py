@@ -207,7 +207,8 @@ def main(argv=None):
               f"   (open3d: {bands_o3d[label][2]:.5f}, {bands_o3d[label][3]:5.1%})")
     if not args.no_gpytoolbox:
         rho, mean_rho, seconds = gpytoolbox_variance_correlation(field, points, normals, cache_dir=out)
-        print(f"Spearman(variance, gpytoolbox SPSR variance on its 20^3 grid): {rho:.3f}  (SPSR {'from the cache' if seconds == 0 else f'took {seconds:.1f} s'};"
+        spsr = "from the cache" if seconds == 0 else f"took {seconds:.1f} s"
+        print(f"Spearman(variance, gpytoolbox SPSR variance on its 20^3 grid): {rho:.3f}  (SPSR {spsr};"
               f" Spearman of the two means, an ordering check: {mean_rho:.3f})")
     slice_png(field, out / "slice.png")
     ours.export(out / "mean_surface.ply")

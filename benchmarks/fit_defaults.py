@@ -69,7 +69,8 @@ def main(argv=None):
             for w, d, s, h, o, b in grid]
     print(f"{Path(args.mesh).name}, {args.points} points, {len(jobs)} fits, {args.jobs} at a time, "
           f"{threads} torch threads each")
-    print(f"{'width':>5} {'depth':>5} {'steps':>5} {'h/spacing':>9} {'omega0':>7} {'batch':>6} {'fit s':>8} {'Chamfer/diag':>13}")
+    print(f"{'width':>5} {'depth':>5} {'steps':>5} {'h/spacing':>9} {'omega0':>7} {'batch':>6} {'fit s':>8} "
+          f"{'Chamfer/diag':>13}")
     with ProcessPoolExecutor(args.jobs) as pool:
         for r in pool.map(run_one, jobs):
             print(f"{r['width']:5d} {r['depth']:5d} {r['steps']:5d} {r['h_factor']:9.2f} "

@@ -3,7 +3,7 @@
 Run by hand (not a test; heavy at default sizes, note `uptime`):
 
     .venv/bin/python benchmarks/next_view.py [--views 6] [--points 3000] [--fit-steps 400] [--update-steps 150]
-        [--starts 12] [--nbv-steps 30] [--mesh-res 64] [--out results/next_view]
+        [--starts 12] [--candidates 48] [--nbv-steps 30] [--mesh-res 64] [--out results/next_view]
 
 Starts every strategy from the same first scan and field; each next view is (a) `next_best_views` (variance at the
 expected correlated first hits, weighted by their novelty against the points measured so far), (b) a random view,
@@ -81,6 +81,8 @@ def main(argv=None):
     ap.add_argument("--update-steps", type=int, default=150)
     ap.add_argument("--width", type=int, default=64)
     ap.add_argument("--starts", type=int, default=12)
+    ap.add_argument("--candidates", type=int, default=None,
+                    help="scored random cameras the starts are chosen from (default 4 x starts; = starts: random starts)")
     ap.add_argument("--nbv-steps", type=int, default=30)
     ap.add_argument("--n-side", type=int, default=3, help="rays per image side of the NBV camera model")
     ap.add_argument("--cov-screening", type=float, default=None,
@@ -97,7 +99,7 @@ def main(argv=None):
     scanner = VirtualScanner(mesh)
     radius = 1.8 * scanner.diagonal
     fit_kw = dict(quiet=True, width=args.width, depth=3, features=64, mean_batch=2048, screen_batch=1024,
-                  pair_clusters=64, covariance_every=1, covariance_screening_weight=args.cov_screening)
+                  pair_clusters=64, covariance_every=1, pool_passes=4, covariance_screening_weight=args.cov_screening)
 
     def scan(position, look_at, k):
         s = scanner.scan(position, look_at, n_points=args.points, noise=args.noise * scanner.diagonal, seed=k)
@@ -124,7 +126,7 @@ def main(argv=None):
             t_select = time.perf_counter()
             if strategy == "nbv":
                 v = next_best_views(field, n_views=1, starts=args.starts, steps=args.nbv_steps, standoff=(1.6, 2.4),
-                                    n_side=args.n_side, seed=args.seed + k,
+                                    candidates=args.candidates, n_side=args.n_side, seed=args.seed + k,
                                     observed="auto" if args.novelty == "auto" else None)[0]
                 pos, look = v.position, v.look_at
             elif strategy == "random":

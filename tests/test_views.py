@@ -41,9 +41,26 @@ def test_optimiser_moves_cameras_toward_higher_variance():
     json.dumps([v.as_dict() for v in views])
 
 
+def test_scored_candidates_choose_starts_on_the_high_variance_side():
+    """Without any ascent step, starts chosen as the best of 48 scored candidates face the +x (high-variance) side
+    for every seed; plain random starts (candidates=starts) do not."""
+    field = Sphere(torch.float32)
+    kw = dict(n_views=1, starts=2, steps=0, n_side=2, n_samples=12, qmc_samples=32)
+
+    def best_x(seed, candidates):
+        best = next_best_views(field, seed=seed, candidates=candidates, **kw)[0]
+        return best.position[0] / np.linalg.norm(best.position)
+
+    assert min(best_x(seed, 48) for seed in range(6)) > 0.6
+    assert min(best_x(seed, 2) for seed in range(6)) < 0.6
+    with pytest.raises(ValueError, match="candidates must be >= starts"):
+        next_best_views(field, candidates=1, **kw)
+
+
 def test_gradient_ascent_improves_on_its_starting_cameras():
     field = Sphere(torch.float32)
-    kw = dict(n_views=4, starts=4, n_side=2, n_samples=12, qmc_samples=32, lr=0.1, seed=3, min_separation_deg=0.0)
+    kw = dict(n_views=4, starts=4, candidates=4, n_side=2, n_samples=12, qmc_samples=32, lr=0.1, seed=3,
+              min_separation_deg=0.0)  # random starts: the ascent alone
     before = next_best_views(field, steps=0, **kw)
     after = next_best_views(field, steps=20, **kw)
     assert np.mean([v.score for v in after]) > 1.2 * np.mean([v.score for v in before])
