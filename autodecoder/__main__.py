@@ -12,8 +12,7 @@ def _parser():
     nv.add_argument("--field", required=True, type=Path, help="stochastic field file (StochasticField.save)")
     nv.add_argument("--n", type=int, default=5, help="views to return (default 5)")
     nv.add_argument("--out", type=Path, help="JSON file to write (default: print to stdout)")
-    nv.add_argument("--starts", type=int, default=16,
-                    help="starts of the optimiser, the best of 4x as many scored random cameras (default 16)")
+    nv.add_argument("--starts", type=int, default=16, help="random starts of the optimiser (default 16)")
     nv.add_argument("--steps", type=int, default=60, help="Adam steps (default 60)")
     nv.add_argument("--standoff", type=float, nargs=2, default=(1.5, 2.5), metavar=("MIN", "MAX"),
                     help="camera distance from the part's centre in bounding-sphere radii (default 1.5 2.5)")

@@ -24,8 +24,8 @@ of surface already measured within a kernel support adds nothing the fit can use
 and leaves the variance to rank the cameras that do look at new surface.
 
 The optimiser (:func:`next_best_views`) maximises the score by Adam from many starts on a sphere around the part
-(the global multi-start the paper recommends; the starts are the best of a larger set of random cameras scored
-once), projecting the stand-off distance into a range and the optical axis into a cone around the part's centre
+(the global multi-start the paper recommends; optionally the starts are the best of a larger set of random
+cameras scored once), projecting the stand-off distance into a range and the optical axis into a cone around the part's centre
 after every step. "The part" is the field's
 integration box (its centre and the radius of its corner sphere): a field fitted to one scan has a box around that
 scan, which may be off-centre of the physical part.
@@ -178,8 +178,8 @@ def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), 
     n_views : int
         Views returned (at most ``starts``).
     starts : int
-        Starting cameras of the gradient ascent: the best-scoring ``starts`` of ``candidates`` random cameras,
-        uniform on the sphere of mid stand-off radius, aimed at the centre.
+        Starting cameras of the gradient ascent: random cameras uniform on the sphere of mid stand-off radius,
+        aimed at the centre (or the best-scoring ``starts`` of ``candidates`` such cameras).
     steps : int
         Adam steps.
     standoff : (2,) floats
@@ -203,10 +203,13 @@ def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), 
         s of the novelty factor, world units; default one kernel support, 2 x the field's kernel lengthscale
         (``field.config['lengthscale']`` in the model frame, divided by the normalisation's scale).
     candidates : int, optional
-        Random cameras scored (one pass, no gradient) to choose the starts from; default ``4 * starts``. Why: the
-        score is a bumpy function of the camera (few rays, each a few samples), and a local ascent moves a camera a
-        few tens of degrees at most, so the starts decide which side of the part is found. Scoring a candidate
-        costs a fraction of an ascent step. ``candidates=starts`` gives plain random starts.
+        Random cameras scored (one pass, no gradient, a fraction of an ascent step each) to choose the starts
+        from; default ``starts`` (plain random starts). A local ascent moves a camera a few tens of degrees at
+        most, so on a toy field the screened starts find the high-variance side without any ascent step. On
+        fandisk's one-scan fields it did not help (``benchmarks/next_view.py --candidates 48``, four seeds): cameras
+        on quite different sides score within ~15 % of each other (seed 2: 7.4e-4 at 23 degrees from the first
+        view, 6.9e-4 at 85), the maximiser is sometimes a near repeat of the first view, and a wider search then
+        picks worse views; the score, not the search, is the weak part.
 
     Returns
     -------
@@ -214,7 +217,7 @@ def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), 
     """
     if starts < 1 or n_views < 1:
         raise ValueError(f"starts and n_views must be >= 1, got {starts} and {n_views}")
-    candidates = 4 * starts if candidates is None else int(candidates)
+    candidates = starts if candidates is None else int(candidates)
     if candidates < starts:
         raise ValueError(f"candidates must be >= starts ({starts}), got {candidates}")
     lo_r, hi_r = float(standoff[0]), float(standoff[1])

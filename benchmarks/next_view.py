@@ -82,7 +82,7 @@ def main(argv=None):
     ap.add_argument("--width", type=int, default=64)
     ap.add_argument("--starts", type=int, default=12)
     ap.add_argument("--candidates", type=int, default=None,
-                    help="scored random cameras the starts are chosen from (default 4 x starts; = starts: random starts)")
+                    help="scored random cameras the starts are chosen from (default: starts, i.e. random starts)")
     ap.add_argument("--nbv-steps", type=int, default=30)
     ap.add_argument("--n-side", type=int, default=3, help="rays per image side of the NBV camera model")
     ap.add_argument("--cov-screening", type=float, default=None,
