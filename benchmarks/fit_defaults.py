@@ -2,7 +2,7 @@
 
 The figures behind fit_cloud's defaults (width, depth, steps). Run by hand:
 
-    .venv/bin/python benchmarks/fit_defaults.py [--widths 64,128,256] [--depths 3] [--steps 300,600,1000]
+    .venv/bin/python benchmarks/fit_defaults.py [--widths 64,128] [--depths 3] [--steps 1000,3000]
         [--batches 256,512,4096] [--jobs 1]
 
 ``--jobs N`` runs N fits side by side (each with 2 torch threads): only for quality sweeps on a big machine; fit
@@ -43,9 +43,9 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--mesh", default=str(SHARED / "fandisk.obj"))
     parser.add_argument("--points", type=int, default=20_000)
-    parser.add_argument("--widths", default="64,128,256")
+    parser.add_argument("--widths", default="64,128")
     parser.add_argument("--depths", default="3")
-    parser.add_argument("--steps", default="300,600,1000")
+    parser.add_argument("--steps", default="1000,3000")
     parser.add_argument("--h-factors", default="2", help="kernel lengthscale / point spacing")
     parser.add_argument("--omega0s", default=None,
                         help="SIREN first-layer frequencies to sweep (default: fit_cloud's own choice)")
