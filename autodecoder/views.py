@@ -25,10 +25,9 @@ and leaves the variance to rank the cameras that do look at new surface.
 
 The optimiser (:func:`next_best_views`) maximises the score by Adam from many starts on a sphere around the part
 (the global multi-start the paper recommends; optionally the starts are the best of a larger set of random
-cameras scored once), projecting the stand-off distance into a range and the optical axis into a cone around the part's centre
-after every step. "The part" is the field's
-integration box (its centre and the radius of its corner sphere): a field fitted to one scan has a box around that
-scan, which may be off-centre of the physical part.
+cameras scored once), projecting the stand-off distance into a range and the optical axis into a cone around the
+part's centre after every step. "The part" is the field's integration box (its centre and the radius of its corner
+sphere): a field fitted to one scan has a box around that scan, which may be off-centre of the physical part.
 """
 from dataclasses import dataclass
 

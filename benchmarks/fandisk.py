@@ -92,11 +92,15 @@ def gpytoolbox_variance_correlation(field, points, normals, grid=20, cache_dir=N
                                   for a in (points, normals, lo, hi, gs))).hexdigest()[:16]
     cache = None if cache_dir is None else Path(cache_dir) / f"gpytoolbox_spsr_{key}.npz"
     t0 = time.perf_counter()
+    mean = None
     if cache is not None and cache.exists():
-        with np.load(cache) as saved:
-            mean, var = saved["mean"], saved["var"]
-        seconds = 0.0
-    else:
+        try:
+            with np.load(cache) as saved:
+                mean, var = saved["mean"], saved["var"]
+            seconds = 0.0
+        except (OSError, ValueError, KeyError) as exc:  # unreadable: say so and solve again (it is rewritten)
+            print(f"ignoring the unreadable SPSR cache {cache}: {exc}")
+    if mean is None:
         from gpytoolbox import stochastic_poisson_surface_reconstruction
 
         mean, var, _ = stochastic_poisson_surface_reconstruction(points, normals, gs=gs, h=h, corner=lo,

@@ -28,3 +28,20 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+@pytest.fixture
+def adam_steps(monkeypatch):
+    """Records every torch.optim.Adam step as the id of the optimiser that took it (the real step still runs), so a
+    test can count how many steps each of a run's optimisers took."""
+    import torch
+
+    taken = []
+    real_step = torch.optim.Adam.step
+
+    def counting_step(self, *args, **kwargs):
+        taken.append(id(self))
+        return real_step(self, *args, **kwargs)
+
+    monkeypatch.setattr(torch.optim.Adam, "step", counting_step)
+    return taken

@@ -218,25 +218,15 @@ def test_covariance_screening_weight_pins_the_variance_at_the_points(sphere_fiel
 
 
 @pytest.mark.parametrize("steps, every", [(10, 1), (10, 3), (7, 7), (5, 20)])
-def test_covariance_every_spreads_covariance_steps_through_the_run(steps, every, monkeypatch):
+def test_covariance_every_spreads_covariance_steps_through_the_run(steps, every, adam_steps):
     """covariance_every=k: the mean net takes every step, the covariance net ceil(steps / k), the first at step 0
-    (counted on the optimisers' own step counters)."""
-    from autodecoder import fit as fit_module
-
-    steps_taken = []
-    real_step = torch.optim.Adam.step
-
-    def counting_step(self, *args, **kwargs):
-        steps_taken.append(id(self))
-        return real_step(self, *args, **kwargs)
-
-    monkeypatch.setattr(torch.optim.Adam, "step", counting_step)
+    (counted on the optimisers' own steps)."""
     points, normals = sphere_cloud(300)
-    fit_module.fit_cloud(points, normals, quiet=True, width=16, depth=1, features=8, steps=steps, mean_batch=64,
-                         screen_batch=64, pair_clusters=8, covariance_every=every)
-    mean_opt = steps_taken[0]  # the mean net steps first in every iteration
-    assert steps_taken.count(mean_opt) == steps
-    assert len(steps_taken) - steps == -(-steps // every)
+    fit_cloud(points, normals, quiet=True, width=16, depth=1, features=8, steps=steps, mean_batch=64,
+              screen_batch=64, pair_clusters=8, covariance_every=every)
+    mean_opt = adam_steps[0]  # the mean net steps first in every iteration
+    assert adam_steps.count(mean_opt) == steps
+    assert len(adam_steps) - steps == -(-steps // every)
 
 
 @pytest.mark.parametrize("override, message", [
