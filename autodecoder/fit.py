@@ -63,6 +63,10 @@ class FitOptions:
         51 s instead of 59 s, Chamfer/diagonal 0.79e-3 vs 0.80e-3).
     pair_pool, pair_reuse : int
         Covariance batches kept in a pool, and how many steps each serves before it is redrawn (same reason).
+    average_decay : float
+        The mean net ends as an exponential moving average of its weights over the second half of the run
+        (:class:`MeanAverager`); 0 keeps the last iterate. Fandisk, Chamfer of the mean surface: 0.00613 -> 0.00577
+        (seed 0) and 0.00692 -> 0.00643 (seed 1) with 0.99; 0.995 gave the same as 0.99.
     """
 
     steps: int = 3000
@@ -80,6 +84,7 @@ class FitOptions:
     pool_passes: int = 8
     pair_pool: int = 8
     pair_reuse: int = 4
+    average_decay: float = 0.99
 
     def __post_init__(self):
         # one clear error here instead of an empty loop, a zero-size batch or NaN losses deep in training
@@ -98,6 +103,8 @@ class FitOptions:
                 raise ValueError(f"FitOptions.{name} must be a finite number >= 0, got {value!r}")
         if self.lr == 0:
             raise ValueError("FitOptions.lr must be > 0")
+        if not (isinstance(self.average_decay, (int, float, np.number)) and 0 <= self.average_decay < 1):
+            raise ValueError(f"FitOptions.average_decay must be in [0, 1), got {self.average_decay!r}")
 
 
 def even_pool_size(steps, size, passes):
@@ -190,6 +197,53 @@ class PairPool:
             self.uses[slot] = 0
         self.uses[slot] += 1
         return self.batches[slot]
+
+
+class MeanAverager:
+    """Exponential moving average of a net's weights over the second half of a run, copied into the net at the end.
+
+    The last iterate of a stochastic run carries the noise of its last minibatches: on fandisk the mean surface's
+    offset from the true surface is smooth over about one kernel lengthscale, the signature of that noise. An
+    average of the late iterates removes part of it at the cost of one in-place lerp per step.
+
+    Averaging starts at ``start`` (earlier iterates are far from the final one) with the warm-up decay
+    ``min(decay, (1 + k) / (10 + k))`` after k averaged steps, so that a short run (a fine-tune of a few steps)
+    is averaged over its own last steps, not pinned to its first.
+
+    Parameters
+    ----------
+    net : torch.nn.Module
+    decay : float
+        0 switches averaging off.
+    start : int
+        First step averaged.
+    """
+
+    def __init__(self, net, decay, start):
+        self.net, self.decay, self.start = net, float(decay), int(start)
+        self.average = None
+        self.count = 0
+
+    def update(self, step):
+        if self.decay <= 0 or step < self.start:
+            return
+        params = [p.detach() for p in self.net.parameters()]
+        with torch.no_grad():
+            if self.average is None:
+                self.average = [p.clone() for p in params]
+            else:
+                decay = min(self.decay, (1 + self.count) / (10 + self.count))
+                for avg, p in zip(self.average, params):
+                    avg.lerp_(p, 1 - decay)
+        self.count += 1
+
+    def apply(self):
+        """Copy the average into the net (no-op when nothing was averaged)."""
+        if self.average is None:
+            return
+        with torch.no_grad():
+            for p, avg in zip(self.net.parameters(), self.average):
+                p.copy_(avg)
 
 
 def mean_step_loss(mean_net, targets, pool, options, rng, code=None):
@@ -334,6 +388,7 @@ def train_single(mean_net, cov_net, targets, options, rng, quiet=False, steps=No
     pair_slots = max(1, min(options.pair_pool, math.ceil(cov_steps / options.pair_reuse)))
     pairs = PairPool(targets, options.pair_clusters, options.cluster_size, rng, pair_slots, options.pair_reuse)
     history = []
+    averaging = MeanAverager(mean_net, options.average_decay, start=steps // 2)
     bar = tqdm(range(steps), desc="fitting", disable=quiet, leave=False)
     for step in bar:
         lr = options.lr * _cosine_lr(step, steps, options.final_lr_fraction)
@@ -344,6 +399,7 @@ def train_single(mean_net, cov_net, targets, options, rng, quiet=False, steps=No
         opt_mean.zero_grad(set_to_none=True)
         total_m.backward()
         opt_mean.step()
+        averaging.update(step)
         if step % every == 0:
             total_c, dir_c, scr_c = covariance_step_loss(cov_net, targets, options, rng, code, pairs)
             opt_cov.zero_grad(set_to_none=True)
@@ -354,5 +410,6 @@ def train_single(mean_net, cov_net, targets, options, rng, quiet=False, steps=No
                       "cov_dirichlet": dir_c.item(), "cov_screening": scr_c.item()}
             history.append(record)
             bar.set_postfix(mean=f"{total_m.item():.3g}", cov=f"{total_c.item():.3g}")
+    averaging.apply()
     mean_net.eval(), cov_net.eval()
     return history

@@ -323,9 +323,10 @@ def _finetune(model, projection, prepared, opts, seed, quiet):
     mean_net, cov_net = copy.deepcopy(model.mean_net), copy.deepcopy(model.cov_net)
     for net in (mean_net, cov_net):
         net.requires_grad_(True)
-    # a short run on one scan: a covariance step with every mean step (the measured inspection figures use this)
+    # a short run on one scan: a covariance step with every mean step and the last iterate kept (the measured
+    # inspection figures use this)
     options = FitOptions(steps=opts.finetune_steps, lr=opts.finetune_lr, mean_batch=2048, screen_batch=1024,
-                         pair_clusters=64, covariance_every=1)
+                         pair_clusters=64, covariance_every=1, average_decay=0.0)
     code = projection.code.clone()
     train_single(mean_net, cov_net, targets, options, np.random.default_rng(seed), quiet=quiet, code=code)
     for net in (mean_net, cov_net):

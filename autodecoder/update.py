@@ -73,8 +73,10 @@ def update_field(field, points, normals, epochs=50, steps=None, lr_fraction=0.3,
     all_points = np.concatenate([old_points, points]).astype(np.float64)
     all_normals = np.concatenate([old_normals, normals]).astype(np.float64)
     saved = field.info.get("options")
-    # a field saved before covariance_every existed took a covariance step with every mean step
-    base = options or (FitOptions(**{"covariance_every": 1, **saved}) if saved else FitOptions())
+    # a field saved before covariance_every / average_decay existed took a covariance step with every mean step
+    # and kept its last iterate
+    base = options or (FitOptions(**{"covariance_every": 1, "average_decay": 0.0, **saved}) if saved
+                       else FitOptions())
     options = FitOptions(**{**asdict(base), **option_overrides})
     options.lr = options.lr * lr_fraction
     if steps is None:

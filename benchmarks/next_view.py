@@ -89,6 +89,8 @@ def main(argv=None):
                     help="lambda_S of the covariance's screening term (default: the paper's, as the mean's)")
     ap.add_argument("--novelty", choices=("auto", "off"), default="auto",
                     help="NBV novelty weighting against the measured points ('off': the variance alone, the paper's)")
+    ap.add_argument("--hit-summary", choices=("expected-point", "distribution"), default="expected-point",
+                    help="camera score: variance at the expected hit point, or expected over the hit distribution")
     ap.add_argument("--strategies", default="nbv,random,furthest", help="comma-separated subset to run")
     ap.add_argument("--mesh-res", type=int, default=64)
     ap.add_argument("--seed", type=int, default=0)
@@ -99,7 +101,8 @@ def main(argv=None):
     scanner = VirtualScanner(mesh)
     radius = 1.8 * scanner.diagonal
     fit_kw = dict(quiet=True, width=args.width, depth=3, features=64, mean_batch=2048, screen_batch=1024,
-                  pair_clusters=64, covariance_every=1, pool_passes=4, covariance_screening_weight=args.cov_screening)
+                  pair_clusters=64, covariance_every=1, pool_passes=4, average_decay=0.0,
+                  covariance_screening_weight=args.cov_screening)
 
     def scan(position, look_at, k):
         s = scanner.scan(position, look_at, n_points=args.points, noise=args.noise * scanner.diagonal, seed=k)
@@ -127,7 +130,8 @@ def main(argv=None):
             if strategy == "nbv":
                 v = next_best_views(field, n_views=1, starts=args.starts, steps=args.nbv_steps, standoff=(1.6, 2.4),
                                     candidates=args.candidates, n_side=args.n_side, seed=args.seed + k,
-                                    observed="auto" if args.novelty == "auto" else None)[0]
+                                    observed="auto" if args.novelty == "auto" else None,
+                                    hit_summary=args.hit_summary)[0]
                 pos, look = v.position, v.look_at
             elif strategy == "random":
                 view = scanner.random_view(radius_range=(1.8, 1.8), seed=int(rng.integers(1 << 31)))

@@ -237,8 +237,66 @@ def test_covariance_every_spreads_covariance_steps_through_the_run(steps, every,
     ({"lr": 0.0}, "lr must be > 0"),
     ({"screening_weight": float("nan")}, "screening_weight must be a finite number"),
     ({"covariance_screening_weight": -1.0}, "covariance_screening_weight must be a finite number >= 0"),
+    ({"average_decay": 1.0}, "average_decay must be in"),
 ])
 def test_bad_fit_options_give_one_clear_error(override, message):
     points, normals = sphere_cloud(200)
     with pytest.raises(ValueError, match=message):
         fit_cloud(points, normals, quiet=True, **override)
+
+
+def test_mean_averager_matches_a_hand_computed_moving_average():
+    """MeanAverager against the closed form: from step `start`, a0 = w_start, a_k = d_k a_{k-1} + (1 - d_k) w,
+    d_k = min(decay, (1 + k) / (10 + k)) when k steps have been averaged already; earlier steps ignored."""
+    from autodecoder.fit import MeanAverager
+
+    net = torch.nn.Linear(2, 1, bias=False)
+    weights = [torch.tensor([[float(i), -2.0 * i]]) for i in range(12)]
+    averager = MeanAverager(net, decay=0.5, start=4)
+    for step, w in enumerate(weights):
+        with torch.no_grad():
+            net.weight.copy_(w)
+        averager.update(step)
+    expected = weights[4].clone()
+    for k, w in enumerate(weights[5:], start=1):
+        d = min(0.5, (1 + k) / (10 + k))
+        expected = d * expected + (1 - d) * w
+    assert not torch.allclose(net.weight, expected)  # the net still holds its last iterate
+    averager.apply()
+    torch.testing.assert_close(net.weight, expected, rtol=1e-6, atol=1e-6)
+
+
+def test_average_decay_zero_keeps_the_last_iterate():
+    from autodecoder.fit import MeanAverager
+
+    net = torch.nn.Linear(2, 1)
+    before = [p.clone() for p in net.parameters()]
+    averager = MeanAverager(net, decay=0.0, start=0)
+    for step in range(3):
+        averager.update(step)
+    averager.apply()
+    for p, q in zip(net.parameters(), before):
+        assert torch.equal(p, q)
+
+
+def test_fit_ends_on_the_averaged_mean_net(monkeypatch):
+    """With averaging on, fit_cloud's mean net is MeanAverager's average (same seed, same run, decay 0 vs 0.9 give
+    different nets; the averaged one equals the average recorded during the run)."""
+    from autodecoder import fit as fit_module
+
+    recorded = {}
+    original_apply = fit_module.MeanAverager.apply
+
+    def spy(self):
+        recorded["average"] = None if self.average is None else [a.clone() for a in self.average]
+        original_apply(self)
+
+    monkeypatch.setattr(fit_module.MeanAverager, "apply", spy)
+    points, normals = sphere_cloud(200)
+    kw = dict(quiet=True, width=16, depth=1, features=8, steps=12, mean_batch=64, screen_batch=64, pair_clusters=8)
+    plain = fit_cloud(points, normals, average_decay=0.0, **kw)
+    assert recorded["average"] is None
+    averaged = fit_cloud(points, normals, average_decay=0.9, **kw)
+    for p, a in zip(averaged.mean_net.parameters(), recorded["average"]):
+        torch.testing.assert_close(p, a)
+    assert not np.allclose(plain.mean(points[:20]), averaged.mean(points[:20]))

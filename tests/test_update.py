@@ -67,6 +67,30 @@ def test_update_keeps_the_fields_covariance_schedule(fields, adam_steps, recorde
     assert len(adam_steps) - adam_steps.count(adam_steps[0]) == expected_cov_steps
 
 
+@pytest.mark.parametrize("recorded, averaged", [(0.9, True), ("missing", False)])
+def test_update_keeps_the_fields_weight_averaging(fields, monkeypatch, recorded, averaged):
+    """A field saved before average_decay existed (no such key) keeps its last iterate when fine-tuned."""
+    from autodecoder import fit as fit_module
+
+    decays = []
+    original = fit_module.MeanAverager.__init__
+
+    def spy(self, net, decay, start):
+        decays.append(decay)
+        original(self, net, decay, start)
+
+    monkeypatch.setattr(fit_module.MeanAverager, "__init__", spy)
+    field, _, (_, new_p) = fields
+    options = dict(field.info["options"])
+    if recorded == "missing":
+        del options["average_decay"]
+    else:
+        options["average_decay"] = recorded
+    field = StochasticField.from_state({**field.state(), "info": {**field.info, "options": options}})
+    field.update(new_p[:50], new_p[:50], steps=4, seed=0)
+    assert decays == ([0.9] if averaged else [0.0])
+
+
 def test_update_without_a_training_cloud_says_what_to_pass(fields):
     field, _, _ = fields
     state = field.state()

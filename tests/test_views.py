@@ -114,3 +114,72 @@ def test_next_best_view_looks_at_the_unmeasured_side_by_default():
         next_best_views(field, observed=np.full((5, 3), np.nan), observed_scale=0.2, **kw)
     # observed=None: the variance alone (uniform here), so nothing to prefer; it still runs
     assert len(next_best_views(field, observed=None, **kw)) == 1
+
+
+def test_distribution_summary_is_the_hit_weighted_variance_along_the_rays():
+    """hit_summary='distribution' against a hand computation from the rays' first-hit bins and the field's own
+    variance (torch_variance, not the covariance diagonal the score reads), with and without novelty."""
+    from autodecoder.rays import cast_rays
+    from autodecoder.views import _novelty
+
+    field = SeenSphere(torch.float64)
+    p = torch.tensor([[3.0, 0.5, 0.0], [-2.0, 2.0, 1.0]], dtype=torch.float64)
+    center, radius = np.zeros(3), 1.5
+    kw = dict(n_side=2, n_samples=16, qmc_samples=64)
+    origins, rays = camera_rays(p, -p, 30.0, 2)
+    dist = p.norm(dim=1)
+    t_near = (dist - radius).clamp_min(0)[:, None].expand(2, 4).reshape(-1)
+    t_far = (dist + radius)[:, None].expand(2, 4).reshape(-1)
+    cast = cast_rays(field, origins.reshape(-1, 3), rays.reshape(-1, 3), t_near, t_far, n_samples=16,
+                     qmc_samples=64)
+    x = origins.reshape(-1, 1, 3) + cast.t[..., None] * rays.reshape(-1, 1, 3)
+    var = field.torch_variance(x.reshape(-1, 3)).reshape(8, 16)
+    expected = (cast.p_bins * var).sum(1).reshape(2, 4).mean(1)
+    got = camera_score(field, p, -p, center, radius, hit_summary="distribution", **kw)
+    torch.testing.assert_close(got, expected, rtol=1e-6, atol=1e-12)
+    novelty = _novelty(x.reshape(-1, 3), field.training_points, 0.2).reshape(8, 16)
+    expected = (cast.p_bins * var * novelty).sum(1).reshape(2, 4).mean(1)
+    got = camera_score(field, p, -p, center, radius, hit_summary="distribution", observed=field.training_points,
+                       observed_scale=0.2, **kw)
+    torch.testing.assert_close(got, expected, rtol=1e-6, atol=1e-12)
+    with pytest.raises(ValueError, match="hit_summary must be one of"):
+        camera_score(field, p, -p, center, radius, hit_summary="mode", **kw)
+
+
+class TwoSheets:
+    """Toy field in z only, seen from +z: a sheet at z = 1 that the ray hits with probability ~1/2 (mean 0 there,
+    small sd) and a sure surface at z = -1; the empty space between them (z ~ 0) has a large variance.
+
+    mean = (z - 1)^2 (z + 1),  sd = 0.05 + 0.3 exp(-z^2 / (2 0.3^2)),  correlation exp(-dz^2 / (2 0.1^2)).
+    """
+
+    def torch_mean(self, x):
+        z = x[:, 2]
+        return (z - 1) ** 2 * (z + 1)
+
+    def _sd(self, x):
+        return 0.05 + 0.3 * torch.exp(-x[:, 2] ** 2 / (2 * 0.3**2))
+
+    def torch_variance(self, x):
+        return self._sd(x) ** 2
+
+    def torch_covariance(self, a, b):
+        return self._sd(a) * self._sd(b) * torch.exp(-(a[:, 2] - b[:, 2]) ** 2 / (2 * 0.1**2))
+
+
+def test_distribution_summary_scores_the_surfaces_a_ray_can_meet_not_the_space_between():
+    """Where a ray may hit either of two surfaces, the expected hit point lies between them, in empty space whose
+    (large) variance belongs to no surface: the paper's summary reports it, the distribution does not."""
+    from autodecoder.rays import cast_rays
+
+    field = TwoSheets()
+    p = torch.tensor([[0.0, 0.0, 3.0]], dtype=torch.float64)
+    kw = dict(center=np.zeros(3), radius=2.0, n_side=2, fov_deg=5.0, n_samples=41, qmc_samples=256)
+    cast = cast_rays(field, p, -p, 1.0, 5.0, n_samples=41, qmc_samples=256)
+    assert 0.2 < float(cast.p_bins[0, cast.t[0] < 2.5].sum()) < 0.8  # the first sheet is hit about half the time
+    assert abs(float(cast.expected_point[0, 2])) < 0.6  # ... so the expected hit lies between the sheets
+    at_point = camera_score(field, p, -p, hit_summary="expected-point", **kw)
+    over_hits = camera_score(field, p, -p, hit_summary="distribution", **kw)
+    surface_var = float(field.torch_variance(torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64))[0])
+    assert float(at_point[0]) > 5 * float(over_hits[0])  # measured: 13x
+    assert float(over_hits[0]) < 4 * surface_var

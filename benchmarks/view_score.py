@@ -1,0 +1,114 @@
+"""How well does the next-best-view score rank cameras? Score vs the oracle coverage gain on a one-scan field.
+
+The sequential benchmark (``next_view.py``) mixes the score with the search, the fine-tuning and the Chamfer
+metric's noise, and takes ~15 minutes a seed. This one isolates the score, in ~2 minutes a seed: the one-scan field
+of ``next_view.py`` (same first view, fit and seed) scores ``--cameras`` cameras spread evenly over the scanning
+sphere, aimed at the part's centre; each camera is also scanned with the virtual scanner, and its oracle gain is the
+fraction of its points farther than one kernel support (2 h) from the points already measured (the new surface it
+would really see). Run by hand:
+
+    .venv/bin/python benchmarks/view_score.py [--seed 0] [--cameras 200]
+
+Prints the oracle gain by angle from the first view, then for each score variant the Spearman correlation of score
+and gain, the angle and gain of its best camera, and the mean gain of its top 10 against the best 10 possible.
+"""
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+from scipy.spatial import cKDTree
+from scipy.stats import spearmanr
+
+from autodecoder import fit_cloud
+from autodecoder.views import camera_score, part_sphere
+from datasets.scanner import VirtualScanner
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
+
+
+class UnitVariance:
+    """The field with its variance replaced by 1 at the scored point (the rays are still cast with the field's
+    correlated Gaussian): what the score is without the variance, i.e. P(hit) x novelty."""
+
+    def __init__(self, field):
+        self.field = field
+
+    def torch_mean(self, x):
+        return self.field.torch_mean(x)
+
+    def torch_covariance(self, a, b):
+        return self.field.torch_covariance(a, b)
+
+    def torch_variance(self, x):
+        return torch.ones_like(x[:, 0])
+
+
+def fibonacci_sphere(n):
+    i = np.arange(n) + 0.5
+    phi = np.arccos(1 - 2 * i / n)
+    theta = np.pi * (1 + 5**0.5) * i
+    return np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], 1)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--mesh", type=Path, default=SHARED / "fandisk.obj")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--cameras", type=int, default=200)
+    ap.add_argument("--points", type=int, default=3000, help="points of the first scan")
+    ap.add_argument("--fit-steps", type=int, default=400)
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    mesh = trimesh.load(str(args.mesh), force="mesh")
+    scanner = VirtualScanner(mesh)
+    radius = 1.8 * scanner.diagonal
+    # the first view and fit of next_view.py
+    first = scanner.random_view(radius_range=(1.8, 1.8), seed=args.seed)
+    scan0 = scanner.scan(first.camera_position, scanner.center, n_points=args.points, noise=0.0, seed=0)
+    p0, n0 = scan0.points.astype(np.float64), scan0.normals.astype(np.float64)
+    field = fit_cloud(p0, n0, seed=args.seed, steps=args.fit_steps, quiet=True, width=64, depth=3, features=64,
+                      mean_batch=2048, screen_batch=1024, pair_clusters=64, covariance_every=1, pool_passes=4,
+                      average_decay=0.0)
+    s = 2.0 * float(field.config["lengthscale"]) / float(field.normalization.scale)
+    seen = torch.tensor(p0, dtype=torch.float32)
+
+    dirs = fibonacci_sphere(args.cameras)
+    u0 = (first.camera_position - scanner.center) / np.linalg.norm(first.camera_position - scanner.center)
+    angle = np.degrees(np.arccos(np.clip(dirs @ u0, -1, 1)))
+    tree = cKDTree(p0)
+    gain = np.zeros(len(dirs))
+    for k, d in enumerate(dirs):
+        try:
+            new = scanner.scan(scanner.center + radius * d, scanner.center, n_points=1000, noise=0.0, seed=k)
+            gain[k] = np.mean(tree.query(new.points)[0] > s)
+        except ValueError:  # nothing in view: no gain
+            pass
+    bands = [(a, float(gain[(angle >= a) & (angle < a + 45)].mean())) for a in (0, 45, 90, 135)]
+    print(f"seed {args.seed}: oracle gain by angle from the first view: "
+          + ", ".join(f"{a}-{a + 45} deg {g:.2f}" for a, g in bands))
+
+    center, rad = part_sphere(field)
+    pos = torch.tensor(center + dirs * 2.0 * rad, dtype=torch.float32)  # mid stand-off of next_best_views
+    look = torch.tensor(center, dtype=torch.float32) - pos
+    variants = {
+        "expected-point + novelty (default)": (field, dict(observed=seen, observed_scale=s)),
+        "expected-point, no novelty": (field, {}),
+        "distribution + novelty": (field, dict(observed=seen, observed_scale=s, hit_summary="distribution")),
+        "P(hit) x novelty, no variance": (UnitVariance(field), dict(observed=seen, observed_scale=s)),
+    }
+    best10 = np.sort(gain)[-10:].mean()
+    for name, (scored, kw) in variants.items():
+        with torch.no_grad():
+            score = torch.cat([camera_score(scored, pos[i:i + 50], look[i:i + 50], center, rad, **kw)
+                               for i in range(0, len(pos), 50)]).double().numpy()
+        top = np.argsort(-score)[:10]
+        print(f"  {name:36s} Spearman(score, gain) {spearmanr(score, gain).statistic:+.2f}; best camera at "
+              f"{angle[top[0]]:3.0f} deg, gain {gain[top[0]]:.2f}; top-10 mean gain {gain[top].mean():.2f} "
+              f"(best 10: {best10:.2f})")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
