@@ -68,6 +68,39 @@ class CloudTargets:
     def lengthscale(self):
         return self.posterior.lengthscale
 
+    def outside_value(self, n_lines=256, n_steps=41, seed=0):
+        """Half the jump of the posterior mean's potential across the surface: the value g takes outside a closed
+        surface whose mean surface is at g = 0 (and -value inside).
+
+        Integrates mu . n along the normal line through up to ``n_lines`` cloud points, over the kernel's reach
+        on both sides (t in [-2r, 2r], r the support radius), by the trapezoid rule; returns half the median.
+        Computed once and cached.
+
+        Returns
+        -------
+        float (model frame)
+        """
+        if getattr(self, "_outside_value", None) is None:
+            rng = np.random.default_rng(seed)
+            post = self.posterior
+            pick = rng.choice(len(post.points), min(n_lines, len(post.points)), replace=False)
+            p, n = post.points[pick], post.normals[pick]
+            t = np.linspace(-2 * post.radius, 2 * post.radius, n_steps)
+            x = (p[:, None, :] + t[None, :, None] * n[:, None, :]).reshape(-1, 3)
+            along = np.einsum("ijk,ik->ij", post.mean(x).reshape(len(p), n_steps, 3), n)
+            jump = np.trapezoid(along, t, axis=1)
+            self._outside_value = float(0.5 * np.median(jump))
+        return self._outside_value
+
+    def boundary_batch(self, n, rng):
+        """n points uniform on the surface of the integration box -> (n, 3) float32."""
+        x = self.box.uniform(n, rng)
+        face_area = np.prod(self.box.extent) / self.box.extent  # the two faces normal to each axis
+        axis = rng.choice(3, n, p=face_area / face_area.sum())
+        side = rng.integers(0, 2, n).astype(bool)
+        x[np.arange(n), axis] = np.where(side, self.box.hi[axis], self.box.lo[axis])
+        return x.astype(np.float32)
+
     def mean_batch(self, n, rng, near_fraction=0.5):
         """x (n, 3), mu (n, 3), omega (n,) float32: see :func:`sample_mean_targets`."""
         n_near = int(round(n * near_fraction))

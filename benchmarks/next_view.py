@@ -89,6 +89,9 @@ def main(argv=None):
                     help="lambda_S of the covariance's screening term (default: the paper's, as the mean's)")
     ap.add_argument("--novelty", choices=("auto", "off"), default="auto",
                     help="NBV novelty weighting against the measured points ('off': the variance alone, the paper's)")
+    ap.add_argument("--outside-weight", type=float, default=100.0,
+                    help="FitOptions.outside_weight of every fit and fine-tune (default 100: the box's boundary is "
+                         "outside, which closes partial scans; 0: the paper's loss)")
     ap.add_argument("--hit-summary", choices=("expected-point", "distribution"), default="expected-point",
                     help="camera score: variance at the expected hit point, or expected over the hit distribution")
     ap.add_argument("--strategies", default="nbv,random,furthest", help="comma-separated subset to run")
@@ -102,7 +105,7 @@ def main(argv=None):
     radius = 1.8 * scanner.diagonal
     fit_kw = dict(quiet=True, width=args.width, depth=3, features=64, mean_batch=2048, screen_batch=1024,
                   pair_clusters=64, covariance_every=1, pool_passes=4, average_decay=0.0,
-                  covariance_screening_weight=args.cov_screening)
+                  covariance_screening_weight=args.cov_screening, outside_weight=args.outside_weight)
 
     def scan(position, look_at, k):
         s = scanner.scan(position, look_at, n_points=args.points, noise=args.noise * scanner.diagonal, seed=k)

@@ -59,6 +59,10 @@ def main(argv=None):
     ap.add_argument("--cameras", type=int, default=200)
     ap.add_argument("--points", type=int, default=3000, help="points of the first scan")
     ap.add_argument("--fit-steps", type=int, default=400)
+    ap.add_argument("--features", type=int, default=64, help="rank of the feature covariance (next_view.py's 64)")
+    ap.add_argument("--covariance", choices=("feature", "pair"), default="feature")
+    ap.add_argument("--cov-screening", type=float, default=None, help="FitOptions.covariance_screening_weight")
+    ap.add_argument("--outside-weight", type=float, default=0.0, help="FitOptions.outside_weight of the fit")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     mesh = trimesh.load(str(args.mesh), force="mesh")
@@ -68,9 +72,11 @@ def main(argv=None):
     first = scanner.random_view(radius_range=(1.8, 1.8), seed=args.seed)
     scan0 = scanner.scan(first.camera_position, scanner.center, n_points=args.points, noise=0.0, seed=0)
     p0, n0 = scan0.points.astype(np.float64), scan0.normals.astype(np.float64)
-    field = fit_cloud(p0, n0, seed=args.seed, steps=args.fit_steps, quiet=True, width=64, depth=3, features=64,
+    field = fit_cloud(p0, n0, seed=args.seed, steps=args.fit_steps, quiet=True, width=64, depth=3,
+                      features=args.features, covariance=args.covariance,
                       mean_batch=2048, screen_batch=1024, pair_clusters=64, covariance_every=1, pool_passes=4,
-                      average_decay=0.0)
+                      average_decay=0.0, outside_weight=args.outside_weight,
+                      covariance_screening_weight=args.cov_screening)
     s = 2.0 * float(field.config["lengthscale"]) / float(field.normalization.scale)
     seen = torch.tensor(p0, dtype=torch.float32)
 
