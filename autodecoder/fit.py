@@ -260,7 +260,10 @@ class MeanAverager:
 
 
 def mean_step_loss(mean_net, targets, pool, options, rng, code=None):
-    """Dirichlet + screening loss of the mean net on one batch; returns (total, dirichlet, screening)."""
+    """Dirichlet + screening loss of the mean net on one batch; returns (total, dirichlet, screening).
+
+    With ``options.outside_weight`` the boundary term (the box's surface screened to the outside value) is part of
+    the returned screening."""
     x, mu, omega = pool.next()
     _, grad = mean_net.value_and_gradient(x, code)
     dirichlet = mean_dirichlet_loss(grad, mu, omega, targets.box.volume)

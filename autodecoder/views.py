@@ -245,8 +245,9 @@ def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), 
         picks worse views; the score, not the search, is the weak part.
     hit_summary : {'expected-point', 'distribution'}
         See :func:`camera_score`. The paper's 'expected-point' stays the default: on fandisk the distribution
-        chose worse views (``benchmarks/next_view.py --hit-summary distribution``, mean Chamfer over views 2-6:
-        seed 0 0.154 vs 0.081, seed 1 0.085 vs 0.067) and ranked cameras no better (``benchmarks/view_score.py``).
+        chose worse views (``benchmarks/next_view.py --hit-summary distribution``, fields fitted with the paper's
+        loss, mean Chamfer over views 2-6: seed 0 0.154 vs 0.081, seed 1 0.085 vs 0.067) and ranked cameras no
+        better (``benchmarks/view_score.py``).
 
     Returns
     -------
