@@ -38,6 +38,15 @@ class Box:
     def uniform(self, n, rng):
         return self.lo + rng.random((n, 3)) * self.extent
 
+    def surface(self, n, rng):
+        """n points uniform on the box's surface -> (n, 3) array (faces chosen in proportion to their area)."""
+        x = self.uniform(n, rng)
+        face_area = np.prod(self.extent) / self.extent  # the two faces normal to each axis
+        axis = rng.choice(3, n, p=face_area / face_area.sum())
+        side = rng.integers(0, 2, n).astype(bool)
+        x[np.arange(n), axis] = np.where(side, self.hi[axis], self.lo[axis])
+        return x
+
 
 def sample_mean_targets(posterior, box, n_uniform, n_near, rng):
     """Samples of the mean-loss integrand with their MIS weights.

@@ -94,12 +94,7 @@ class CloudTargets:
 
     def boundary_batch(self, n, rng):
         """n points uniform on the surface of the integration box -> (n, 3) float32."""
-        x = self.box.uniform(n, rng)
-        face_area = np.prod(self.box.extent) / self.box.extent  # the two faces normal to each axis
-        axis = rng.choice(3, n, p=face_area / face_area.sum())
-        side = rng.integers(0, 2, n).astype(bool)
-        x[np.arange(n), axis] = np.where(side, self.box.hi[axis], self.box.lo[axis])
-        return x.astype(np.float32)
+        return self.box.surface(n, rng).astype(np.float32)
 
     def mean_batch(self, n, rng, near_fraction=0.5):
         """x (n, 3), mu (n, 3), omega (n,) float32: see :func:`sample_mean_targets`."""

@@ -36,12 +36,17 @@ cameras scored once), projecting the stand-off distance into a range and the opt
 part's centre after every step. "The part" is the field's integration box (its centre and the radius of its corner
 sphere): a field fitted to one scan has a box around that scan, which may be off-centre of the physical part.
 """
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from .rays import cast_rays
+from .sampling import Box
+
+# next_best_views warns when more of the box's boundary than this is likely inside (see far_field_inside_fraction)
+HALF_SOLID_FRACTION = 0.1
 
 
 @dataclass
@@ -180,6 +185,31 @@ def _novelty(x, observed, scale):
     return 1 - torch.exp(-(d**2) / (2 * float(scale) ** 2))
 
 
+def far_field_inside_fraction(field, n=512, threshold=0.25, seed=0):
+    """Fraction of the field's box boundary where P(f <= 0) > ``threshold``.
+
+    The box's boundary should be outside the part. A field fitted to a partial scan with the paper's loss
+    (``FitOptions.outside_weight=0``) leaves the scanned sheet open, so far from it the mean sits at the surface's
+    own level and about half of the boundary is likely "inside" (one-scan fandisk: median mean on the boundary 0.000);
+    rays through such a field hit empty space. A closed cloud, or one fitted with the boundary term, gives ~0.
+
+    Parameters
+    ----------
+    field : StochasticField (``bounds`` and ``prob_inside``)
+    n : int
+        Boundary samples.
+    threshold : float
+    seed : int
+
+    Returns
+    -------
+    float in [0, 1]
+    """
+    lo, hi = np.asarray(field.bounds, dtype=np.float64)
+    x = Box(lo, hi).surface(n, np.random.default_rng(seed))
+    return float(np.mean(field.prob_inside(x) > threshold))
+
+
 def _project_to_cone(a, to_center, tolerance):
     """Unit directions a (C, 3) rotated, where needed, into the cone of axes that pass within ``tolerance``
     (distance / radius, ``to_center`` in radii) of the centre: half-angle asin(min(1, tolerance / |to_center|))."""
@@ -276,6 +306,13 @@ def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), 
             if config is None or "lengthscale" not in config or norm is None:
                 raise ValueError("observed_scale is needed for a field without a kernel lengthscale")
             observed_scale = 2.0 * float(config["lengthscale"]) / float(norm.scale)
+    if hasattr(field, "prob_inside") and hasattr(field, "bounds"):
+        inside = far_field_inside_fraction(field)
+        if inside > HALF_SOLID_FRACTION:
+            warnings.warn(f"{inside:.0%} of the field's box boundary is likely inside the part (P(f <= 0) > 0.25): "
+                          "the far field sits at the surface's own level, as for a partial scan fitted with the "
+                          "paper's loss, so rays 'hit' empty space and the views rank its variance. Fit partial "
+                          "scans with fit_cloud(..., outside_weight=100).", UserWarning, stacklevel=2)
     rng = np.random.default_rng(seed)
     center, radius = part_sphere(field)
     c = torch.as_tensor(center, dtype=torch.float32)

@@ -183,3 +183,33 @@ def test_distribution_summary_scores_the_surfaces_a_ray_can_meet_not_the_space_b
     surface_var = float(field.torch_variance(torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64))[0])
     assert float(at_point[0]) > 5 * float(over_hits[0])  # measured: 13x
     assert float(over_hits[0]) < 4 * surface_var
+
+
+@pytest.fixture(scope="module")
+def open_sheet_fields():
+    """Fields of a flat square patch seen from +z (an open sheet, like one scan of a flat face): the paper's loss,
+    and with the boundary term."""
+    from autodecoder import fit_cloud
+
+    rng = np.random.default_rng(0)
+    points = np.c_[rng.uniform(-1, 1, (1200, 2)), np.zeros(1200)]
+    normals = np.tile([0.0, 0.0, 1.0], (1200, 1))
+    kw = dict(seed=0, quiet=True, width=32, depth=2, features=16, steps=250, mean_batch=512, screen_batch=256,
+              pair_clusters=16)
+    return {w: fit_cloud(points, normals, outside_weight=w, **kw) for w in (0.0, 100.0)}
+
+
+def test_far_field_check_tells_an_open_sheet_from_a_closed_one(open_sheet_fields):
+    from autodecoder.views import HALF_SOLID_FRACTION, far_field_inside_fraction
+
+    assert far_field_inside_fraction(open_sheet_fields[0.0]) > 2 * HALF_SOLID_FRACTION
+    assert far_field_inside_fraction(open_sheet_fields[100.0]) == 0.0
+
+
+def test_next_best_views_warns_about_a_half_solid_far_field(open_sheet_fields, recwarn):
+    kw = dict(n_views=1, starts=2, steps=1, n_side=2, n_samples=8, qmc_samples=16)
+    with pytest.warns(UserWarning, match="outside_weight=100"):
+        next_best_views(open_sheet_fields[0.0], **kw)
+    recwarn.clear()
+    next_best_views(open_sheet_fields[100.0], **kw)
+    assert not [w for w in recwarn if "outside_weight" in str(w.message)]
