@@ -233,20 +233,19 @@ class MeanAverager:
     """
 
     def __init__(self, net, decay, start):
-        self.net, self.decay, self.start = net, float(decay), int(start)
+        self.params, self.decay, self.start = list(net.parameters()), float(decay), int(start)
         self.average = None
         self.count = 0
 
     def update(self, step):
         if self.decay <= 0 or step < self.start:
             return
-        params = [p.detach() for p in self.net.parameters()]
         with torch.no_grad():
             if self.average is None:
-                self.average = [p.clone() for p in params]
+                self.average = [p.detach().clone() for p in self.params]
             else:
                 decay = min(self.decay, (1 + self.count) / (10 + self.count))
-                for avg, p in zip(self.average, params):
+                for avg, p in zip(self.average, self.params):
                     avg.lerp_(p, 1 - decay)
         self.count += 1
 
@@ -255,7 +254,7 @@ class MeanAverager:
         if self.average is None:
             return
         with torch.no_grad():
-            for p, avg in zip(self.net.parameters(), self.average):
+            for p, avg in zip(self.params, self.average):
                 p.copy_(avg)
 
 

@@ -24,8 +24,7 @@ from scipy.stats import spearmanr
 from autodecoder import fit_cloud
 from autodecoder.views import camera_score, part_sphere
 from datasets.scanner import VirtualScanner
-
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
+from next_view import SHARED, fibonacci_sphere  # same folder: the camera sphere of the sequential benchmark
 
 
 class UnitVariance:
@@ -43,13 +42,6 @@ class UnitVariance:
 
     def torch_variance(self, x):
         return torch.ones_like(x[:, 0])
-
-
-def fibonacci_sphere(n):
-    i = np.arange(n) + 0.5
-    phi = np.arccos(1 - 2 * i / n)
-    theta = np.pi * (1 + 5**0.5) * i
-    return np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], 1)
 
 
 def main(argv=None):

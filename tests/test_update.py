@@ -52,17 +52,22 @@ def test_training_cloud_round_trips_and_old_files_load(fields, tmp_path):
     assert StochasticField.from_state(state).training_points is None
 
 
+def with_recorded_option(field, name, recorded):
+    """The field as if saved with FitOptions.``name`` = ``recorded``, or before that option existed ('missing')."""
+    options = dict(field.info["options"])
+    if recorded == "missing":
+        del options[name]
+    else:
+        options[name] = recorded
+    return StochasticField.from_state({**field.state(), "info": {**field.info, "options": options}})
+
+
 @pytest.mark.parametrize("recorded, expected_cov_steps", [(8, 3), ("missing", 20)])
 def test_update_keeps_the_fields_covariance_schedule(fields, adam_steps, recorded, expected_cov_steps):
     """update() fine-tunes with the options the field was fitted with; a field saved before covariance_every
     existed (no such key) keeps its covariance step with every mean step."""
     field, _, (_, new_p) = fields
-    options = dict(field.info["options"])
-    if recorded == "missing":
-        del options["covariance_every"]
-    else:
-        options["covariance_every"] = recorded
-    field = StochasticField.from_state({**field.state(), "info": {**field.info, "options": options}})
+    field = with_recorded_option(field, "covariance_every", recorded)
     field.update(new_p[:50], new_p[:50], steps=20, seed=0)
     assert len(adam_steps) - adam_steps.count(adam_steps[0]) == expected_cov_steps
 
@@ -81,12 +86,7 @@ def test_update_keeps_the_fields_weight_averaging(fields, monkeypatch, recorded,
 
     monkeypatch.setattr(fit_module.MeanAverager, "__init__", spy)
     field, _, (_, new_p) = fields
-    options = dict(field.info["options"])
-    if recorded == "missing":
-        del options["average_decay"]
-    else:
-        options["average_decay"] = recorded
-    field = StochasticField.from_state({**field.state(), "info": {**field.info, "options": options}})
+    field = with_recorded_option(field, "average_decay", recorded)
     field.update(new_p[:50], new_p[:50], steps=4, seed=0)
     assert decays == ([0.9] if averaged else [0.0])
 
