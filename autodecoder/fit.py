@@ -13,7 +13,7 @@ from .frame import Normalization
 from .losses import (covariance_dirichlet_loss_features, covariance_dirichlet_loss_pairs, mean_dirichlet_loss,
                      screening_loss, SCREENING_WEIGHT)
 from .networks import build_networks
-from .targets import CloudTargets, default_lengthscale
+from .targets import FIT_LENGTHSCALE_FACTOR, CloudTargets, default_lengthscale
 from .validation import check_oriented_cloud
 
 
@@ -26,7 +26,9 @@ class FitOptions:
     the batch: 1000 steps of 4096 samples 0.90e-3, 2000 of 512 0.81e-3, 4000 of 512 0.72e-3, and width 64 does as
     well as 128 at equal steps (4000 x 512: 0.74e-3 vs 0.72e-3). A step of width 64 on 256 samples is mostly
     per-operation overhead (~12 ms on 2 cores, ~1/10 of a 4096-sample width-128 step), so 3000 such steps
-    (0.80e-3) fit in about a minute where 1000 large ones took 220 s.
+    (0.80e-3) fit in about a minute where 1000 large ones took 220 s. With the kernel lengthscale at 1.5 point
+    spacings (``fit_cloud``'s default) 3500 steps take 49 s for 0.66e-3 (3000: 0.71e-3; 4000, 1 thread: 0.63e-3
+    but ~60 s on 2 threads, the budget's edge).
 
     Attributes
     ----------
@@ -78,7 +80,7 @@ class FitOptions:
         through empty space.
     """
 
-    steps: int = 3000
+    steps: int = 3500
     covariance_every: int = 8
     lr: float = 1e-3
     final_lr_fraction: float = 0.05
@@ -337,7 +339,8 @@ def fit_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, width=64
     seed : int
         Seeds every random draw and the network initialisation.
     lengthscale : float, optional
-        Kernel lengthscale in the cloud's units (default: twice the point spacing, see ``default_lengthscale``).
+        Kernel lengthscale in the cloud's units (default: 1.5 x the point spacing, ``FIT_LENGTHSCALE_FACTOR`` of
+        ``autodecoder.targets``, where it is measured; see also ``default_lengthscale``).
     noise : float, optional
         Default measurement noise (cloud units) of :meth:`StochasticField.nll`; default: the RMS of the fitted
         mean at the cloud's points (how far the surface misses them).
@@ -366,7 +369,8 @@ def fit_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, width=64
     t0 = time.perf_counter()
     normalization = Normalization.fit(points)
     model_points = normalization.to_model(points)
-    h = default_lengthscale(model_points) if lengthscale is None else float(lengthscale) * normalization.scale
+    h = (default_lengthscale(model_points, FIT_LENGTHSCALE_FACTOR) if lengthscale is None
+         else float(lengthscale) * normalization.scale)
     targets = CloudTargets(model_points, normals, h)
     config = {"width": width, "depth": depth, "latent_dim": 0, "covariance": covariance, "features": features,
               "omega0": omega0, "lengthscale": h, "box_lo": targets.box.lo.tolist(), "box_hi": targets.box.hi.tolist()}

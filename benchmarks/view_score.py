@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 from scipy.stats import spearmanr
 
 from autodecoder import fit_cloud
+from autodecoder.targets import point_spacing
 from autodecoder.views import camera_score, part_sphere
 from datasets.scanner import VirtualScanner
 from next_view import SHARED, fibonacci_sphere  # same folder: the camera sphere of the sequential benchmark
@@ -44,6 +45,16 @@ class UnitVariance:
         return torch.ones_like(x[:, 0])
 
 
+class GradientVariance(UnitVariance):
+    """The field with Var f replaced by the variance of its gradient, tr D c(x, x) / 3 (unitless): the quantity the
+    covariance loss fits directly (D c ~ Sigma I), free of the part of c that the mixed derivatives leave open."""
+
+    def torch_variance(self, x):
+        f = self.field
+        dc = f.cov_net.d_operator(f._model_x(x), f._model_x(x), f._code_for(x))
+        return torch.diagonal(dc, dim1=1, dim2=2).mean(1)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--mesh", type=Path, default=SHARED / "fandisk.obj")
@@ -55,6 +66,7 @@ def main(argv=None):
     ap.add_argument("--covariance", choices=("feature", "pair"), default="feature")
     ap.add_argument("--cov-screening", type=float, default=None, help="FitOptions.covariance_screening_weight")
     ap.add_argument("--outside-weight", type=float, default=0.0, help="FitOptions.outside_weight of the fit")
+    ap.add_argument("--h-factor", type=float, default=2.0, help="kernel lengthscale / point spacing (next_view.py's)")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     mesh = trimesh.load(str(args.mesh), force="mesh")
@@ -65,6 +77,7 @@ def main(argv=None):
     scan0 = scanner.scan(first.camera_position, scanner.center, n_points=args.points, noise=0.0, seed=0)
     p0, n0 = scan0.points.astype(np.float64), scan0.normals.astype(np.float64)
     field = fit_cloud(p0, n0, seed=args.seed, steps=args.fit_steps, quiet=True, width=64, depth=3,
+                      lengthscale=args.h_factor * point_spacing(p0),
                       features=args.features, covariance=args.covariance,
                       mean_batch=2048, screen_batch=1024, pair_clusters=64, covariance_every=1, pool_passes=4,
                       average_decay=0.0, outside_weight=args.outside_weight,
@@ -95,6 +108,8 @@ def main(argv=None):
         "expected-point, no novelty": (field, {}),
         "distribution + novelty": (field, dict(observed=seen, observed_scale=s, hit_summary="distribution")),
         "P(hit) x novelty, no variance": (UnitVariance(field), dict(observed=seen, observed_scale=s)),
+        "gradient variance + novelty": (GradientVariance(field), dict(observed=seen, observed_scale=s)),
+        "gradient variance, no novelty": (GradientVariance(field), {}),
     }
     best10 = np.sort(gain)[-10:].mean()
     for name, (scored, kw) in variants.items():

@@ -118,6 +118,19 @@ def test_same_seed_same_field():
     np.testing.assert_array_equal(a.variance(x), b.variance(x))
 
 
+def test_default_lengthscale_is_one_and_a_half_point_spacings_whatever_the_units():
+    """fit_cloud's kernel lengthscale follows the cloud's own spacing (an independent KD-tree count here: the
+    spacing of n points spread evenly on a sphere of radius r is sqrt(4 pi r^2 / n)), in the cloud's units."""
+    points, normals = sphere_cloud(2000)
+    kwargs = dict(seed=0, quiet=True, width=8, depth=1, features=4, steps=1, mean_batch=16, screen_batch=16,
+                  pair_clusters=2)
+    for scale in (1.0, 40.0):
+        field = fit_cloud(CENTER + scale * (points - CENTER), normals, **kwargs)
+        h_world = field.config["lengthscale"] / field.normalization.scale
+        expected = 1.5 * np.sqrt(4 * np.pi * (scale * RADIUS) ** 2 / len(points))
+        assert abs(h_world / expected - 1) < 0.15
+
+
 @pytest.mark.parametrize("points, normals, message", [
     (np.zeros((0, 3)), np.zeros((0, 3)), "0 points"),
     (np.full((50, 3), np.nan), np.ones((50, 3)), "NaN"),
