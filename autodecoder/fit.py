@@ -27,8 +27,10 @@ class FitOptions:
     well as 128 at equal steps (4000 x 512: 0.74e-3 vs 0.72e-3). A step of width 64 on 256 samples is mostly
     per-operation overhead (~12 ms on 2 cores, ~1/10 of a 4096-sample width-128 step), so 3000 such steps
     (0.80e-3) fit in about a minute where 1000 large ones took 220 s. With the kernel lengthscale at 1.5 point
-    spacings (``fit_cloud``'s default) 3500 steps take 49 s for 0.66e-3 (3000: 0.71e-3; 4000, 1 thread: 0.63e-3
-    but ~60 s on 2 threads, the budget's edge).
+    spacings (``fit_cloud``'s default) and a covariance step every 8: 3000 steps 0.71e-3, 3500 0.66e-3 in 49-53 s.
+    A covariance step costs ~44 ms against ~9 ms for a mean step (profiled on fandisk), so a covariance step every
+    16 buys 500 more mean steps in the same time: 4000 steps 0.62e-3 in 49-55 s (seed 1: 0.69e-3 against 0.77e-3
+    for 3500 steps with every 8), and the variance's Spearman with gpytoolbox's went 0.770 -> 0.781.
 
     Attributes
     ----------
@@ -36,10 +38,11 @@ class FitOptions:
         Adam steps of the mean net.
     covariance_every : int
         One covariance step every this many mean steps (``ceil(steps / covariance_every)`` in all). The mean's
-        surface needs many steps; a covariance step costs ~4 mean steps, and more of them do not bring the
+        surface needs many steps; a covariance step costs ~5 mean steps, and more of them do not bring the
         variance closer to the GP's: the Dirichlet term fixes only c's mixed derivatives, so with long training the
-        variance drifts down everywhere (fandisk, 3000 mean steps: Spearman with gpytoolbox's SPSR variance 0.72 /
-        0.76 / 0.67 / 0.24 for a covariance step every 16 / 8 / 4 / 1 steps).
+        variance drifts down everywhere (fandisk, 3000 mean steps, kernel at 2 spacings: Spearman with
+        gpytoolbox's SPSR variance 0.72 / 0.76 / 0.67 / 0.24 for a covariance step every 16 / 8 / 4 / 1 steps; at
+        1.5 spacings, 4000 steps every 16: 0.781).
     lr : float
         Peak learning rate (cosine decay to ``lr * final_lr_fraction``).
     weight_decay : float
@@ -80,8 +83,8 @@ class FitOptions:
         through empty space.
     """
 
-    steps: int = 3500
-    covariance_every: int = 8
+    steps: int = 4000
+    covariance_every: int = 16
     lr: float = 1e-3
     final_lr_fraction: float = 0.05
     weight_decay: float = 1e-5

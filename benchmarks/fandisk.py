@@ -162,6 +162,8 @@ def main(argv=None):
     parser.add_argument("--h-factor", type=float, default=None,
                         help="kernel lengthscale / point spacing (default: fit_cloud's)")
     parser.add_argument("--omega0", type=float, default=None, help="SIREN first-layer frequency (default: fit_cloud's)")
+    parser.add_argument("--covariance-every", type=int, default=None,
+                        help="one covariance step every this many mean steps (default: fit_cloud's)")
     parser.add_argument("--resolution", type=int, default=192, help="marching-cubes grid of the mean surface")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-gpytoolbox", action="store_true")
@@ -179,7 +181,8 @@ def main(argv=None):
 
     out = Path(args.out)
     extra = {k: v for k, v in (("steps", args.steps), ("width", args.width), ("depth", args.depth),
-                                ("omega0", args.omega0)) if v is not None}
+                                ("omega0", args.omega0),
+                                ("covariance_every", args.covariance_every)) if v is not None}
     if args.h_factor is not None:
         from autodecoder.targets import point_spacing
 
