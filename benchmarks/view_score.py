@@ -7,10 +7,14 @@ sphere, aimed at the part's centre; each camera is also scanned with the virtual
 fraction of its points farther than one kernel support (2 h) from the points already measured (the new surface it
 would really see). Run by hand:
 
-    .venv/bin/python benchmarks/view_score.py [--seed 0] [--cameras 200]
+    .venv/bin/python benchmarks/view_score.py [--seed 0] [--cameras 200] [--outside-weight 100] [--spsr]
 
 Prints the oracle gain by angle from the first view, then for each score variant the Spearman correlation of score
 and gain, the angle and gain of its best camera, and the mean gain of its top 10 against the best 10 possible.
+Variants: the library's scores (expected point or first-hit distribution, with or without novelty), and three that
+replace the learned Var f at the expected hit: 1 (P(hit) x novelty alone), the learned variance of grad f, and with
+``--spsr`` gpytoolbox's stochastic Poisson variance of the same scan (the exact discrete GP-Poisson variance, on a
+20^3 grid): whether the learned variance or the score itself limits the ranking.
 """
 import argparse
 from pathlib import Path
@@ -55,6 +59,32 @@ class GradientVariance(UnitVariance):
         return torch.diagonal(dc, dim1=1, dim2=2).mean(1)
 
 
+class GridVariance(UnitVariance):
+    """The field with Var f replaced by gpytoolbox's stochastic Poisson (SPSR) variance of the same scan on a
+    grid over the field's box, trilinearly interpolated (no gradient: for scoring only). What the paper's score
+    would be with the variance of the discrete GP-Poisson solve instead of the learned one."""
+
+    def __init__(self, field, points, normals, grid=20):
+        from gpytoolbox import stochastic_poisson_surface_reconstruction
+        from scipy.interpolate import RegularGridInterpolator
+
+        super().__init__(field)
+        lo, hi = field.bounds
+        gs = np.array([grid] * 3)
+        step = (hi - lo) / (gs - 1)
+        _, var, _ = stochastic_poisson_surface_reconstruction(points, normals, gs=gs, h=step, corner=lo,
+                                                              output_variance=True, solve_subspace_dim=0)
+        # gpytoolbox's grids are flattened with the first coordinate fastest (Fortran order)
+        axes = [np.linspace(lo[d], lo[d] + (gs[d] - 1) * step[d], gs[d]) for d in range(3)]
+        self.grid_points = np.stack([a.ravel(order="F") for a in np.meshgrid(*axes, indexing="ij")], -1)
+        self.grid_var = np.ravel(var)
+        self.interp = RegularGridInterpolator(axes, np.reshape(var, tuple(gs), order="F"), bounds_error=False,
+                                              fill_value=None)
+
+    def torch_variance(self, x):
+        return torch.as_tensor(self.interp(x.detach().double().numpy()), dtype=x.dtype)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--mesh", type=Path, default=SHARED / "fandisk.obj")
@@ -67,6 +97,8 @@ def main(argv=None):
     ap.add_argument("--cov-screening", type=float, default=None, help="FitOptions.covariance_screening_weight")
     ap.add_argument("--outside-weight", type=float, default=0.0, help="FitOptions.outside_weight of the fit")
     ap.add_argument("--h-factor", type=float, default=2.0, help="kernel lengthscale / point spacing (next_view.py's)")
+    ap.add_argument("--spsr", action="store_true",
+                    help="also score with gpytoolbox's SPSR variance of the first scan (20^3 grid, minutes)")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     mesh = trimesh.load(str(args.mesh), force="mesh")
@@ -111,6 +143,12 @@ def main(argv=None):
         "gradient variance + novelty": (GradientVariance(field), dict(observed=seen, observed_scale=s)),
         "gradient variance, no novelty": (GradientVariance(field), {}),
     }
+    if args.spsr:
+        spsr = GridVariance(field, p0, n0)
+        rho = spearmanr(field.variance(spsr.grid_points), spsr.grid_var).statistic
+        print(f"  Spearman of the learned variance with SPSR's on its grid: {rho:+.2f}")
+        variants["SPSR variance + novelty"] = (spsr, dict(observed=seen, observed_scale=s))
+        variants["SPSR variance, no novelty"] = (spsr, {})
     best10 = np.sort(gain)[-10:].mean()
     for name, (scored, kw) in variants.items():
         with torch.no_grad():
