@@ -6,7 +6,7 @@ from .gp_targets import GPPosterior
 from .sampling import Box, sample_mean_targets, sample_pair_clusters
 
 DEFAULT_LENGTHSCALE_FACTOR = 2.0
-# fit_cloud's own default (one dense cloud): a sharper posterior mean that its 3500 Adam steps can still follow.
+# fit_cloud's own default (one dense cloud): a sharper posterior mean that its 4000 Adam steps can still follow.
 # Fandisk, 20k points, Chamfer of the mean surface / diagonal at 3000 steps (seed 0): factor 1 8.4e-4, 1.25 7.3e-4,
 # 1.5 7.1e-4, 2 7.6e-4; at 3500 steps, seed 1: 1.5 7.7e-4, 2 8.1e-4 (benchmarks/fit_defaults.py, fandisk.py). Latent
 # training over many partial scans keeps DEFAULT_LENGTHSCALE_FACTOR (its inspection figures were measured with it).

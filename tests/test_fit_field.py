@@ -120,8 +120,8 @@ def test_same_seed_same_field():
 
 
 def test_default_lengthscale_is_one_and_a_half_point_spacings_whatever_the_units():
-    """fit_cloud's kernel lengthscale follows the cloud's own spacing (an independent KD-tree count here: the
-    spacing of n points spread evenly on a sphere of radius r is sqrt(4 pi r^2 / n)), in the cloud's units."""
+    """fit_cloud's kernel lengthscale follows the cloud's own spacing, in the cloud's units: checked against the
+    analytic spacing of n points spread over a sphere of radius r, sqrt(4 pi r^2 / n), at two scales."""
     points, normals = sphere_cloud(2000)
     kwargs = dict(seed=0, quiet=True, width=8, depth=1, features=4, steps=1, mean_batch=16, screen_batch=16,
                   pair_clusters=2)
