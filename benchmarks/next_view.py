@@ -72,6 +72,20 @@ def fibonacci_sphere(n):
     return np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], 1)
 
 
+class WithoutVariance:
+    """A field whose variance reads 1 where the score reads it (``torch_variance``); everything else, the rays'
+    correlated Gaussian included, is the field's own. Scores cameras by P(hit) x novelty alone."""
+
+    def __init__(self, field):
+        self._field = field
+
+    def __getattr__(self, name):
+        return getattr(self._field, name)
+
+    def torch_variance(self, x):
+        return torch.ones_like(x[:, 0])
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--mesh", type=Path, default=SHARED / "fandisk.obj")
@@ -98,6 +112,10 @@ def main(argv=None):
     ap.add_argument("--h-factor", type=float, default=2.0,
                     help="kernel lengthscale / point spacing of every fit (2: the figures in the README were measured "
                          "with it; fit_cloud's own default is 1.5)")
+    ap.add_argument("--score-variance", choices=("learned", "none"), default="learned",
+                    help="'none' scores cameras by P(hit) x novelty alone (the field's variance replaced by 1 where "
+                         "the score reads it; the rays are still cast with the correlated Gaussian): not the paper's "
+                         "score, an experiment")
     ap.add_argument("--strategies", default="nbv,random,furthest", help="comma-separated subset to run")
     ap.add_argument("--mesh-res", type=int, default=64)
     ap.add_argument("--seed", type=int, default=0)
@@ -138,7 +156,8 @@ def main(argv=None):
         for k in range(1, args.views):
             t_select = time.perf_counter()
             if strategy == "nbv":
-                v = next_best_views(field, n_views=1, starts=args.starts, steps=args.nbv_steps, standoff=(1.6, 2.4),
+                scored = field if args.score_variance == "learned" else WithoutVariance(field)
+                v = next_best_views(scored, n_views=1, starts=args.starts, steps=args.nbv_steps, standoff=(1.6, 2.4),
                                     candidates=args.candidates, n_side=args.n_side, seed=args.seed + k,
                                     observed="auto" if args.novelty == "auto" else None,
                                     hit_summary=args.hit_summary)[0]
