@@ -29,37 +29,21 @@ from autodecoder import fit_cloud
 from autodecoder.targets import point_spacing
 from autodecoder.views import camera_score, part_sphere
 from datasets.scanner import VirtualScanner
-from next_view import SHARED, fibonacci_sphere  # same folder: the camera sphere of the sequential benchmark
+from next_view import SHARED, WithoutVariance, fibonacci_sphere  # same folder: the sequential benchmark's camera
+# sphere, and its field wrapper whose variance reads 1 (the score is then P(hit) x novelty)
 
 
-class UnitVariance:
-    """The field with its variance replaced by 1 at the scored point (the rays are still cast with the field's
-    correlated Gaussian): what the score is without the variance, i.e. P(hit) x novelty."""
-
-    def __init__(self, field):
-        self.field = field
-
-    def torch_mean(self, x):
-        return self.field.torch_mean(x)
-
-    def torch_covariance(self, a, b):
-        return self.field.torch_covariance(a, b)
-
-    def torch_variance(self, x):
-        return torch.ones_like(x[:, 0])
-
-
-class GradientVariance(UnitVariance):
+class GradientVariance(WithoutVariance):
     """The field with Var f replaced by the variance of its gradient, tr D c(x, x) / 3 (unitless): the quantity the
     covariance loss fits directly (D c ~ Sigma I), free of the part of c that the mixed derivatives leave open."""
 
     def torch_variance(self, x):
-        f = self.field
+        f = self._field
         dc = f.cov_net.d_operator(f._model_x(x), f._model_x(x), f._code_for(x))
         return torch.diagonal(dc, dim1=1, dim2=2).mean(1)
 
 
-class GridVariance(UnitVariance):
+class GridVariance(WithoutVariance):
     """The field with Var f replaced by gpytoolbox's stochastic Poisson (SPSR) variance of the same scan on a
     grid over the field's box, trilinearly interpolated (no gradient: for scoring only). What the paper's score
     would be with the variance of the discrete GP-Poisson solve instead of the learned one."""
@@ -139,7 +123,7 @@ def main(argv=None):
         "expected-point + novelty (default)": (field, dict(observed=seen, observed_scale=s)),
         "expected-point, no novelty": (field, {}),
         "distribution + novelty": (field, dict(observed=seen, observed_scale=s, hit_summary="distribution")),
-        "P(hit) x novelty, no variance": (UnitVariance(field), dict(observed=seen, observed_scale=s)),
+        "P(hit) x novelty, no variance": (WithoutVariance(field), dict(observed=seen, observed_scale=s)),
         "gradient variance + novelty": (GradientVariance(field), dict(observed=seen, observed_scale=s)),
         "gradient variance, no novelty": (GradientVariance(field), {}),
     }
