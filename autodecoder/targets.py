@@ -68,6 +68,7 @@ class CloudTargets:
         self.posterior = GPPosterior(points, normals, lengthscale, normal_noise=normal_noise, amplitude=amplitude)
         self.box = box if box is not None else default_box(points, lengthscale)
         self.points32 = np.ascontiguousarray(points, dtype=np.float32)
+        self._outside_values = {}  # outside_value's results, by its arguments
 
     @property
     def lengthscale(self):
@@ -79,13 +80,14 @@ class CloudTargets:
 
         Integrates mu . n along the normal line through up to ``n_lines`` cloud points, over the kernel's reach
         on both sides (t in [-2r, 2r], r the support radius), by the trapezoid rule; returns half the median.
-        Computed once and cached.
+        Cached per set of arguments (the boundary term asks for it at every step).
 
         Returns
         -------
         float (model frame)
         """
-        if getattr(self, "_outside_value", None) is None:
+        key = (int(n_lines), int(n_steps), int(seed))
+        if key not in self._outside_values:
             rng = np.random.default_rng(seed)
             post = self.posterior
             pick = rng.choice(len(post.points), min(n_lines, len(post.points)), replace=False)
@@ -93,9 +95,8 @@ class CloudTargets:
             t = np.linspace(-2 * post.radius, 2 * post.radius, n_steps)
             x = (p[:, None, :] + t[None, :, None] * n[:, None, :]).reshape(-1, 3)
             along = np.einsum("ijk,ik->ij", post.mean(x).reshape(len(p), n_steps, 3), n)
-            jump = np.trapezoid(along, t, axis=1)
-            self._outside_value = float(0.5 * np.median(jump))
-        return self._outside_value
+            self._outside_values[key] = float(0.5 * np.median(np.trapezoid(along, t, axis=1)))
+        return self._outside_values[key]
 
     def boundary_batch(self, n, rng):
         """n points uniform on the surface of the integration box -> (n, 3) float32."""
