@@ -32,6 +32,10 @@ class FitOptions:
     16 buys 500 more mean steps in the same time: 4000 steps 0.62e-3 in 49-55 s (seed 1: 0.69e-3 against 0.77e-3
     for 3500 steps with every 8), and the variance's Spearman with gpytoolbox's went 0.770 -> 0.781.
 
+    What limits the accuracy is this training, not the loss: the loss's exact minimiser on a grid
+    (``benchmarks/target_limit.py``) is within 1.31x open3d's Chamfer on fandisk, the 4000-step fit 2.25x, and
+    15000 steps (183 s) still 1.87x (README, "What limits the mean surface's accuracy").
+
     Attributes
     ----------
     steps : int
