@@ -23,8 +23,8 @@ distance to the true mesh, next to open3d's screened Poisson (depth 8) of the sa
 target itself costs from what the network and its 4000 Adam steps add (``benchmarks/fandisk.py``).
 
 With ``--regress-steps``, the default mean SIREN of ``fit_cloud`` is then fitted to that minimiser directly, by
-supervised regression of its values and gradients (no Poisson problem left to solve, the easiest task a mean net
-could be given): how close a SIREN of this size gets to the exact answer in a given number of Adam steps.
+supervised regression of its values and gradients (no Poisson problem left to solve: a much easier task than the
+paper's loss sets it): how close a SIREN of this size gets to the exact answer in a given number of Adam steps.
 """
 import argparse
 import math
@@ -33,8 +33,8 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
-import trimesh
 import torch
+import trimesh
 from scipy.fft import dctn, idctn
 from scipy.ndimage import map_coordinates
 from scipy.sparse.linalg import LinearOperator, cg
