@@ -114,7 +114,7 @@ class FitOptions:
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
                 raise ValueError(f"FitOptions.{name} must be an integer >= {least}, got {value!r}")
         weights = {"lr": self.lr, "final_lr_fraction": self.final_lr_fraction, "weight_decay": self.weight_decay,
-                   "screening_weight": self.screening_weight}
+                   "screening_weight": self.screening_weight, "outside_weight": self.outside_weight}
         if self.covariance_screening_weight is not None:
             weights["covariance_screening_weight"] = self.covariance_screening_weight
         for name, value in weights.items():
@@ -122,9 +122,6 @@ class FitOptions:
                 raise ValueError(f"FitOptions.{name} must be a finite number >= 0, got {value!r}")
         if self.lr == 0:
             raise ValueError("FitOptions.lr must be > 0")
-        if not (isinstance(self.outside_weight, (int, float, np.number)) and np.isfinite(self.outside_weight)
-                and self.outside_weight >= 0):
-            raise ValueError(f"FitOptions.outside_weight must be a finite number >= 0, got {self.outside_weight!r}")
         if not (isinstance(self.average_decay, (int, float, np.number)) and 0 <= self.average_decay < 1):
             raise ValueError(f"FitOptions.average_decay must be in [0, 1), got {self.average_decay!r}")
 

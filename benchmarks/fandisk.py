@@ -77,6 +77,27 @@ def open3d_poisson(points, normals, depth=8):
     return trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.triangles), process=False)
 
 
+def spsr_grid(lo, hi, grid):
+    """gpytoolbox SPSR's regular grid of ``grid`` nodes per side over the box [lo, hi].
+
+    Returns
+    -------
+    gs : (3,) int array, step : (3,) array
+        Its ``gs`` and ``h`` arguments.
+    axes : list of 3 arrays
+        Node coordinates along each axis.
+    points : (grid^3, 3) array
+        The nodes in gpytoolbox's order: its grids are flattened with the first coordinate fastest ('ij' grids,
+        Fortran order).
+    """
+    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    gs = np.array([grid] * 3)
+    step = (hi - lo) / (gs - 1)
+    axes = [np.linspace(lo[d], lo[d] + (gs[d] - 1) * step[d], gs[d]) for d in range(3)]
+    points = np.stack([a.ravel(order="F") for a in np.meshgrid(*axes, indexing="ij")], -1)
+    return gs, step, axes, points
+
+
 def gpytoolbox_variance_correlation(field, points, normals, grid=20, cache_dir=None):
     """Spearman correlation of our variance with gpytoolbox SPSR's on its grid (both over the same box).
 
@@ -87,8 +108,7 @@ def gpytoolbox_variance_correlation(field, points, normals, grid=20, cache_dir=N
     import hashlib
 
     lo, hi = field.bounds
-    gs = np.array([grid] * 3)
-    h = (hi - lo) / (gs - 1)
+    gs, h, _, grid_points = spsr_grid(lo, hi, grid)
     key = hashlib.sha256(b"".join(np.ascontiguousarray(a, dtype=np.float64).tobytes()
                                   for a in (points, normals, lo, hi, gs))).hexdigest()[:16]
     cache = None if cache_dir is None else Path(cache_dir) / f"gpytoolbox_spsr_{key}.npz"
@@ -112,10 +132,7 @@ def gpytoolbox_variance_correlation(field, points, normals, grid=20, cache_dir=N
             partial = cache.with_suffix(".partial.npz")
             np.savez(partial, mean=mean, var=var)
             partial.replace(cache)  # never a half-written cache
-    # gpytoolbox's finite-difference grids are flattened with the first coordinate fastest ('ij' grids, Fortran
-    # order); the Spearman correlation of the two means (printed) checks that the orderings match
-    axes = [np.linspace(lo[d], lo[d] + (gs[d] - 1) * h[d], gs[d]) for d in range(3)]
-    grid_points = np.stack([a.ravel(order="F") for a in np.meshgrid(*axes, indexing="ij")], -1)
+    # the Spearman correlation of the two means (printed) checks that the grid orderings match
     ours = field.variance(grid_points)
     mean_rho = spearmanr(field.mean(grid_points), np.ravel(mean)).statistic
     return spearmanr(ours, np.ravel(var)).statistic, mean_rho, seconds

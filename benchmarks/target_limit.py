@@ -120,6 +120,8 @@ def grid_minimiser(targets, resolution, screening_weight=SCREENING_WEIGHT, tol=1
     info : dict
         CG iterations, relative residual, seconds for the targets and for the solve.
     """
+    if int(resolution) < 3:
+        raise ValueError(f"the grid needs at least 3 nodes per side, got resolution {resolution}")
     box = targets.box
     lo = np.asarray(box.lo, dtype=np.float64)
     delta = float((box.hi - box.lo).max()) / (resolution - 1)

@@ -29,6 +29,7 @@ from autodecoder import fit_cloud
 from autodecoder.targets import point_spacing
 from autodecoder.views import camera_score, part_sphere
 from datasets.scanner import VirtualScanner
+from fandisk import spsr_grid
 from next_view import SHARED, WithoutVariance, fibonacci_sphere  # same folder: the sequential benchmark's camera
 # sphere, and its field wrapper whose variance reads 1 (the score is then P(hit) x novelty)
 
@@ -39,7 +40,8 @@ class GradientVariance(WithoutVariance):
 
     def torch_variance(self, x):
         f = self._field
-        dc = f.cov_net.d_operator(f._model_x(x), f._model_x(x), f._code_for(x))
+        model_x = f._model_x(x)
+        dc = f.cov_net.d_operator(model_x, model_x, f._code_for(x))
         return torch.diagonal(dc, dim1=1, dim2=2).mean(1)
 
 
@@ -54,13 +56,9 @@ class GridVariance(WithoutVariance):
 
         super().__init__(field)
         lo, hi = field.bounds
-        gs = np.array([grid] * 3)
-        step = (hi - lo) / (gs - 1)
+        gs, step, axes, self.grid_points = spsr_grid(lo, hi, grid)
         _, var, _ = stochastic_poisson_surface_reconstruction(points, normals, gs=gs, h=step, corner=lo,
                                                               output_variance=True, solve_subspace_dim=0)
-        # gpytoolbox's grids are flattened with the first coordinate fastest (Fortran order)
-        axes = [np.linspace(lo[d], lo[d] + (gs[d] - 1) * step[d], gs[d]) for d in range(3)]
-        self.grid_points = np.stack([a.ravel(order="F") for a in np.meshgrid(*axes, indexing="ij")], -1)
         self.grid_var = np.ravel(var)
         self.interp = RegularGridInterpolator(axes, np.reshape(var, tuple(gs), order="F"), bounds_error=False,
                                               fill_value=None)
