@@ -1,4 +1,4 @@
-"""Turning fitted fields into decisions: per-point and per-scan scores, conformal thresholds, reports, the CLI.
+"""Turning fitted fields into decisions: per-point and per-scan scores, thresholds from good scans (conformal or a log-normal tail), reports, the CLI.
 
 Public names are imported lazily so that ``python -m inspection --help`` stays fast.
 """
@@ -13,8 +13,10 @@ _EXPORTS = {
     "point_scores": "inspection.scores",
     "LocalReference": "inspection.scores",
     "aggregate": "inspection.scores",
-    "conformal_p_values": "inspection.calibration",
-    "conformal_threshold": "inspection.calibration",
+    "conformal_p_values": "inspection.threshold",
+    "conformal_threshold": "inspection.threshold",
+    "fit_threshold": "inspection.threshold",
+    "Threshold": "inspection.threshold",
     "Calibration": "inspection.calibration",
     "read_calibration": "inspection.calibration",
     "write_calibration": "inspection.calibration",

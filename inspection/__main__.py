@@ -27,7 +27,9 @@ def _parser():
     c.add_argument("--split", default=None, help="use this split's good scans (default: the model's held-back "
                                                  "scans when DATA is its training collection, else every good scan "
                                                  "the model did not train on)")
-    c.add_argument("--alpha", type=float, default=0.01, help="default false-alarm rate stored with it (0.01)")
+    c.add_argument("--alpha", type=float, default=0.01,
+                   help="false-alarm rate stored with it (default %(default)s; with fewer than 1/alpha - 1 good "
+                        "scans the threshold is extrapolated from a log-normal fit of their scores, and says so)")
     c.add_argument("--aggregate", default=None, help="per-scan aggregate: top1 (default), mean, max, median, "
                                                      "top<P>, q<P>")
     c.add_argument("--point-score", choices=("distance", "local", "residual", "nll"), default=None,
@@ -105,10 +107,6 @@ def main(argv=None):
     """Run the command line; returns the exit status (0 ok, 2 bad input)."""
     args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s: %(message)s")
-    import warnings
-
-    # the calibration module logs its warnings too; show each once on the terminal (as a log line)
-    warnings.filterwarnings("ignore", message=r".*calibration scan\(s\) are too few")
     try:
         from .run import InspectionError
     except ImportError as exc:  # pragma: no cover
@@ -127,14 +125,13 @@ def main(argv=None):
                 from .ray_evidence import check_ray_options
 
                 check_ray_options(ray_options)  # validate before any work
+            from .run import describe_calibration
+
             insp, info = calibrate(args.model, args.data, alpha=args.alpha, aggregate=args.aggregate,
                                    point_score=args.point_score, noise=args.noise, split=args.split,
                                    progress=not args.quiet, projection=_projection(args.projection),
                                    rays=args.rays, ray_options=ray_options or None)
-            t = info["threshold"]
-            print(f"calibrated {args.model} on {info['n']} scans ({info['how']}): aggregate {insp.aggregate}, "
-                  f"point score {insp.point_score}{' + ray score' if insp.rays else ''}, threshold at alpha={insp.alpha:g}: "
-                  f"{'none (too few scans)' if t == float('inf') else f'{t:.4g}'}")
+            print(f"{args.model}: " + "\n".join(describe_calibration(insp, info)))
         elif args.command == "score":
             from .run import score
 

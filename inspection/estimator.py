@@ -4,7 +4,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .calibration import Calibration, check_alpha, conformal_p_values, conformal_threshold
+from .calibration import Calibration
+from .threshold import check_alpha, fit_threshold, threshold_p_values
 from .scores import (POINT_SCORES, REFERENCE_QUANTITY, LocalReference, aggregate as aggregate_scores, check_aggregate,
                      point_scores)
 
@@ -19,12 +20,7 @@ DEFAULT_PROJECTION = {"steps": 60, "starts": 2, "explore": 20, "max_candidates":
 
 
 from sklearn.base import BaseEstimator
-
-try:  # scikit-learn's own class, so `except sklearn.exceptions.NotFittedError` catches ours
-    from sklearn.exceptions import NotFittedError
-except ImportError:  # pragma: no cover
-    class NotFittedError(ValueError, AttributeError):
-        """The Inspector was used before :meth:`Inspector.fit`."""
+from sklearn.exceptions import NotFittedError
 
 
 @dataclass
@@ -85,14 +81,15 @@ def field_for(model, points, normals=None, options=None):
 
 class Inspector(BaseEstimator):
     """Defect detector over scans: per-point scores under the projected field, one score per scan, and a threshold
-    calibrated on good scans (split-conformal p-values, false-alarm rate at most ``alpha``).
+    calibrated on good scans (:mod:`inspection.threshold`: split-conformal when there are at least 1 / alpha - 1 of
+    them, else a log-normal tail fitted to their scores; either way a false-alarm rate of ``alpha`` on average).
 
     Parameters
     ----------
     model : latent model, field or callable
         See :func:`field_for`. Scans must be in the model's frame.
     alpha : float in (0, 1)
-        False-alarm rate: a scan is defective when its conformal p-value is <= alpha.
+        False-alarm rate: a scan is defective when its p-value is <= alpha (its score > ``threshold_``).
     aggregate : str
         Per-scan aggregate of the point scores (:func:`inspection.scores.aggregate`): ``'top1'`` (default: mean of
         the worst 1 % of the points; chosen on benchmarks/inspect_fandisk.py, where it separated best: defects
@@ -124,7 +121,10 @@ class Inspector(BaseEstimator):
         Anomaly scores of the calibration scans.
     calibration_names_ : list of str
     threshold_ : float
-        Scans with anomaly score > threshold_ are defective (+inf: too few calibration scans for alpha).
+        Scans with anomaly score > threshold_ are defective.
+    decision_threshold_ : inspection.threshold.Threshold
+        ``threshold_`` with its basis (exact split-conformal, or the log-normal tail when there are fewer than
+        1 / alpha - 1 calibration scans), the false-alarm rate it predicts and that rate's interval.
     offset_ : float
         ``-threshold_``, so that ``decision_function = score_samples - offset_`` is negative exactly for defects.
     n_calibration_ : int
@@ -294,7 +294,8 @@ class Inspector(BaseEstimator):
         self.calibration_scores_ = scores
         self.calibration_names_ = list(names)
         self.n_calibration_ = len(scores)
-        self.threshold_ = conformal_threshold(scores, self.alpha)
+        self.decision_threshold_ = fit_threshold(scores, self.alpha)
+        self.threshold_ = self.decision_threshold_.value
         self.offset_ = -self.threshold_
         return self
 
@@ -341,12 +342,14 @@ class Inspector(BaseEstimator):
 
     # ------------------------------------------------------------------------------------ sklearn outlier API
     def p_values_from_scores(self, anomaly_scores):
-        """Conformal p-values (n,) of given anomaly scores."""
+        """p-values (n,) of given anomaly scores on the threshold's basis (split-conformal or the log-normal
+        predictive tail, :func:`inspection.threshold.threshold_p_values`); ``p <= decision_threshold_.alpha_used``
+        exactly when the score exceeds ``threshold_``."""
         self._check_is_fitted()
-        return conformal_p_values(self.calibration_scores_, anomaly_scores)
+        return threshold_p_values(self.decision_threshold_, self.calibration_scores_, anomaly_scores)
 
     def p_values(self, scans):
-        """Conformal p-values (n,) in [1/(n_calibration_+1), 1]; small = unlike the good calibration scans."""
+        """p-values (n,) of scans; small = unlike the good calibration scans."""
         return self.p_values_from_scores(self.anomaly_scores(scans))
 
     def score_samples(self, scans):
@@ -359,11 +362,11 @@ class Inspector(BaseEstimator):
         return self.score_samples(scans) - self.offset_
 
     def predict_from_scores(self, anomaly_scores):
-        """+1 (good) / -1 (defective) for given anomaly scores: -1 exactly when the p-value is <= alpha."""
+        """+1 (good) / -1 (defective) for given anomaly scores: -1 exactly when the score exceeds ``threshold_``."""
         self._check_is_fitted()
         s = np.asarray(anomaly_scores, dtype=np.float64)
         return np.where(s > self.threshold_, -1, 1)
 
     def predict(self, scans):
-        """+1 for good scans, -1 for defective ones (p-value <= alpha, i.e. decision_function < 0)."""
+        """+1 for good scans, -1 for defective ones (score > ``threshold_``, i.e. decision_function < 0)."""
         return self.predict_from_scores(self.anomaly_scores(scans))

@@ -67,23 +67,32 @@ def plot_roc(path, labels, scores, defects=None, title="ROC (object level)"):
     return Path(path)
 
 
-def plot_score_histograms(path, scores, labels, threshold=None, calibration_scores=None, defects=None,
-                          title="anomaly scores"):
+def plot_score_histograms(path, scores, labels, threshold=None, calibration_scores=None, title="anomaly scores"):
     """Histograms of the scores of good and defective (and unknown) scans, calibration scores, and the threshold.
 
     Parameters
     ----------
     scores : (n,) anomaly scores
     labels : (n,) array of 'good' / 'defective' / 'unknown'
-    threshold : float, optional (a vertical line; not drawn when infinite)
+    threshold : inspection.threshold.Threshold or float, optional
+        A vertical line (not drawn when infinite); a Threshold's legend entry gives its basis and predicted
+        false-alarm rate with its interval.
     calibration_scores : (k,) array, optional
     """
     plt = _pyplot()
     scores, labels = np.asarray(scores, dtype=float), np.asarray(labels)
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, ax = plt.subplots(figsize=(7.5, 4.2))
     allv = [scores] + ([np.asarray(calibration_scores, float)] if calibration_scores is not None else [])
+    value = getattr(threshold, "value", threshold)
+    if value is not None and np.isfinite(value):
+        allv.append(np.array([value]))
     allv = np.concatenate(allv)
-    bins = np.linspace(allv.min(), allv.max() + 1e-12, 31) if len(allv) else 10
+    positive = len(allv) and allv.min() > 0 and allv.max() / allv.min() > 20  # wide positive range: log bins
+    if positive:
+        bins = np.geomspace(allv.min(), allv.max() * (1 + 1e-9), 31)
+        ax.set_xscale("log")
+    else:
+        bins = np.linspace(allv.min(), allv.max() + 1e-12, 31) if len(allv) else 10
     groups = [("good", "tab:green"), ("defective", "tab:red"), ("unknown", "tab:grey")]
     for lab, colour in groups:
         sel = labels == lab
@@ -92,10 +101,17 @@ def plot_score_histograms(path, scores, labels, threshold=None, calibration_scor
     if calibration_scores is not None and len(calibration_scores):
         ax.hist(calibration_scores, bins=bins, histtype="step", color="tab:blue", lw=1.5,
                 label=f"calibration ({len(calibration_scores)})")
-    if threshold is not None and np.isfinite(threshold):
-        ax.axvline(threshold, color="k", ls="--", label=f"threshold {threshold:.3g}")
+    if value is not None and np.isfinite(value):
+        text = f"threshold {value:.3g}"
+        if hasattr(threshold, "basis"):
+            lo, hi = threshold.far_interval
+            from .threshold import format_rate
+
+            text += (f" ({threshold.basis}): predicted false-alarm rate {format_rate(threshold.predicted_far)}, "
+                     f"90 % interval {format_rate(lo)} to {format_rate(hi)}")
+        ax.axvline(value, color="k", ls="--", label=text)
     ax.set(xlabel="anomaly score (higher = more anomalous)", ylabel="scans", title=title)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7)
     fig.tight_layout()
     _save(fig, path)
     plt.close(fig)

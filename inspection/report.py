@@ -75,8 +75,8 @@ def summarize(rows, threshold, alpha, point_labels=None, point_scores=None, extr
         "n_flagged": sum(r["verdict"] == "defective" for r in rows),
         "alpha": float(alpha),
         "threshold": _finite(threshold),
-        "threshold_note": "a scan is defective when its score > threshold (p_value <= alpha); "
-                          "null threshold: too few calibration scans for alpha, nothing is flagged",
+        "threshold_note": "a scan is defective when its score > threshold; 'decision' says how the threshold was "
+                          "obtained and the false-alarm rate it predicts; null threshold: nothing is flagged",
     }
     for r in rows:
         if r["label"] == "defective":
@@ -144,6 +144,16 @@ def format_table(rows, summary, max_rows=60):
     t = summary.get("threshold")
     lines.append(f"{summary['n_flagged']} of {summary['n_scans']} scans flagged at alpha={summary['alpha']:g} "
                  f"(threshold {'none' if t is None else f'{t:.4g}'})")
+    decision = summary.get("decision")
+    if decision:
+        from .threshold import format_rate
+
+        lo, hi = decision["far_interval"]
+        lines.append(f"threshold basis: {decision['basis']} on {decision['n']} good scans; predicted false-alarm "
+                     f"rate {format_rate(decision['predicted_far'])} ({100 * decision['far_interval_level']:.0f} % "
+                     f"interval {format_rate(lo)} to {format_rate(hi)})")
+        if decision.get("note"):
+            lines.append(f"note: {decision['note']}")
     m = summary.get("metrics", {})
     bits = []
     for key in ("auroc", "aupr", "point_auroc", "ray_point_auroc", "precision", "recall", "f1", "false_alarm_rate"):

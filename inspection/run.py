@@ -9,6 +9,7 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 COLLECTION_SUFFIXES = (".h5", ".hdf5")
+DEFAULT_ALPHA = 0.01  # the false-alarm rate calibrate stores unless told otherwise
 RESULT_FILES = ("scores.csv", "summary.json", "roc.png", "scores.png")
 
 
@@ -199,7 +200,7 @@ def check_sensor_origins(scans, data):
                               f"<stem>.json sidecar {{\"sensor_origin\": [x, y, z]}}); calibrate without --rays")
 
 
-def calibrate(model, data, alpha=0.01, aggregate=None, point_score=None, noise=None, split=None, progress=True,
+def calibrate(model, data, alpha=DEFAULT_ALPHA, aggregate=None, point_score=None, noise=None, split=None, progress=True,
               write=True, projection="default", rays=False, ray_options=None):
     """Calibrate ``model`` on good scans and store the calibration in the model file. Returns (Inspector, info).
 
@@ -236,12 +237,52 @@ def calibrate(model, data, alpha=0.01, aggregate=None, point_score=None, noise=N
     insp.fit_components(components, [s.name for s in scans])
     if write:
         write_calibration(handle.path, insp.calibration(source=f"{how}", fingerprint=info.get("fingerprint", "")))
-    return insp, {"n": len(scans), "how": how, "threshold": insp.threshold_}
+    return insp, {"n": len(scans), "how": how, "threshold": insp.threshold_, "decision": insp.decision_threshold_}
+
+
+def describe_calibration(insp, info):
+    """The lines the command line prints after calibrating: what it did and, when the threshold is extrapolated or
+    coarser than asked, the one line that says so."""
+    t = insp.decision_threshold_
+    lines = [f"calibrated on {info['n']} scans ({info['how']}): aggregate {insp.aggregate}, point score "
+             f"{insp.point_score}{' + ray score' if insp.rays else ''}; threshold {t.value:.4g} at alpha={t.alpha:g} "
+             f"({t.basis})"]
+    if t.note:
+        lines.append(f"note: {t.note}")
+    return lines
+
+
+def _calibrate_for_scoring(handle, data, alpha, progress, echo):
+    """An uncalibrated model scored on its own training collection: calibrate on the held-back good scans with the
+    defaults (stored in the model file, as ``calibrate`` would) and say so; anything else is an InspectionError."""
+    from .model_io import load_model
+
+    data = Path(data)
+    fingerprint = ""
+    if data.suffix.lower() in COLLECTION_SUFFIXES and data.is_file():
+        from datasets import ScanCollection
+
+        with ScanCollection(data) as c:
+            fingerprint = c.fingerprint()
+    if not (handle.fingerprint and fingerprint == handle.fingerprint and handle.heldback_names):
+        raise InspectionError(f"{handle.path}: the model is not calibrated, and {data} is not its training collection "
+                              f"with held-back scans; run `python -m inspection calibrate --model {handle.path} "
+                              f"--data GOOD_SCANS` first")
+    echo(f"{handle.path} is not calibrated: calibrating on its {len(handle.heldback_names)} held-back good scans "
+         f"of {data} first (stored in the model file)")
+    insp, info = calibrate(handle.path, data, alpha=DEFAULT_ALPHA if alpha is None else alpha, progress=progress)
+    for line in describe_calibration(insp, info):
+        echo(line)
+    handle.calibration = load_model(handle.path).calibration
+    return insp
 
 
 def score(model, data, out, split="test", alpha=None, maps="flagged", align=False, reference=None, progress=True,
           overwrite=False, echo=print):
     """Score scans against a calibrated model and write scores.csv, summary.json, roc.png, scores.png, maps/.
+
+    A model that is not calibrated yet is calibrated first on its held-back good scans when ``data`` is its training
+    collection (and says so); otherwise that is an error naming the command to run.
 
     Returns
     -------
@@ -260,11 +301,12 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
         raise InspectionError(f"--maps must be flagged, all or none, got {maps!r}")
     handle = load_model(model)
     if handle.calibration is None:
-        raise InspectionError(f"{handle.path}: the model is not calibrated; run `python -m inspection calibrate "
-                              f"--model {handle.path} --data GOOD_SCANS` first")
+        insp = _calibrate_for_scoring(handle, data, alpha, progress, echo)
+    else:
+        insp = Inspector(handle.model, alpha=handle.calibration.alpha if alpha is None else alpha)
+        insp.set_calibration(handle.calibration)
     cal = handle.calibration
-    alpha = cal.alpha if alpha is None else alpha
-    insp = Inspector(handle.model, alpha=alpha).set_calibration(cal)
+    alpha = insp.alpha
     scans, info = load_scans(data, handle.frame, split=split, model_fingerprint=handle.fingerprint)
     if not scans:
         raise InspectionError(f"{data}: no scans" + (f" in split {split!r}" if split else ""))
@@ -303,7 +345,9 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
             n_maps += 1
     extra = {"model": str(handle.path), "model_kind": handle.kind, "data": str(data), "split": split,
              "aggregate": insp.aggregate, "point_score": insp.point_score, "noise": insp.noise,
-             "projection": insp.projection, "n_calibration": insp.n_calibration_, "calibration_source": cal.source, "aligned": bool(align),
+             "projection": insp.projection, "n_calibration": insp.n_calibration_,
+             "calibration_source": cal.source if cal is not None else "held-back scans, calibrated by score",
+             "decision": insp.decision_threshold_.as_dict(), "aligned": bool(align),
              "seconds_per_scan": float(np.mean(seconds)), "maps": n_maps,
              "higher_score_means": "more anomalous",
              "rays": None if not insp.rays else {
@@ -323,7 +367,7 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
     known = labels != "unknown"
     plot_roc(out / "roc.png", (labels[known] == "defective").astype(int), sc[known],
              np.array([r["defect"] for r in rows])[known])
-    plot_score_histograms(out / "scores.png", sc, labels, insp.threshold_, insp.calibration_scores_)
+    plot_score_histograms(out / "scores.png", sc, labels, insp.decision_threshold_, insp.calibration_scores_)
     if n_maps:
         write_legend(maps_dir / "legend.png")
         if insp.rays:

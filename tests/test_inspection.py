@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from inspection import Inspector, NotFittedError, aggregate, conformal_p_values, conformal_threshold, point_scores
-from inspection.calibration import Calibration, SmallCalibrationWarning
+from inspection.calibration import Calibration
 
 
 # ---------------------------------------------------------------------------------------------- test doubles
@@ -103,48 +103,6 @@ def test_aggregates():
     for bad in ("top0", "top150", "worst", "q", 5):
         with pytest.raises(ValueError, match="aggregate"):
             aggregate(v, bad)
-
-
-# ---------------------------------------------------------------------------------------------- calibration
-def test_p_values_by_hand_with_ties():
-    cal = [1.0, 2.0, 2.0, 3.0]  # n = 4
-    p = conformal_p_values(cal, [0.5, 1.0, 2.0, 2.5, 3.0, 3.5])
-    # (1 + #{c >= s}) / 5
-    np.testing.assert_allclose(p, [5 / 5, 5 / 5, 4 / 5, 2 / 5, 2 / 5, 1 / 5])
-
-
-def test_threshold_by_hand():
-    cal = np.arange(1.0, 20.0)  # 1..19, n = 19
-    # alpha 0.1: k = floor(0.1 * 20 - 1) = 1 -> flagged iff at most one calibration score >= s -> s > 18
-    assert conformal_threshold(cal, 0.1) == 18.0
-    # alpha 0.05: k = 0 -> s > 19
-    assert conformal_threshold(cal, 0.05) == 19.0
-    # ties at the threshold: with 18 twice, s = 18.5 has two scores >= it and p = 3/20 > 0.1
-    cal2 = np.r_[np.arange(1.0, 18.0), 18.0, 18.0]
-    t = conformal_threshold(cal2, 0.1)
-    assert t == 18.0 and conformal_p_values(cal2, [18.0 + 1e-9])[0] == pytest.approx(1 / 20)
-
-
-def test_threshold_too_few_scans_warns(caplog):
-    with pytest.warns(SmallCalibrationWarning, match="too few"):
-        t = conformal_threshold([1.0, 2.0, 3.0], 0.01)  # 1/(n+1) = 0.25 > 0.01
-    assert t == math.inf
-    assert "too few" in caplog.text
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        conformal_threshold(np.arange(99.0), 0.01)  # 1/100 = alpha: enough, no warning
-
-
-def test_threshold_agrees_with_p_values_randomly():
-    rng = np.random.default_rng(1)
-    for n in (9, 19, 50, 99, 200):
-        cal = np.round(rng.normal(size=n), 1)  # rounded: many ties
-        s = np.round(rng.normal(size=300) * 1.5, 1)
-        for alpha in (0.01, 0.05, 0.1, 0.2):
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", SmallCalibrationWarning)
-                t = conformal_threshold(cal, alpha)
-            np.testing.assert_array_equal(s > t, conformal_p_values(cal, s) <= alpha)
 
 
 def test_alpha_validated():
@@ -279,7 +237,6 @@ def test_distance_point_score_undoes_saturation():
         field_quantity(MeanOnly(), x, "distance")
 
 
-@pytest.mark.filterwarnings("ignore::inspection.calibration.SmallCalibrationWarning")  # tiny calibration on purpose
 def test_local_inspector_needs_reference():
     insp = Inspector(SphereModel(), point_score="local")
     with pytest.raises(NotFittedError, match="reference"):

@@ -114,10 +114,29 @@ def _error(argv, capsys):
     return err
 
 
-def test_uncalibrated_model(workdir, tmp_path, capsys):
-    err = _error(["score", "--model", str(workdir / "model.pt"), "--data", str(workdir / "tree.h5"),
-                  "--out", str(tmp_path / "r")], capsys)
-    assert "not calibrated" in err and "model.pt" in err
+def test_score_calibrates_an_uncalibrated_model_on_its_held_back_scans(workdir, tmp_path, capsys):
+    model = tmp_path / "model.pt"
+    model.write_bytes((workdir / "model.pt").read_bytes())
+    out = tmp_path / "r"
+    assert main(["score", "--model", str(model), "--data", str(workdir / "tree.h5"), "--out", str(out),
+                 "--quiet"]) == 0
+    said = capsys.readouterr().out
+    assert "is not calibrated: calibrating on its 3 held-back good scans" in said
+    cal = read_calibration(model)  # stored, as `calibrate` would have
+    assert sorted(cal.names) == [f"train/good/{i:03d}" for i in range(3, 6)] and cal.alpha == 0.01
+    summary = json.loads((out / "summary.json").read_text())
+    decision = summary["decision"]
+    assert decision["n"] == 3 and decision["basis"] == "log-normal" and decision["alpha"] == 0.01
+    assert summary["threshold"] == pytest.approx(decision["value"]) and "99" in decision["note"]
+    assert "threshold basis: log-normal on 3 good scans" in said and "note: 3 calibration scans" in said
+
+
+def test_uncalibrated_model_on_other_data_is_an_error(workdir, tmp_path, capsys):
+    other = tmp_path / "other.h5"
+    ScanCollection.create(other, [_scan("test/good/000", "test", "good")], frame=FRAME)
+    err = _error(["score", "--model", str(workdir / "model.pt"), "--data", str(other), "--out", str(tmp_path / "r")],
+                 capsys)
+    assert "not calibrated" in err and "model.pt" in err and "calibrate" in err
 
 
 def test_bad_inputs(workdir, tmp_path, capsys):

@@ -1,0 +1,285 @@
+"""Thresholds from the scores of good scans: exact split-conformal when there are enough, a log-normal predictive
+tail when there are not, each with the false-alarm rate it implies and a probability interval for it.
+
+Split-conformal (the rule when there are enough scans)
+------------------------------------------------------
+With n calibration scores c_1..c_n of good scans the model did not train on, the p-value of a score s is
+
+    p(s) = (1 + #{i : c_i >= s}) / (n + 1).
+
+If good scans are exchangeable, P(p(s) <= alpha) <= alpha for a new good scan. Flagging p <= alpha is flagging
+s > t, t the (k+1)-th largest calibration score with k = floor(alpha (n + 1) - 1); the false-alarm rate averaged over
+calibration draws is (k + 1) / (n + 1), and the rate of one fixed threshold, F_bar(t), is Beta(k + 1, n - k)
+distributed whatever the score's distribution (the coverage of an order statistic). It needs k >= 0, i.e.
+n >= 1 / alpha - 1: 99 good scans for alpha = 0.01.
+
+Log-normal predictive tail (fewer scans than that)
+--------------------------------------------------
+Scan scores here are positive and right-skewed (a mean of the worst point scores); their logarithm is modelled as
+Normal(mu, sigma^2), both unknown. With y_i = log c_i, mean m and standard deviation s (n - 1 degrees of freedom),
+a new good scan's y satisfies (y - m) / (s sqrt(1 + 1/n)) ~ Student t_{n-1} exactly (the predictive distribution).
+So
+
+    t = exp(m + t_{n-1}(1 - alpha) s sqrt(1 + 1/n)),   p(s) = T_{n-1, sf}((log s - m) / (s sqrt(1 + 1/n)))
+
+flag a new good scan with probability exactly alpha, averaged over calibration draws, for any n >= 3. One threshold's
+own rate, F_bar(t) = Phi_bar(Z + q W) with Z = (m - mu) / sigma ~ N(0, 1/n), W = s / sigma ~ sqrt(chi2_{n-1} /
+(n - 1)) and q = t_{n-1}(1 - alpha) sqrt(1 + 1/n), has a distribution free of mu and sigma; its quantiles are what
+:class:`Threshold` reports as ``far_interval``. The log-normal shape is an assumption, not a theorem: the benchmark
+(``benchmarks/verdicts.py``) measures the rate it gives on good test scans of several parts.
+"""
+import logging
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+BASES = ("conformal", "log-normal")
+FAR_INTERVAL_LEVEL = 0.9  # probability of the reported false-alarm interval
+MIN_TAIL_SCANS = 3  # the t-predictive needs n - 1 >= 2 degrees of freedom to have a finite variance
+_TOL = 1e-9
+_FAR_FLOOR = 1e-12  # rates below this are reported as 0
+
+
+def check_alpha(alpha):
+    """``alpha`` as a float in (0, 1), or a ValueError naming it."""
+    try:
+        alpha = float(alpha)
+    except (TypeError, ValueError):
+        raise ValueError(f"alpha must be a number in (0, 1), got {alpha!r}") from None
+    if not 0 < alpha < 1:
+        raise ValueError(f"alpha must be in (0, 1), got {alpha!r}")
+    return alpha
+
+
+def _scores(calibration_scores):
+    cal = np.asarray(calibration_scores, dtype=np.float64).reshape(-1)
+    if len(cal) == 0:
+        raise ValueError("calibration_scores is empty: calibrate on at least one good scan")
+    if not np.all(np.isfinite(cal)):
+        raise ValueError("calibration_scores must be finite numbers")
+    return cal
+
+
+def conformal_p_values(calibration_scores, scores):
+    """Split-conformal p-values of ``scores`` against the calibration scores (ties count as at least as extreme).
+
+    Parameters
+    ----------
+    calibration_scores : (n,) array
+        Anomaly scores of good held-out scans (higher = more anomalous), n >= 1.
+    scores : (m,) array
+        Anomaly scores to test.
+
+    Returns
+    -------
+    (m,) float64 array in [1 / (n + 1), 1]
+    """
+    cal = np.sort(_scores(calibration_scores))
+    s = np.asarray(scores, dtype=np.float64).reshape(-1)
+    at_least = len(cal) - np.searchsorted(cal, s, side="left")  # #{c >= s}
+    return (1.0 + at_least) / (len(cal) + 1.0)
+
+
+def allowed_exceedances(n, alpha):
+    """k = floor(alpha (n + 1) - 1): a score is flagged iff at most k calibration scores are >= it (-1: never)."""
+    return int(math.floor(alpha * (n + 1) - 1 + _TOL))
+
+
+def conformal_threshold(calibration_scores, alpha):
+    """The split-conformal threshold t with ``p(s) <= alpha  <=>  s > t`` (ties included).
+
+    Returns
+    -------
+    float
+        The (k+1)-th largest calibration score, k = :func:`allowed_exceedances`; +inf when k < 0 (too few scores:
+        nothing can be flagged), -inf when k >= n.
+    """
+    alpha = check_alpha(alpha)
+    cal = np.sort(_scores(calibration_scores))[::-1]
+    k = allowed_exceedances(len(cal), alpha)
+    if k < 0:
+        return math.inf
+    if k >= len(cal):
+        return -math.inf
+    return float(cal[k])
+
+
+def _log_stats(calibration_scores):
+    """(mean, standard deviation, n) of the log scores; a ValueError when a score is not positive."""
+    cal = _scores(calibration_scores)
+    if np.any(cal <= 0):
+        raise ValueError(f"the log-normal tail needs positive scores; got a minimum of {cal.min():.4g}")
+    y = np.log(cal)
+    return float(y.mean()), float(max(y.std(ddof=1), 1e-12 * max(1.0, abs(y.mean())))), len(y)
+
+
+def _tail_factor(n, alpha):
+    from scipy import stats
+
+    return float(stats.t.ppf(1 - alpha, n - 1) * math.sqrt(1 + 1 / n))
+
+
+def lognormal_threshold(calibration_scores, alpha):
+    """exp(m + t_{n-1}(1 - alpha) s sqrt(1 + 1/n)) of the log scores (module docstring); needs n >= 3."""
+    alpha = check_alpha(alpha)
+    m, s, n = _log_stats(calibration_scores)
+    if n < MIN_TAIL_SCANS:
+        raise ValueError(f"the log-normal tail needs >= {MIN_TAIL_SCANS} calibration scores, got {n}")
+    return float(math.exp(m + _tail_factor(n, alpha) * s))
+
+
+def lognormal_p_values(calibration_scores, scores):
+    """Predictive p-values P(Y_new >= log s) of ``scores`` under the log-normal fit (module docstring): (m,)."""
+    from scipy import stats
+
+    m, s, n = _log_stats(calibration_scores)
+    x = np.asarray(scores, dtype=np.float64).reshape(-1)
+    with np.errstate(divide="ignore"):
+        y = np.log(np.maximum(x, 0.0))  # a score <= 0 is as normal as it gets: p = 1
+    return stats.t.sf((y - m) / (s * math.sqrt(1 + 1 / n)), n - 1)
+
+
+def _lognormal_far_cdf(a, n, q):
+    """P(F_bar(t) <= a) for the log-normal threshold with factor q from n scores (module docstring)."""
+    from scipy import integrate, stats
+
+    z_a = stats.norm.isf(a)
+    chi = stats.chi(n - 1)
+    scale = math.sqrt(n - 1)
+
+    def integrand(u):  # u ~ chi_{n-1}; W = u / sqrt(n - 1)
+        return stats.norm.sf(math.sqrt(n) * (z_a - q * u / scale)) * chi.pdf(u)
+
+    lo, hi = chi.ppf(1e-12), chi.ppf(1 - 1e-12)
+    return float(integrate.quad(integrand, lo, hi, limit=200, epsabs=1e-12)[0])
+
+
+def lognormal_far_interval(n, alpha, level=FAR_INTERVAL_LEVEL):
+    """The central ``level`` probability interval of the false-alarm rate F_bar(t) of a log-normal threshold."""
+    from scipy import optimize
+
+    q = _tail_factor(n, alpha)
+    out = []
+    for target in ((1 - level) / 2, (1 + level) / 2):
+        f = lambda log_a: _lognormal_far_cdf(math.exp(log_a), n, q) - target  # noqa: E731
+        lo, hi = math.log(_FAR_FLOOR), math.log(1 - 1e-6)
+        # with very few scores the rate can be below any floor with probability > target: report 0
+        out.append(0.0 if f(lo) >= 0 else float(math.exp(optimize.brentq(f, lo, hi, xtol=1e-10))))
+    return out[0], out[1]
+
+
+def conformal_far_interval(n, alpha, level=FAR_INTERVAL_LEVEL):
+    """The central ``level`` interval of Beta(k + 1, n - k), the false-alarm rate of a conformal threshold."""
+    from scipy import stats
+
+    k = allowed_exceedances(n, alpha)
+    if k < 0:
+        return 0.0, 0.0
+    if k >= n:
+        return 1.0, 1.0
+    dist = stats.beta(k + 1, n - k)
+    return float(dist.ppf((1 - level) / 2)), float(dist.ppf((1 + level) / 2))
+
+
+@dataclass
+class Threshold:
+    """A decision threshold on scan scores, and what it is based on.
+
+    Attributes
+    ----------
+    value : float
+        A scan is defective when its score > value (+inf: nothing can be flagged).
+    alpha : float
+        The false-alarm rate asked for.
+    basis : {'conformal', 'log-normal'}
+        Exact split-conformal, or extrapolated with the log-normal predictive tail (module docstring).
+    n : int
+        Calibration scores it rests on.
+    predicted_far : float
+        False-alarm rate on good scans, averaged over calibration draws: (k + 1) / (n + 1) or alpha.
+    far_interval : (2,) floats
+        ``FAR_INTERVAL_LEVEL`` probability interval of this threshold's own false-alarm rate.
+    note : str
+        One line for the user when the threshold is not exact split-conformal at alpha ('' otherwise).
+    alpha_used : float
+        The rate the p-values are compared with: ``alpha``, or 1 / (n + 1) when fewer than ``MIN_TAIL_SCANS`` scores
+        allow nothing smaller. ``p <= alpha_used`` exactly when ``score > value``.
+    """
+
+    value: float
+    alpha: float
+    basis: str
+    n: int
+    predicted_far: float
+    far_interval: tuple
+    note: str = ""
+    alpha_used: float = None
+
+    def __post_init__(self):
+        if self.alpha_used is None:
+            self.alpha_used = self.alpha
+
+    def as_dict(self):
+        d = asdict(self)
+        d["value"] = None if not math.isfinite(self.value) else float(self.value)
+        d["far_interval"] = [float(v) for v in self.far_interval]
+        d["far_interval_level"] = FAR_INTERVAL_LEVEL
+        return d
+
+
+def format_rate(rate):
+    """A rate as a short percentage for one-line notes: '1 %', '0.072 %', '<0.001 %'."""
+    return "<0.001 %" if 0 < rate < 1e-5 else f"{100 * rate:.2g} %"
+
+
+def fit_threshold(calibration_scores, alpha, basis="auto"):
+    """The threshold at false-alarm rate ``alpha`` from good scans' scores.
+
+    Parameters
+    ----------
+    calibration_scores : (n,) array
+        Scores of good scans the model did not train on (higher = more anomalous).
+    alpha : float in (0, 1)
+    basis : {'auto', 'conformal', 'log-normal'}
+        ``'auto'``: split-conformal when n >= 1 / alpha - 1 (it can reach alpha), else the log-normal tail (n >= 3
+        positive scores), else conformal at its smallest reachable rate, 1 / (n + 1).
+
+    Returns
+    -------
+    Threshold
+    """
+    alpha = check_alpha(alpha)
+    cal = _scores(calibration_scores)
+    n = len(cal)
+    if basis not in ("auto",) + BASES:
+        raise ValueError(f"basis must be 'auto' or one of {BASES}, got {basis!r}")
+    need = math.ceil(1 / alpha - 1 - _TOL)
+    if basis == "conformal" or (basis == "auto" and allowed_exceedances(n, alpha) >= 0):
+        k = allowed_exceedances(n, alpha)
+        note = "" if k >= 0 else (f"{n} calibration scans are too few for alpha={alpha:g} (a conformal threshold "
+                                  f"needs {need}): nothing can be flagged")
+        return Threshold(conformal_threshold(cal, alpha), alpha, "conformal", n,
+                         0.0 if k < 0 else min(1.0, (k + 1) / (n + 1)), conformal_far_interval(n, alpha), note)
+    if n >= MIN_TAIL_SCANS and np.all(cal > 0):
+        lo, hi = lognormal_far_interval(n, alpha)
+        note = (f"{n} calibration scans are fewer than the {need} an exact conformal threshold at alpha={alpha:g} "
+                f"needs: threshold extrapolated from a log-normal fit of their scores (predicted false-alarm rate "
+                f"{format_rate(alpha)}, {100 * FAR_INTERVAL_LEVEL:.0f} % interval {format_rate(lo)} to {format_rate(hi)})")
+        return Threshold(lognormal_threshold(cal, alpha), alpha, "log-normal", n, alpha, (lo, hi), note)
+    if basis == "log-normal":
+        raise ValueError(f"the log-normal tail needs >= {MIN_TAIL_SCANS} positive calibration scores, got {n}")
+    reach = 1 / (n + 1)
+    note = (f"{n} calibration scan(s) are too few for alpha={alpha:g}: using the smallest reachable rate, "
+            f"{reach:.3g} (the largest calibration score); calibrate on at least {MIN_TAIL_SCANS} good scans")
+    return Threshold(float(cal.max()), alpha, "conformal", n, reach, conformal_far_interval(n, reach), note,
+                     alpha_used=reach)
+
+
+def threshold_p_values(threshold, calibration_scores, scores):
+    """p-values of ``scores`` on the threshold's basis: flagging p <= alpha is flagging score > threshold."""
+    if threshold.basis == "log-normal":
+        return lognormal_p_values(calibration_scores, scores)
+    return conformal_p_values(calibration_scores, scores)
