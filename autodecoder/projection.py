@@ -52,6 +52,9 @@ class ProjectionOptions:
         Steps of fine-tuning copies of both nets on the scan's GP targets after the projection (0: none).
     finetune_lr : float
         Peak learning rate of the fine-tuning.
+    exclude : tuple of int
+        Training-code indices left out of the candidate starts: a training scan projected as if it were new
+        (cross-fitted calibration), without starting from the code it was trained with.
     """
 
     steps: int = 60
@@ -65,6 +68,7 @@ class ProjectionOptions:
     trim: float = 0.0
     finetune_steps: int = 0
     finetune_lr: float = 1e-4
+    exclude: tuple = ()
 
 
 @dataclass
@@ -216,14 +220,13 @@ def project(model, points, normals=None, *, seed=0, quiet=True, **options):
     return project_many(model, [(points, normals)], seed=seed, batch=1, quiet=quiet, **options)[0]
 
 
-def _candidates(model, max_candidates):
-    codes = model.codes
-    if len(codes) > max_candidates:
-        codes = codes[np.linspace(0, len(codes) - 1, max_candidates).round().astype(int)]
-        index = np.linspace(0, len(model.codes) - 1, max_candidates).round().astype(int)
-    else:
-        index = np.arange(len(codes))
-    return torch.cat([model.code_mean[None], codes]), np.concatenate([[-1], index])
+def _candidates(model, max_candidates, exclude=()):
+    """Candidate starts: the mean code and up to ``max_candidates`` training codes (evenly spread), none of the
+    ``exclude``d ones. Returns ((C, L) codes, (C,) training-code index, -1 for the mean code)."""
+    index = np.setdiff1d(np.arange(len(model.codes)), np.asarray(exclude, dtype=int))
+    if len(index) > max_candidates:
+        index = index[np.linspace(0, len(index) - 1, max_candidates).round().astype(int)]
+    return torch.cat([model.code_mean[None], model.codes[index]]), np.concatenate([[-1], index])
 
 
 def _project_batch(model, prepared, opts, seed):
@@ -242,7 +245,7 @@ def _project_batch(model, prepared, opts, seed):
         idx = [torch.from_numpy(rng.integers(0, n, k)) for n in sizes]
         return (torch.stack([p[i] for p, i in zip(pts, idx)]), torch.stack([q[i] for q, i in zip(nrm, idx)]))
 
-    cand, cand_index = _candidates(model, opts.max_candidates)  # (C, L)
+    cand, cand_index = _candidates(model, opts.max_candidates, opts.exclude)  # (C, L)
     c, latent = cand.shape
     starts = min(opts.starts, c)
     with torch.no_grad():

@@ -21,6 +21,9 @@ class Calibration:
         Anomaly scores of the good calibration scans.
     names : list of str
         Their scan names.
+    roles : list of str
+        For each, ``'held-back'`` (a good scan the model did not train on) or ``'cross-fitted'`` (a training scan
+        scored as if new, :meth:`inspection.Inspector.fit`); empty in records written before roles existed.
     aggregate, point_score : str
         How the scores were computed (see :mod:`inspection.scores`); scoring must use the same.
     noise : float or None
@@ -43,6 +46,7 @@ class Calibration:
     fingerprint: str = ""
     version: int = CALIBRATION_VERSION
     extra: dict = field(default_factory=dict)
+    roles: List[str] = field(default_factory=list)
 
     def threshold(self, alpha=None):
         """The :class:`inspection.threshold.Threshold` of these scores at ``alpha`` (default: the stored one)."""

@@ -7,7 +7,7 @@ import numpy as np
 from .calibration import Calibration
 from .threshold import check_alpha, fit_threshold, threshold_p_values
 from .scores import (POINT_SCORES, REFERENCE_QUANTITY, LocalReference, aggregate as aggregate_scores, check_aggregate,
-                     point_scores)
+                     field_quantity, point_scores)
 
 log = logging.getLogger(__name__)
 
@@ -21,6 +21,19 @@ DEFAULT_PROJECTION = {"steps": 60, "starts": 2, "explore": 20, "max_candidates":
 
 from sklearn.base import BaseEstimator
 from sklearn.exceptions import NotFittedError
+
+
+@dataclass
+class _Projected:
+    """A scan projected into the model: its name, points (m, 3), field, sensor origin (with rays), and for
+    reference-based point scores the compared quantity (m,) and the field's variance in its units (m,)."""
+
+    name: str
+    points: np.ndarray
+    field: object
+    origin: object = None
+    value: np.ndarray = None
+    variance: np.ndarray = None
 
 
 @dataclass
@@ -120,6 +133,8 @@ class Inspector(BaseEstimator):
     calibration_scores_ : (n,) array
         Anomaly scores of the calibration scans.
     calibration_names_ : list of str
+    calibration_roles_ : list of str
+        ``'held-back'`` or ``'cross-fitted'`` for each calibration scan (:meth:`fit`).
     threshold_ : float
         Scans with anomaly score > threshold_ are defective.
     decision_threshold_ : inspection.threshold.Threshold
@@ -179,22 +194,44 @@ class Inspector(BaseEstimator):
         """Like :meth:`inspect`, but ``score`` is the point score's aggregate alone; works unfitted (except for
         point scores ``'distance'`` and ``'local'``, which need their reference)."""
         self._check_params()
-        points, normals = _points_normals(scan)
-        if points.ndim != 2 or points.shape[-1] != 3 or len(points) == 0:
-            raise ValueError(f"{_scan_name(scan, 0)}: a scan needs (m >= 1, 3) points, got shape {points.shape}")
-        origin = _sensor_origin(scan, 0) if self.rays else None  # before the projection: fail fast
-        field = field_for(self.model, points, normals, self.projection)
-        reference = getattr(self, "reference_", None)
-        if self.point_score in REFERENCE_QUANTITY and reference is None:
+        if self.point_score in REFERENCE_QUANTITY and getattr(self, "reference_", None) is None:
             raise NotFittedError(f"point_score {self.point_score!r} needs the per-location reference: call "
                                  "fit(good_scans, reference_scans=...) or fit_reference(scans) first")
-        values = point_scores(field, points, kind=self.point_score, noise=self.noise, reference=reference)
+        good = self._project(scan, 0)
+        return self._score(good, getattr(self, "reference_", None))
+
+    def _project(self, scan, i, exclude_own_code=False):
+        """Project one scan: a :class:`_Projected` with its field and, for reference-based point scores, the
+        compared quantity and the field's variance in its units. ``exclude_own_code``: a training scan of a latent
+        model is projected without starting from the code it was trained with (cross-fitting)."""
+        points, normals = _points_normals(scan)
+        name = _scan_name(scan, i)
+        if points.ndim != 2 or points.shape[-1] != 3 or len(points) == 0:
+            raise ValueError(f"{name}: a scan needs (m >= 1, 3) points, got shape {points.shape}")
+        origin = _sensor_origin(scan, i) if self.rays else None  # before the projection: fail fast
+        options = self.projection
+        train_names = getattr(self.model, "train_names", None)
+        if exclude_own_code and train_names and name in train_names:
+            options = {**(options or {}), "exclude": (train_names.index(name),)}
+        field = field_for(self.model, points, normals, options)
+        value = variance = None
+        if self.point_score in REFERENCE_QUANTITY:
+            value, variance = field_quantity(field, points, REFERENCE_QUANTITY[self.point_score], with_variance=True)
+        return _Projected(name, np.asarray(points, dtype=np.float64), field, origin, value, variance)
+
+    def _score(self, good, reference):
+        """A :class:`ScanResult` of a projected scan against ``reference`` (components: points, rays)."""
+        if self.point_score in REFERENCE_QUANTITY:
+            noise = float(getattr(good.field, "noise", 0.0) if self.noise is None else self.noise)
+            values = reference.standardized(good.points, good.value, good.variance, noise)
+        else:
+            values = point_scores(good.field, good.points, kind=self.point_score, noise=self.noise)
         score = aggregate_scores(values, self.aggregate)
-        result = ScanResult(score, values, field, components={"points": score})
+        result = ScanResult(score, values, good.field, components={"points": score})
         if self.rays:
             from .ray_evidence import check_ray_options, ray_evidence
 
-            result.rays = ray_evidence(field, points, origin, **check_ray_options(self.ray_options))
+            result.rays = ray_evidence(good.field, good.points, good.origin, **check_ray_options(self.ray_options))
             result.components["rays"] = result.rays.score
         return result
 
@@ -224,19 +261,27 @@ class Inspector(BaseEstimator):
     # ------------------------------------------------------------------------------------------------ fitting
     def fit_reference(self, scans, max_points=60000, seed=0):
         """Build ``reference_`` (for point scores ``'distance'`` and ``'local'``) from good scans, each projected as
-        a test scan would be; the model's training scans are the natural choice. Returns self."""
-        pairs = []
-        for scan in scans:
-            points, normals = _points_normals(scan)
-            pairs.append((points, field_for(self.model, points, normals, self.projection)))
-        if not pairs:
+        a test scan would be (a training scan without starting from its own trained code); the model's training
+        scans are the natural choice. They are kept for the cross-fitted calibration of :meth:`fit`. Returns self."""
+        if self.point_score not in REFERENCE_QUANTITY:
+            raise ValueError(f"point_score {self.point_score!r} uses no per-location reference")
+        goods = [self._project(s, i, exclude_own_code=True) for i, s in enumerate(scans)]
+        if not goods:
             raise ValueError("fit_reference needs at least one good scan, got none")
-        self.reference_ = LocalReference.from_fields(pairs, max_points=max_points, seed=seed,
-                                                     quantity=REFERENCE_QUANTITY.get(self.point_score, "mean"))
+        self.reference_ = LocalReference.from_values([(g.points, g.value) for g in goods], max_points=max_points,
+                                                     seed=seed, quantity=REFERENCE_QUANTITY[self.point_score])
+        self._reference_scans = goods
         return self
 
-    def fit(self, good_scans, y=None, names=None, reference_scans=None):
-        """Calibrate on good scans the model did NOT train on (held-back or validation scans).
+    def fit(self, good_scans, y=None, names=None, reference_scans=None, cross_fit=True):
+        """Calibrate on good scans: the ones given, which the model did NOT train on (held-back or validation
+        scans), and, with a per-location reference, the reference scans themselves, cross-fitted.
+
+        Cross-fitting: each reference scan (usually a training scan) is projected without its own trained code and
+        scored against the reference without its own points, as if it were new. Thresholds need many good scores
+        (:mod:`inspection.threshold`), and the held-back scans alone are few. The weight of the field's variance in
+        the point score (``reference_.variance_scale``, :meth:`LocalReference.fit_variance_scale`) is fitted on the
+        same scans' residuals first.
 
         Parameters
         ----------
@@ -247,6 +292,9 @@ class Inspector(BaseEstimator):
         reference_scans : sequence of Scan, optional
             Good scans for the per-location reference (point scores ``'distance'``, ``'local'``; required then, unless
             ``reference_`` is already set): usually the model's training scans.
+        cross_fit : bool
+            Also calibrate on the reference scans, cross-fitted (needs the scans the reference was built from
+            in this session; with rays, their sensor origins).
 
         Returns
         -------
@@ -258,15 +306,41 @@ class Inspector(BaseEstimator):
         elif self.point_score in REFERENCE_QUANTITY and getattr(self, "reference_", None) is None:
             raise ValueError(f"point_score={self.point_score!r} needs reference_scans (good scans, e.g. the training "
                              "scans)")
-        good_scans = list(good_scans)
-        if not good_scans:
+        held = [self._project(s, i) for i, s in enumerate(good_scans)]  # lazily: good_scans may be a progress bar
+        if not held:
             raise ValueError("fit needs at least one good calibration scan, got none")
-        components = [self.inspect_components(s).components for s in good_scans]
-        names = [_scan_name(s, i) for i, s in enumerate(good_scans)] if names is None else list(names)
-        return self.fit_components(components, names)
+        names = [g.name for g in held] if names is None else list(names)
+        if self.point_score not in REFERENCE_QUANTITY:
+            return self.fit_components([self._score(g, None).components for g in held], names)
+        crossed = list(getattr(self, "_reference_scans", [])) if cross_fit else []
+        if self.rays and any(g.origin is None for g in crossed):
+            crossed = []
+        references = [self.reference_] * len(held) + [self.reference_.without(j) for j in range(len(crossed))]
+        goods = held + crossed
+        self.reference_.variance_scale = self._fit_variance_scale(goods, references)
+        components = []
+        for good, reference in zip(goods, references):
+            reference.variance_scale = self.reference_.variance_scale
+            components.append(self._score(good, reference).components)
+        roles = ["held-back"] * len(held) + ["cross-fitted"] * len(crossed)
+        return self.fit_components(components, names + [g.name for g in crossed], roles)
 
-    def fit_components(self, components, names):
-        """Calibrate from the ``components`` of :meth:`inspect_components` (one dict per good calibration scan).
+    def _fit_variance_scale(self, goods, references):
+        """:meth:`LocalReference.fit_variance_scale` on the residuals of good projected scans against the references
+        they are scored with."""
+        residuals, base, field_var = [], [], []
+        for good, reference in zip(goods, references):
+            m_ref, s_ref = reference.stats(good.points)
+            noise = float(getattr(good.field, "noise", 0.0) if self.noise is None else self.noise)
+            residuals.append(good.value - m_ref)
+            base.append(s_ref**2 + noise**2)
+            field_var.append(good.variance)
+        return LocalReference.fit_variance_scale(np.concatenate(residuals), np.concatenate(base),
+                                                 np.concatenate(field_var))
+
+    def fit_components(self, components, names, roles=None):
+        """Calibrate from the ``components`` of :meth:`inspect_components` (one dict per good calibration scan);
+        ``roles`` says for each whether it was held back or cross-fitted (default: held back).
 
         Without rays the calibration scores are the point scores' aggregates. With rays the components are
         standardized on these scans (``combination_``) and the calibration scores are their leave-one-out
@@ -275,6 +349,9 @@ class Inspector(BaseEstimator):
         components = list(components)
         if not components:
             raise ValueError("calibration needs at least one good scan, got none")
+        self.calibration_roles_ = ["held-back"] * len(components) if roles is None else list(roles)
+        if len(self.calibration_roles_) != len(components):
+            raise ValueError(f"roles: one per calibration scan ({len(components)}), got {len(self.calibration_roles_)}")
         if not self.rays:
             self.combination_ = None
             return self._set([c["points"] for c in components], names)
@@ -318,12 +395,14 @@ class Inspector(BaseEstimator):
         else:
             self.combination_ = None
         self._check_params()
+        self.calibration_roles_ = list(calibration.roles) or ["held-back"] * len(calibration.scores)
         return self._set(calibration.scores, calibration.names)
 
     def calibration(self, source="", fingerprint=""):
         """The fitted calibration as a :class:`~inspection.calibration.Calibration`, ready to store in the model."""
         self._check_is_fitted()
         return Calibration(scores=self.calibration_scores_.tolist(), names=list(self.calibration_names_),
+                           roles=list(getattr(self, "calibration_roles_", [])),
                            aggregate=self.aggregate, point_score=self.point_score,
                            noise=None if self.noise is None else float(self.noise), alpha=float(self.alpha),
                            source=source, fingerprint=fingerprint,

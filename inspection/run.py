@@ -232,12 +232,14 @@ def calibrate(model, data, alpha=DEFAULT_ALPHA, aggregate=None, point_score=None
     insp._check_params()  # bad ray options fail before any work
     if point_score in REFERENCE_QUANTITY:
         insp.fit_reference(tqdm(reference, desc="reference", unit="scan", disable=not progress))
-    components = [insp.inspect_components(s).components
-                  for s in tqdm(scans, desc="calibrate", unit="scan", disable=not progress)]
-    insp.fit_components(components, [s.name for s in scans])
+    insp.fit(tqdm(scans, desc="calibrate", unit="scan", disable=not progress), names=[s.name for s in scans])
+    crossed = insp.calibration_roles_.count("cross-fitted")
+    if crossed:
+        how += f" and {crossed} training scans cross-fitted"
     if write:
         write_calibration(handle.path, insp.calibration(source=f"{how}", fingerprint=info.get("fingerprint", "")))
-    return insp, {"n": len(scans), "how": how, "threshold": insp.threshold_, "decision": insp.decision_threshold_}
+    return insp, {"n": insp.n_calibration_, "how": how, "threshold": insp.threshold_,
+                  "decision": insp.decision_threshold_}
 
 
 def describe_calibration(insp, info):

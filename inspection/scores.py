@@ -77,9 +77,8 @@ def point_scores(field, points, kind="residual", noise=None, reference=None):
         if reference.quantity != REFERENCE_QUANTITY[kind]:
             raise ValueError(f"point_score {kind!r} needs a reference of {REFERENCE_QUANTITY[kind]!r} values, got one "
                              f"of {reference.quantity!r} values")
-        value = field_quantity(field, points, reference.quantity)
-        m_ref, s_ref = reference.stats(points)
-        return np.abs(value - m_ref) / np.sqrt(s_ref**2 + max(noise**2, _MIN_VARIANCE))
+        value, variance = field_quantity(field, points, reference.quantity, with_variance=True)
+        return reference.standardized(points, value, variance, noise)
     mean = np.asarray(field.mean(points), dtype=np.float64)
     var = np.maximum(np.asarray(field.variance(points), dtype=np.float64), 0.0)
     total = np.maximum(var + noise**2, _MIN_VARIANCE)
@@ -88,19 +87,31 @@ def point_scores(field, points, kind="residual", noise=None, reference=None):
     return 0.5 * (mean**2 / total + np.log(2 * math.pi * total))
 
 
-def field_quantity(field, points, quantity):
-    """What a per-location reference compares: E f (``'mean'``) or the first-order signed distance E f /
-    max(|grad E f|, ``GRADIENT_FLOOR``) (``'distance'``, needs ``field.mean_gradient``) at (m, 3) points -> (m,)."""
+def field_quantity(field, points, quantity, with_variance=False):
+    """What a per-location reference compares, at (m, 3) points: E f (``'mean'``) or the first-order signed distance
+    d = E f / max(|grad E f|, ``GRADIENT_FLOOR``) (``'distance'``, needs ``field.mean_gradient``).
+
+    Returns
+    -------
+    value : (m,) float64
+    variance : (m,) float64, only with ``with_variance``
+        The field's own variance in the same units: Var f, or Var f / max(|grad E f|, ``GRADIENT_FLOOR``)^2 for the
+        distance (the first-order propagation of Var f through d).
+    """
+    if quantity not in ("mean", "distance"):
+        raise ValueError(f"reference quantity must be 'mean' or 'distance', got {quantity!r}")
     mean = np.asarray(field.mean(points), dtype=np.float64)
-    if quantity == "mean":
-        return mean
+    scale = 1.0
     if quantity == "distance":
         if not hasattr(field, "mean_gradient"):
             raise ValueError(f"the 'distance' point score needs a field with mean_gradient(x); "
                              f"{type(field).__name__} has none (use point_score 'local' or 'residual')")
         grad = np.linalg.norm(np.asarray(field.mean_gradient(points), dtype=np.float64), axis=1)
-        return mean / np.maximum(grad, GRADIENT_FLOOR)
-    raise ValueError(f"reference quantity must be 'mean' or 'distance', got {quantity!r}")
+        scale = np.maximum(grad, GRADIENT_FLOOR)
+    if not with_variance:
+        return mean / scale
+    variance = np.maximum(np.asarray(field.variance(points), dtype=np.float64), 0.0)
+    return mean / scale, variance / scale**2
 
 
 def check_aggregate(name):
@@ -147,8 +158,19 @@ def aggregate(values, how="top1"):
 
 
 class LocalReference:
-    """What E f looks like at the points of good scans, each under its own projected field: the per-location noise
-    floor of the ``'local'`` point score.
+    """What good scans look like at each place: the per-location noise floor of the ``'local'`` and ``'distance'``
+    point scores.
+
+    A point p of a scan, with quantity v(p) under the scan's projected field (:func:`field_quantity`) and the field's
+    own variance u(p) in the same units, is scored
+
+        |v(p) - m_ref(p)| / sqrt(s_ref(p)^2 + variance_scale * u(p) + noise^2),
+
+    where m_ref and s_ref are the mean and standard deviation of v over the ``k`` nearest points of good scans, each
+    under its own projected field. s_ref models how much good scans vary where many of them were seen; u, the
+    stochastic field's variance, is large where the training saw little (a surface seen by few views, or at a grazing
+    angle), where s_ref rests on few or distant neighbours; ``variance_scale`` calibrates u on good scans
+    (:meth:`fit_variance_scale`). A ``variance_scale`` of 0 is the reference alone.
 
     Parameters
     ----------
@@ -160,9 +182,13 @@ class LocalReference:
         Neighbours averaged per query point.
     quantity : {'mean', 'distance'}
         What ``values`` are (:func:`field_quantity`).
+    variance_scale : float >= 0
+        Weight of the field's own variance in the score's denominator.
+    owners : (n,) int array, optional
+        Which good scan each point came from; lets :meth:`without` leave one scan out (cross-fitting). Not stored.
     """
 
-    def __init__(self, points, values, k=REFERENCE_NEIGHBOURS, quantity="mean"):
+    def __init__(self, points, values, k=REFERENCE_NEIGHBOURS, quantity="mean", variance_scale=0.0, owners=None):
         self.points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
         self.values = np.asarray(values, dtype=np.float32).reshape(-1)
         if len(self.points) != len(self.values) or len(self.points) < k:
@@ -170,23 +196,41 @@ class LocalReference:
                              f"points and {len(self.values)} values")
         if quantity not in ("mean", "distance"):
             raise ValueError(f"reference quantity must be 'mean' or 'distance', got {quantity!r}")
+        if not float(variance_scale) >= 0:
+            raise ValueError(f"variance_scale must be >= 0, got {variance_scale!r}")
         self.k = int(k)
         self.quantity = quantity
+        self.variance_scale = float(variance_scale)
+        self.owners = None if owners is None else np.asarray(owners, dtype=np.int64).reshape(-1)
+        if self.owners is not None and len(self.owners) != len(self.points):
+            raise ValueError(f"owners must have one entry per point ({len(self.points)}), got {len(self.owners)}")
         self._tree = None
 
     @classmethod
-    def from_fields(cls, scans_and_fields, max_points=60000, seed=0, k=REFERENCE_NEIGHBOURS, quantity="mean"):
-        """Build from (points (m, 3), field) pairs; randomly subsampled to ``max_points`` (seeded)."""
-        pts, vals = [], []
-        for points, field in scans_and_fields:
-            points = np.asarray(points, dtype=np.float64)
-            pts.append(points)
-            vals.append(field_quantity(field, points, quantity))
-        pts, vals = np.concatenate(pts), np.concatenate(vals)
+    def from_values(cls, scans, max_points=60000, seed=0, k=REFERENCE_NEIGHBOURS, quantity="mean"):
+        """Build from (points (m, 3), values (m,)) pairs of good scans, randomly subsampled to ``max_points``
+        (seeded); ``owners`` records each point's scan."""
+        pts = np.concatenate([np.asarray(p, dtype=np.float64) for p, _ in scans])
+        vals = np.concatenate([np.asarray(v, dtype=np.float64) for _, v in scans])
+        owners = np.concatenate([np.full(len(p), i) for i, (p, _) in enumerate(scans)])
         if len(pts) > max_points:
             keep = np.sort(np.random.default_rng(seed).choice(len(pts), max_points, replace=False))
-            pts, vals = pts[keep], vals[keep]
-        return cls(pts, vals, k, quantity)
+            pts, vals, owners = pts[keep], vals[keep], owners[keep]
+        return cls(pts, vals, k, quantity, owners=owners)
+
+    @classmethod
+    def from_fields(cls, scans_and_fields, max_points=60000, seed=0, k=REFERENCE_NEIGHBOURS, quantity="mean"):
+        """Build from (points (m, 3), field) pairs; see :meth:`from_values`."""
+        return cls.from_values([(p, field_quantity(f, np.asarray(p, dtype=np.float64), quantity))
+                                for p, f in scans_and_fields], max_points, seed, k, quantity)
+
+    def without(self, owner):
+        """The same reference without the points of good scan ``owner`` (needs ``owners``)."""
+        if self.owners is None:
+            raise ValueError("this LocalReference does not know which scan each point came from (owners)")
+        keep = self.owners != owner
+        return LocalReference(self.points[keep], self.values[keep], self.k, self.quantity, self.variance_scale,
+                              self.owners[keep])
 
     def stats(self, points):
         """Local mean and standard deviation of the reference values around each point: (m,), (m,)."""
@@ -198,13 +242,54 @@ class LocalReference:
         v = self.values[idx].astype(np.float64)  # (m, k)
         return v.mean(1), v.std(1)
 
+    def standardized(self, points, value, variance, noise):
+        """The point score (class docstring) of values (m,) with field variances (m,) at points (m, 3)."""
+        m_ref, s_ref = self.stats(points)
+        total = s_ref**2 + self.variance_scale * np.maximum(variance, 0.0) + noise**2
+        return np.abs(value - m_ref) / np.sqrt(np.maximum(total, _MIN_VARIANCE))
+
+    @staticmethod
+    def fit_variance_scale(residuals, reference_variances, field_variances):
+        """The weight of the field's variance that makes good scans' residuals most likely.
+
+        Maximum likelihood of r_i ~ N(0, b_i + kappa u_i) over kappa >= 0 (a 1-D concave-in-practice problem solved
+        on log kappa), with r the residuals v - m_ref of good scans not in the reference they are compared with
+        (held-back scans, or cross-fitted ones), b = s_ref^2 + noise^2 and u the field's variance.
+
+        Parameters
+        ----------
+        residuals, reference_variances, field_variances : (n,) arrays
+
+        Returns
+        -------
+        float
+            kappa in [0, 1e3]; 0 when the field's variance does not help explain the residuals.
+        """
+        from scipy.optimize import minimize_scalar
+
+        r2 = np.asarray(residuals, dtype=np.float64).reshape(-1) ** 2
+        b = np.maximum(np.asarray(reference_variances, dtype=np.float64).reshape(-1), _MIN_VARIANCE)
+        u = np.maximum(np.asarray(field_variances, dtype=np.float64).reshape(-1), 0.0)
+        if not (len(r2) == len(b) == len(u)) or len(r2) == 0:
+            raise ValueError(f"fit_variance_scale needs three arrays of one equal, non-zero length; got {len(r2)}, "
+                             f"{len(b)}, {len(u)}")
+
+        def nll(kappa):
+            total = b + kappa * u
+            return float(np.mean(r2 / total + np.log(total)))
+
+        best = minimize_scalar(lambda t: nll(math.exp(t)), bounds=(math.log(1e-6), math.log(1e3)), method="bounded",
+                               options={"xatol": 1e-4})
+        kappa = math.exp(best.x)
+        return 0.0 if nll(0.0) <= nll(kappa) else float(kappa)
+
     def as_dict(self):
         import torch
 
         return {"points": torch.from_numpy(self.points.copy()), "values": torch.from_numpy(self.values.copy()),
-                "k": self.k, "quantity": self.quantity}
+                "k": self.k, "quantity": self.quantity, "variance_scale": self.variance_scale}
 
     @classmethod
     def from_dict(cls, d):
         return cls(np.asarray(d["points"]), np.asarray(d["values"]), int(d.get("k", REFERENCE_NEIGHBOURS)),
-                   str(d.get("quantity", "mean")))
+                   str(d.get("quantity", "mean")), float(d.get("variance_scale", 0.0)))

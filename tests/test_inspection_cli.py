@@ -71,8 +71,11 @@ def test_calibrate_then_score(workdir, tmp_path, capsys):
     rc = main(["calibrate", "--model", str(model), "--data", str(workdir / "tree.h5"), "--alpha", "0.3", "--quiet"])
     assert rc == 0
     cal = read_calibration(model)
-    assert sorted(cal.names) == [f"train/good/{i:03d}" for i in range(3, 6)]  # the held-back scans only
-    assert len(cal.scores) == 3 and cal.aggregate == "top1" and cal.alpha == 0.3
+    held = sorted(n for n, r in zip(cal.names, cal.roles) if r == "held-back")
+    crossed = sorted(n for n, r in zip(cal.names, cal.roles) if r == "cross-fitted")
+    assert held == [f"train/good/{i:03d}" for i in range(3, 6)]  # the held-back scans
+    assert crossed == [f"train/good/{i:03d}" for i in range(3)]  # and the training scans, cross-fitted
+    assert len(cal.scores) == 6 and cal.aggregate == "top1" and cal.alpha == 0.3
     from autodecoder.field import StochasticField
 
     StochasticField.load(model)  # the model file still loads as before
@@ -88,7 +91,7 @@ def test_calibrate_then_score(workdir, tmp_path, capsys):
     assert {r["label"] for r in rows} == {"good", "defective"}
     for r in rows:
         p = float(r["p_value"])
-        assert 0.25 <= p <= 1 and r["verdict"] == ("defective" if p <= 0.3 else "good")
+        assert 1 / 7 - 1e-6 <= p <= 1 and r["verdict"] == ("defective" if p <= 0.3 else "good")  # n = 6 calibration scans
     summary = json.loads((out / "summary.json").read_text())
     assert summary["n_scans"] == 5 and summary["counts"]["defective"] == 2
     m = summary["metrics"]
@@ -123,12 +126,12 @@ def test_score_calibrates_an_uncalibrated_model_on_its_held_back_scans(workdir, 
     said = capsys.readouterr().out
     assert "is not calibrated: calibrating on its 3 held-back good scans" in said
     cal = read_calibration(model)  # stored, as `calibrate` would have
-    assert sorted(cal.names) == [f"train/good/{i:03d}" for i in range(3, 6)] and cal.alpha == 0.01
+    assert sorted(cal.names) == [f"train/good/{i:03d}" for i in range(6)] and cal.alpha == 0.01
     summary = json.loads((out / "summary.json").read_text())
     decision = summary["decision"]
-    assert decision["n"] == 3 and decision["basis"] == "log-normal" and decision["alpha"] == 0.01
+    assert decision["n"] == 6 and decision["basis"] == "log-normal" and decision["alpha"] == 0.01
     assert summary["threshold"] == pytest.approx(decision["value"]) and "99" in decision["note"]
-    assert "threshold basis: log-normal on 3 good scans" in said and "note: 3 calibration scans" in said
+    assert "threshold basis: log-normal on 6 good scans" in said and "note: 6 calibration scans" in said
 
 
 def test_uncalibrated_model_on_other_data_is_an_error(workdir, tmp_path, capsys):
@@ -207,7 +210,8 @@ def test_latent_model_end_to_end(tmp_path, capsys):
     assert main(["calibrate", "--model", str(model), "--data", str(data), "--alpha", "0.3", "--quiet",
                  "--projection", "steps=15,starts=1,max_candidates=4"]) == 0
     cal = read_calibration(model)
-    assert len(cal.names) == 3 and all(n.startswith("train/") for n in cal.names)
+    assert cal.roles.count("held-back") == 3 and cal.roles.count("cross-fitted") == 3
+    assert all(n.startswith("train/") for n in cal.names)
     assert cal.extra["projection"] == {"steps": 15, "starts": 1, "max_candidates": 4}
     out = tmp_path / "res"
     assert main(["score", "--model", str(model), "--data", str(data), "--out", str(out), "--quiet"]) == 0

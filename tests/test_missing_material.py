@@ -335,7 +335,8 @@ def test_cli_calibrate_and_score_with_rays(tmp_path, capsys):
                  "--ray-options", "n_rays=64,n_empty=16,aggregate=top5", "--quiet"]) == 0
     assert "+ ray score" in capsys.readouterr().out
     cal = read_calibration(model)
-    assert cal.extra["rays"]["options"]["aggregate"] == "top5" and len(cal.extra["rays"]["components"]["rays"]) == 4
+    # 4 held-back scans and the 2 training scans, cross-fitted
+    assert cal.extra["rays"]["options"]["aggregate"] == "top5" and len(cal.extra["rays"]["components"]["rays"]) == 6
     out = tmp_path / "res"
     assert main(["score", "--model", str(model), "--data", str(data), "--out", str(out), "--maps", "all",
                  "--quiet"]) == 0
