@@ -271,3 +271,69 @@ def test_aligner_recovers_a_small_rotation():
     moved = (p[:3000] - 0.02) @ R.T
     aligned, _, T = Aligner(p, seed=0).align(moved)
     assert np.abs(aligned - p[:3000]).max() < 0.01
+
+
+# ---------------------------------------------------------------------------------------------- calibrated variance
+def test_variance_scale_matches_the_closed_form_and_a_grid_search():
+    from inspection.scores import LocalReference
+
+    rng = np.random.default_rng(0)
+    # constant b and u: the ML kappa of r ~ N(0, b + kappa u) is (mean r^2 - b) / u
+    b, u, kappa = 0.5, 2.0, 1.7
+    r = rng.normal(0, math.sqrt(b + kappa * u), 200000)
+    expected = (np.mean(r**2) - b) / u
+    assert LocalReference.fit_variance_scale(r, np.full_like(r, b), np.full_like(r, u)) == pytest.approx(expected,
+                                                                                                           rel=1e-3)
+    # heterogeneous b and u: the optimum of the likelihood on a fine grid
+    b, u = rng.uniform(0.1, 1, 5000), rng.uniform(0, 3, 5000)
+    r = rng.normal(0, np.sqrt(b + 0.6 * u))
+    grid = np.geomspace(1e-3, 10, 4001)
+    nll = [np.mean(r**2 / (b + k * u) + np.log(b + k * u)) for k in grid]
+    assert LocalReference.fit_variance_scale(r, b, u) == pytest.approx(grid[int(np.argmin(nll))], rel=5e-3)
+    # residuals the reference alone explains: the field's variance gets no weight
+    r = rng.normal(0, np.sqrt(b) * 0.5)
+    assert LocalReference.fit_variance_scale(r, b, u) == 0.0
+
+
+def test_reference_standardizes_with_the_weighted_field_variance_and_leaves_scans_out():
+    from inspection.scores import LocalReference
+
+    pts = np.r_[np.zeros((20, 3)), np.ones((20, 3))]
+    vals = np.r_[np.full(20, 0.5), np.full(20, 2.0)]
+    ref = LocalReference.from_values([(pts[:20], vals[:20]), (pts[20:], vals[20:])], k=4, quantity="distance")
+    ref.variance_scale = 2.0
+    x = np.zeros((1, 3))
+    # all 4 neighbours of the origin come from scan 0: m_ref = 0.5, s_ref = 0
+    assert ref.standardized(x, np.array([1.5]), np.array([0.125]), 0.5)[0] == pytest.approx(
+        1.0 / math.sqrt(2.0 * 0.125 + 0.25))
+    alone = ref.without(0)
+    assert len(alone.points) == 20 and np.all(alone.values == 2.0) and alone.variance_scale == 2.0
+    assert alone.stats(x)[0][0] == pytest.approx(2.0)
+    with pytest.raises(ValueError, match="owners"):
+        LocalReference(pts, vals, k=4).without(0)
+
+
+def test_fit_cross_fits_the_reference_scans():
+    """Calibration scores = held-back scans against the full reference + each reference scan against the reference
+    without its own points; the field-variance weight is fitted first and stored."""
+    from inspection.scores import field_quantity
+
+    good = [sphere_scan(seed=s, n=600)[0] for s in range(8)]
+    held = [sphere_scan(seed=s, n=600)[0] for s in range(20, 24)]
+    insp = Inspector(SphereModel(), point_score="distance", alpha=0.2).fit(held, reference_scans=good)
+    assert insp.calibration_roles_ == ["held-back"] * 4 + ["cross-fitted"] * 8
+    assert insp.n_calibration_ == 12 and insp.reference_.variance_scale >= 0
+    model, noise = SphereModel(), 0.01
+    for j, scan in enumerate(good):
+        field = model.project(scan).field
+        value, variance = field_quantity(field, scan, "distance", with_variance=True)
+        alone = insp.reference_.without(j)
+        expected = aggregate(alone.standardized(scan, value, variance, noise), "top1")
+        assert insp.calibration_scores_[4 + j] == pytest.approx(expected, rel=1e-9)
+    expected_held = insp.anomaly_scores(held)
+    np.testing.assert_allclose(insp.calibration_scores_[:4], expected_held, rtol=1e-9)
+    stored = insp.calibration()
+    assert stored.roles == insp.calibration_roles_
+    assert stored.extra["reference"]["variance_scale"] == insp.reference_.variance_scale
+    without = Inspector(SphereModel(), point_score="distance").fit(held, reference_scans=good, cross_fit=False)
+    assert without.calibration_roles_ == ["held-back"] * 4

@@ -103,6 +103,20 @@ def test_projection_without_normals_and_batched_projection(trained):
     assert abs(zero_crossing_radius(bare.field) - 0.32) < 0.1 * 0.32
 
 
+def test_projection_can_leave_a_training_code_out_of_its_starts(trained):
+    """Cross-fitted calibration projects a training scan without its own code among the candidate starts."""
+    from autodecoder.projection import _candidates
+
+    model, _ = trained
+    _, index = _candidates(model, 64)
+    assert list(index) == [-1, 0, 1, 2, 3]  # the mean code and every training code
+    _, index = _candidates(model, 64, exclude=(2,))
+    assert list(index) == [-1, 0, 1, 3]
+    scan = sphere_scan("train/002", RADII[2], seed=2)
+    fit = model.project(scan.points, scan.normals, seed=0, starts=4, exclude=(2,))
+    assert fit.start != 2 and abs(zero_crossing_radius(fit.field) - RADII[2]) < 0.1 * RADII[2]
+
+
 def test_finetuning_leaves_the_loaded_model_untouched(trained):
     model, _ = trained
     before = {k: v.clone() for k, v in model.mean_net.state_dict().items()}
