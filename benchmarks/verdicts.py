@@ -127,7 +127,8 @@ def default_pipeline(part, data, model, args, work):
 
 
 def baseline(data, model, alpha):
-    """The nearest-neighbour baseline with a threshold fitted like the toolkit's on the held-back scans."""
+    """The nearest-neighbour baseline with a threshold fitted like the toolkit's: on the held-back scans and the
+    training scans cross-fitted (each against the other training scans' points)."""
     from datasets import ScanCollection
 
     from inspection.model_io import load_model
@@ -145,7 +146,9 @@ def baseline(data, model, alpha):
     test_scores, _ = nn_scores(train_points, test)
     seconds = (time.perf_counter() - t0) / len(test)
     cal_scores, _ = nn_scores(train_points, cal)
-    decision = fit_threshold(cal_scores, alpha)
+    crossed = [nn_scores(np.concatenate([t.points for j, t in enumerate(train) if j != i]), [s])[0][0]
+               for i, s in enumerate(train)]
+    decision = fit_threshold(np.r_[cal_scores, crossed], alpha)
     labels = np.array([s.label for s in test])
     defects = np.array([s.defect for s in test])
     return rates(test_scores, labels, defects, decision.value), decision, seconds
@@ -155,9 +158,11 @@ def _print_rows(rows, kinds):
     head = (f"{'part':<10} {'method':<26} {'AUROC':>6} " + " ".join(f"{k:>8}" for k in kinds)
             + f" {'def flagged':>11} {'good flagged':>12} {'basis':>10} {'pred. FAR (90% int.)':>22} {'s/scan':>7}")
     print(head)
+    from inspection.threshold import format_rate
+
     for part, method, r, decision, sec in rows:
         lo, hi = decision.far_interval
-        far = f"{100 * decision.predicted_far:.2g}% ({100 * lo:.2g}-{100 * hi:.2g}%)"
+        far = f"{format_rate(decision.predicted_far)} ({format_rate(lo)}-{format_rate(hi)})".replace(" %", "%")
         print(f"{part:<10} {method:<26} {r['auroc']:6.3f} " + " ".join(f"{r.get(k, float('nan')):8.3f}" for k in kinds)
               + f" {r['flag_def']:11.3f} {round(r['flag_good'] * r['n_good']):>5d} of {r['n_good']:<4d}"
               + f" {decision.basis:>10} {far:>22} {sec:7.3f}")

@@ -7,7 +7,7 @@ import numpy as np
 from .calibration import Calibration
 from .threshold import check_alpha, fit_threshold, threshold_p_values
 from .scores import (POINT_SCORES, REFERENCE_QUANTITY, LocalReference, aggregate as aggregate_scores, check_aggregate,
-                     field_quantity, point_scores)
+                     field_quantity, grazing_factor, point_scores)
 
 log = logging.getLogger(__name__)
 
@@ -25,8 +25,9 @@ from sklearn.exceptions import NotFittedError
 
 @dataclass
 class _Projected:
-    """A scan projected into the model: its name, points (m, 3), field, sensor origin (with rays), and for
-    reference-based point scores the compared quantity (m,) and the field's variance in its units (m,)."""
+    """A scan projected into the model: its name, points (m, 3), field, sensor origin (None when unknown), and for
+    reference-based point scores the compared quantity (m,), the field's variance in its units (m,) and the grazing
+    factor of the sensor's rays (m,) (None without a sensor origin)."""
 
     name: str
     points: np.ndarray
@@ -34,6 +35,7 @@ class _Projected:
     origin: object = None
     value: np.ndarray = None
     variance: np.ndarray = None
+    grazing: np.ndarray = None
 
 
 @dataclass
@@ -66,6 +68,13 @@ def _sensor_origin(scan, i):
     from .ray_evidence import sensor_origin
 
     return sensor_origin(scan if hasattr(scan, "points") else None, _scan_name(scan, i))
+
+
+def _known_sensor_origin(scan, i):
+    """The scan's sensor origin (3,) when it carries a valid one, else None."""
+    if getattr(scan, "sensor_origin", None) is None:
+        return None
+    return _sensor_origin(scan, i)
 
 
 def _scan_name(scan, i):
@@ -208,22 +217,24 @@ class Inspector(BaseEstimator):
         name = _scan_name(scan, i)
         if points.ndim != 2 or points.shape[-1] != 3 or len(points) == 0:
             raise ValueError(f"{name}: a scan needs (m >= 1, 3) points, got shape {points.shape}")
-        origin = _sensor_origin(scan, i) if self.rays else None  # before the projection: fail fast
+        origin = _sensor_origin(scan, i) if self.rays else _known_sensor_origin(scan, i)  # fail fast
         options = self.projection
         train_names = getattr(self.model, "train_names", None)
         if exclude_own_code and train_names and name in train_names:
             options = {**(options or {}), "exclude": (train_names.index(name),)}
         field = field_for(self.model, points, normals, options)
-        value = variance = None
+        value = variance = grazing = None
         if self.point_score in REFERENCE_QUANTITY:
             value, variance = field_quantity(field, points, REFERENCE_QUANTITY[self.point_score], with_variance=True)
-        return _Projected(name, np.asarray(points, dtype=np.float64), field, origin, value, variance)
+            if origin is not None and hasattr(field, "mean_gradient"):
+                grazing = grazing_factor(field, points, origin)
+        return _Projected(name, np.asarray(points, dtype=np.float64), field, origin, value, variance, grazing)
 
     def _score(self, good, reference):
         """A :class:`ScanResult` of a projected scan against ``reference`` (components: points, rays)."""
         if self.point_score in REFERENCE_QUANTITY:
             noise = float(getattr(good.field, "noise", 0.0) if self.noise is None else self.noise)
-            values = reference.standardized(good.points, good.value, good.variance, noise)
+            values = reference.standardized(good.points, good.value, good.variance, noise, good.grazing)
         else:
             values = point_scores(good.field, good.points, kind=self.point_score, noise=self.noise)
         score = aggregate_scores(values, self.aggregate)
@@ -279,9 +290,9 @@ class Inspector(BaseEstimator):
 
         Cross-fitting: each reference scan (usually a training scan) is projected without its own trained code and
         scored against the reference without its own points, as if it were new. Thresholds need many good scores
-        (:mod:`inspection.threshold`), and the held-back scans alone are few. The weight of the field's variance in
-        the point score (``reference_.variance_scale``, :meth:`LocalReference.fit_variance_scale`) is fitted on the
-        same scans' residuals first.
+        (:mod:`inspection.threshold`), and the held-back scans alone are few. The point score's noise model (the
+        weights of the field's variance and of the grazing factor, ``reference_.variance_scale`` and
+        ``grazing_scale``, :meth:`LocalReference.fit_noise_model`) is fitted on the same scans' residuals first.
 
         Parameters
         ----------
@@ -317,26 +328,30 @@ class Inspector(BaseEstimator):
             crossed = []
         references = [self.reference_] * len(held) + [self.reference_.without(j) for j in range(len(crossed))]
         goods = held + crossed
-        self.reference_.variance_scale = self._fit_variance_scale(goods, references)
+        kappa, lam = self._fit_noise_model(goods, references)
         components = []
         for good, reference in zip(goods, references):
-            reference.variance_scale = self.reference_.variance_scale
+            reference.variance_scale, reference.grazing_scale = kappa, lam
             components.append(self._score(good, reference).components)
         roles = ["held-back"] * len(held) + ["cross-fitted"] * len(crossed)
         return self.fit_components(components, names + [g.name for g in crossed], roles)
 
-    def _fit_variance_scale(self, goods, references):
-        """:meth:`LocalReference.fit_variance_scale` on the residuals of good projected scans against the references
-        they are scored with."""
-        residuals, base, field_var = [], [], []
+    def _fit_noise_model(self, goods, references):
+        """:meth:`LocalReference.fit_noise_model` on the residuals of good projected scans against the references
+        they are scored with (the grazing term only when every one of them has a sensor origin)."""
+        residuals, base, field_var, noise_var, grazing = [], [], [], [], []
         for good, reference in zip(goods, references):
             m_ref, s_ref = reference.stats(good.points)
             noise = float(getattr(good.field, "noise", 0.0) if self.noise is None else self.noise)
             residuals.append(good.value - m_ref)
-            base.append(s_ref**2 + noise**2)
+            base.append(s_ref**2)
             field_var.append(good.variance)
-        return LocalReference.fit_variance_scale(np.concatenate(residuals), np.concatenate(base),
-                                                 np.concatenate(field_var))
+            noise_var.append(np.full(len(good.points), noise**2))
+            grazing.append(good.grazing)
+        with_grazing = all(g is not None for g in grazing)
+        return LocalReference.fit_noise_model(np.concatenate(residuals), np.concatenate(base),
+                                              np.concatenate(field_var), np.concatenate(noise_var),
+                                              np.concatenate(grazing) if with_grazing else None)
 
     def fit_components(self, components, names, roles=None):
         """Calibrate from the ``components`` of :meth:`inspect_components` (one dict per good calibration scan);

@@ -16,10 +16,13 @@ GRADIENT_FLOOR = 0.2
 # which quantity each per-location point score compares with its reference
 REFERENCE_QUANTITY = {"local": "mean", "distance": "distance"}
 _MIN_VARIANCE = 1e-20
+# cos^2 of the angle between the sensor's ray and the surface normal is floored here (about 87 degrees) so that the
+# grazing factor 1 / cos^2 - 1 stays finite at silhouettes
+GRAZING_COS2_FLOOR = 0.0025
 _AGGREGATE_RE = re.compile(r"^(mean|max|median|top(\d+(?:\.\d+)?)|q(\d+(?:\.\d+)?))$")
 
 
-def point_scores(field, points, kind="residual", noise=None, reference=None):
+def point_scores(field, points, kind="residual", noise=None, reference=None, origin=None):
     """Per-point anomaly scores of ``points`` under ``field`` (higher = more anomalous).
 
     With m = E f(p), v = Var f(p) and total = v + noise^2 (the noise floor):
@@ -78,7 +81,8 @@ def point_scores(field, points, kind="residual", noise=None, reference=None):
             raise ValueError(f"point_score {kind!r} needs a reference of {REFERENCE_QUANTITY[kind]!r} values, got one "
                              f"of {reference.quantity!r} values")
         value, variance = field_quantity(field, points, reference.quantity, with_variance=True)
-        return reference.standardized(points, value, variance, noise)
+        grazing = None if origin is None else grazing_factor(field, points, origin)
+        return reference.standardized(points, value, variance, noise, grazing)
     mean = np.asarray(field.mean(points), dtype=np.float64)
     var = np.maximum(np.asarray(field.variance(points), dtype=np.float64), 0.0)
     total = np.maximum(var + noise**2, _MIN_VARIANCE)
@@ -112,6 +116,34 @@ def field_quantity(field, points, quantity, with_variance=False):
         return mean / scale
     variance = np.maximum(np.asarray(field.variance(points), dtype=np.float64), 0.0)
     return mean / scale, variance / scale**2
+
+
+def grazing_factor(field, points, origin):
+    """1 / cos^2(theta) - 1 at each point, theta the angle between the sensor's ray and the mean surface's normal.
+
+    A range sensor's error grows where its ray grazes the surface (near silhouettes a depth error moves a point off
+    the part's edge, and real sensors' spots smear there); the reference scores model it as noise that grows with
+    this factor (:class:`LocalReference`). The normal is the projected field's gradient, smoother than normals
+    estimated at a scan's border. cos^2 is floored at ``GRAZING_COS2_FLOOR``.
+
+    Parameters
+    ----------
+    field : object with ``mean_gradient(x)``
+    points : (m, 3) array
+    origin : (3,) array
+        The sensor position, in the same frame.
+
+    Returns
+    -------
+    (m,) float64 array >= 0 (0 where the ray meets the surface head-on)
+    """
+    points = np.asarray(points, dtype=np.float64)
+    rays = points - np.asarray(origin, dtype=np.float64).reshape(1, 3)
+    rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
+    grad = np.asarray(field.mean_gradient(points), dtype=np.float64)
+    grad /= np.maximum(np.linalg.norm(grad, axis=1, keepdims=True), 1e-12)
+    cos2 = np.sum(rays * grad, axis=1) ** 2
+    return 1.0 / np.maximum(cos2, GRAZING_COS2_FLOOR) - 1.0
 
 
 def check_aggregate(name):
@@ -164,13 +196,15 @@ class LocalReference:
     A point p of a scan, with quantity v(p) under the scan's projected field (:func:`field_quantity`) and the field's
     own variance u(p) in the same units, is scored
 
-        |v(p) - m_ref(p)| / sqrt(s_ref(p)^2 + variance_scale * u(p) + noise^2),
+        |v(p) - m_ref(p)| / sqrt(s_ref(p)^2 + variance_scale * u(p) + noise^2 (1 + grazing_scale * g(p))),
 
     where m_ref and s_ref are the mean and standard deviation of v over the ``k`` nearest points of good scans, each
     under its own projected field. s_ref models how much good scans vary where many of them were seen; u, the
     stochastic field's variance, is large where the training saw little (a surface seen by few views, or at a grazing
-    angle), where s_ref rests on few or distant neighbours; ``variance_scale`` calibrates u on good scans
-    (:meth:`fit_variance_scale`). A ``variance_scale`` of 0 is the reference alone.
+    angle), where s_ref rests on few or distant neighbours. g = 1 / cos^2 - 1 (:func:`grazing_factor`, 0 when the
+    sensor origin is unknown) lets the measurement noise grow where the sensor's ray grazes the surface, which is
+    where good scans' worst points lie (at a view's border, near silhouettes). ``variance_scale`` and
+    ``grazing_scale`` are calibrated on good scans (:meth:`fit_noise_model`); both 0 is the reference alone.
 
     Parameters
     ----------
@@ -184,11 +218,14 @@ class LocalReference:
         What ``values`` are (:func:`field_quantity`).
     variance_scale : float >= 0
         Weight of the field's own variance in the score's denominator.
+    grazing_scale : float >= 0
+        Growth of the noise with the grazing factor.
     owners : (n,) int array, optional
         Which good scan each point came from; lets :meth:`without` leave one scan out (cross-fitting). Not stored.
     """
 
-    def __init__(self, points, values, k=REFERENCE_NEIGHBOURS, quantity="mean", variance_scale=0.0, owners=None):
+    def __init__(self, points, values, k=REFERENCE_NEIGHBOURS, quantity="mean", variance_scale=0.0, owners=None,
+                 grazing_scale=0.0):
         self.points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
         self.values = np.asarray(values, dtype=np.float32).reshape(-1)
         if len(self.points) != len(self.values) or len(self.points) < k:
@@ -196,11 +233,13 @@ class LocalReference:
                              f"points and {len(self.values)} values")
         if quantity not in ("mean", "distance"):
             raise ValueError(f"reference quantity must be 'mean' or 'distance', got {quantity!r}")
-        if not float(variance_scale) >= 0:
-            raise ValueError(f"variance_scale must be >= 0, got {variance_scale!r}")
+        if not (float(variance_scale) >= 0 and float(grazing_scale) >= 0):
+            raise ValueError(f"variance_scale and grazing_scale must be >= 0, got {variance_scale!r}, "
+                             f"{grazing_scale!r}")
         self.k = int(k)
         self.quantity = quantity
         self.variance_scale = float(variance_scale)
+        self.grazing_scale = float(grazing_scale)
         self.owners = None if owners is None else np.asarray(owners, dtype=np.int64).reshape(-1)
         if self.owners is not None and len(self.owners) != len(self.points):
             raise ValueError(f"owners must have one entry per point ({len(self.points)}), got {len(self.owners)}")
@@ -230,7 +269,7 @@ class LocalReference:
             raise ValueError("this LocalReference does not know which scan each point came from (owners)")
         keep = self.owners != owner
         return LocalReference(self.points[keep], self.values[keep], self.k, self.quantity, self.variance_scale,
-                              self.owners[keep])
+                              self.owners[keep], self.grazing_scale)
 
     def stats(self, points):
         """Local mean and standard deviation of the reference values around each point: (m,), (m,)."""
@@ -242,54 +281,77 @@ class LocalReference:
         v = self.values[idx].astype(np.float64)  # (m, k)
         return v.mean(1), v.std(1)
 
-    def standardized(self, points, value, variance, noise):
-        """The point score (class docstring) of values (m,) with field variances (m,) at points (m, 3)."""
+    def standardized(self, points, value, variance, noise, grazing=None):
+        """The point score (class docstring) of values (m,) with field variances (m,) and grazing factors (m,)
+        (None: 0) at points (m, 3)."""
         m_ref, s_ref = self.stats(points)
-        total = s_ref**2 + self.variance_scale * np.maximum(variance, 0.0) + noise**2
-        return np.abs(value - m_ref) / np.sqrt(np.maximum(total, _MIN_VARIANCE))
+        return np.abs(value - m_ref) / np.sqrt(self._total(s_ref**2, variance, noise**2, grazing,
+                                                           self.variance_scale, self.grazing_scale))
 
     @staticmethod
-    def fit_variance_scale(residuals, reference_variances, field_variances):
-        """The weight of the field's variance that makes good scans' residuals most likely.
+    def _total(reference_var, field_var, noise_var, grazing, variance_scale, grazing_scale):
+        g = 0.0 if grazing is None else np.maximum(grazing, 0.0)
+        total = reference_var + variance_scale * np.maximum(field_var, 0.0) + noise_var * (1.0 + grazing_scale * g)
+        return np.maximum(total, _MIN_VARIANCE)
 
-        Maximum likelihood of r_i ~ N(0, b_i + kappa u_i) over kappa >= 0 (a 1-D concave-in-practice problem solved
-        on log kappa), with r the residuals v - m_ref of good scans not in the reference they are compared with
-        (held-back scans, or cross-fitted ones), b = s_ref^2 + noise^2 and u the field's variance.
+    @staticmethod
+    def fit_noise_model(residuals, reference_variances, field_variances, noise_variances, grazing=None):
+        """``variance_scale`` and ``grazing_scale`` that make good scans' residuals most likely.
+
+        Maximum likelihood of r_i ~ N(0, b_i + kappa u_i + e_i (1 + lambda g_i)) over kappa, lambda >= 0, with r the
+        residuals v - m_ref of good scans not in the reference they are compared with (held-back scans, or
+        cross-fitted ones), b = s_ref^2, u the field's variance, e = noise^2 and g the grazing factor. Solved on
+        log kappa, log lambda (Nelder-Mead from two starts), then compared with the boundaries kappa = 0 and
+        lambda = 0.
 
         Parameters
         ----------
-        residuals, reference_variances, field_variances : (n,) arrays
+        residuals, reference_variances, field_variances, noise_variances : (n,) arrays
+        grazing : (n,) array, optional
+            None (sensor origins unknown): lambda is 0.
 
         Returns
         -------
-        float
-            kappa in [0, 1e3]; 0 when the field's variance does not help explain the residuals.
+        (kappa, lambda) : floats in [0, 1e4]
         """
-        from scipy.optimize import minimize_scalar
+        from scipy.optimize import minimize
 
         r2 = np.asarray(residuals, dtype=np.float64).reshape(-1) ** 2
-        b = np.maximum(np.asarray(reference_variances, dtype=np.float64).reshape(-1), _MIN_VARIANCE)
-        u = np.maximum(np.asarray(field_variances, dtype=np.float64).reshape(-1), 0.0)
-        if not (len(r2) == len(b) == len(u)) or len(r2) == 0:
-            raise ValueError(f"fit_variance_scale needs three arrays of one equal, non-zero length; got {len(r2)}, "
-                             f"{len(b)}, {len(u)}")
+        b, u, e = (np.broadcast_to(np.asarray(a, dtype=np.float64).reshape(-1), r2.shape)
+                   for a in (reference_variances, field_variances, noise_variances))
+        g = None if grazing is None else np.asarray(grazing, dtype=np.float64).reshape(-1)
+        if len(r2) == 0 or (g is not None and g.shape != r2.shape):
+            raise ValueError(f"fit_noise_model needs residuals and, optionally, one grazing factor each; got "
+                             f"{len(r2)} and {None if g is None else len(g)}")
 
-        def nll(kappa):
-            total = b + kappa * u
+        def nll(kappa, lam):
+            total = LocalReference._total(b, u, e, g, kappa, lam)
             return float(np.mean(r2 / total + np.log(total)))
 
-        best = minimize_scalar(lambda t: nll(math.exp(t)), bounds=(math.log(1e-6), math.log(1e3)), method="bounded",
-                               options={"xatol": 1e-4})
-        kappa = math.exp(best.x)
-        return 0.0 if nll(0.0) <= nll(kappa) else float(kappa)
+        lo, hi = math.log(1e-6), math.log(1e4)
+        clip = lambda t: math.exp(min(max(t, lo), hi))  # noqa: E731
+        candidates = [(0.0, 0.0)]
+        for start in (0.0, -3.0):
+            if g is None:
+                best = minimize(lambda t: nll(clip(t[0]), 0.0), [start], method="Nelder-Mead",
+                                options={"xatol": 1e-4, "fatol": 1e-10})
+                candidates.append((clip(best.x[0]), 0.0))
+            else:
+                best = minimize(lambda t: nll(clip(t[0]), clip(t[1])), [start, start], method="Nelder-Mead",
+                                options={"xatol": 1e-4, "fatol": 1e-10})
+                kappa, lam = clip(best.x[0]), clip(best.x[1])
+                candidates += [(kappa, lam), (kappa, 0.0), (0.0, lam)]
+        return min(candidates, key=lambda c: nll(*c))
 
     def as_dict(self):
         import torch
 
         return {"points": torch.from_numpy(self.points.copy()), "values": torch.from_numpy(self.values.copy()),
-                "k": self.k, "quantity": self.quantity, "variance_scale": self.variance_scale}
+                "k": self.k, "quantity": self.quantity, "variance_scale": self.variance_scale,
+                "grazing_scale": self.grazing_scale}
 
     @classmethod
     def from_dict(cls, d):
         return cls(np.asarray(d["points"]), np.asarray(d["values"]), int(d.get("k", REFERENCE_NEIGHBOURS)),
-                   str(d.get("quantity", "mean")), float(d.get("variance_scale", 0.0)))
+                   str(d.get("quantity", "mean")), float(d.get("variance_scale", 0.0)),
+                   grazing_scale=float(d.get("grazing_scale", 0.0)))

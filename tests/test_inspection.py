@@ -274,25 +274,43 @@ def test_aligner_recovers_a_small_rotation():
 
 
 # ---------------------------------------------------------------------------------------------- calibrated variance
-def test_variance_scale_matches_the_closed_form_and_a_grid_search():
+def test_noise_model_matches_the_closed_form_and_a_grid_search():
     from inspection.scores import LocalReference
 
+    fit = LocalReference.fit_noise_model
     rng = np.random.default_rng(0)
-    # constant b and u: the ML kappa of r ~ N(0, b + kappa u) is (mean r^2 - b) / u
-    b, u, kappa = 0.5, 2.0, 1.7
-    r = rng.normal(0, math.sqrt(b + kappa * u), 200000)
-    expected = (np.mean(r**2) - b) / u
-    assert LocalReference.fit_variance_scale(r, np.full_like(r, b), np.full_like(r, u)) == pytest.approx(expected,
-                                                                                                           rel=1e-3)
-    # heterogeneous b and u: the optimum of the likelihood on a fine grid
-    b, u = rng.uniform(0.1, 1, 5000), rng.uniform(0, 3, 5000)
-    r = rng.normal(0, np.sqrt(b + 0.6 * u))
-    grid = np.geomspace(1e-3, 10, 4001)
-    nll = [np.mean(r**2 / (b + k * u) + np.log(b + k * u)) for k in grid]
-    assert LocalReference.fit_variance_scale(r, b, u) == pytest.approx(grid[int(np.argmin(nll))], rel=5e-3)
-    # residuals the reference alone explains: the field's variance gets no weight
+    # constant b, u, e and no grazing: the ML kappa of r ~ N(0, b + kappa u + e) is (mean r^2 - b - e) / u
+    b, u, e, kappa = 0.5, 2.0, 0.1, 1.7
+    r = rng.normal(0, math.sqrt(b + kappa * u + e), 200000)
+    k, lam = fit(r, np.full_like(r, b), np.full_like(r, u), e)
+    assert k == pytest.approx((np.mean(r**2) - b - e) / u, rel=1e-3) and lam == 0.0
+    # heterogeneous b, u, g: the optimum of the likelihood on a fine 2-D grid
+    b, u, g = rng.uniform(0.1, 1, 20000), rng.uniform(0, 3, 20000), rng.exponential(2.0, 20000)
+    r = rng.normal(0, np.sqrt(b + 0.6 * u + 0.2 * (1 + 1.5 * g)))
+    ks, ls = np.geomspace(0.2, 2, 181), np.geomspace(0.5, 5, 181)
+    K, L = np.meshgrid(ks, ls, indexing="ij")
+    total = b + K[..., None] * u + 0.2 * (1 + L[..., None] * g)
+    nll = np.mean(r**2 / total + np.log(total), axis=-1)
+    i, j = np.unravel_index(np.argmin(nll), nll.shape)
+    k, lam = fit(r, b, u, 0.2, g)
+    assert k == pytest.approx(ks[i], rel=0.02) and lam == pytest.approx(ls[j], rel=0.02)
+    # residuals the reference alone explains: neither the field's variance nor the grazing gets weight
     r = rng.normal(0, np.sqrt(b) * 0.5)
-    assert LocalReference.fit_variance_scale(r, b, u) == 0.0
+    assert fit(r, b, u, 0.01, g) == (0.0, 0.0)
+
+
+def test_grazing_factor_is_one_over_cos_squared_minus_one():
+    from inspection.scores import GRAZING_COS2_FLOOR, grazing_factor
+
+    f = SphereField(center=(0, 0, 0), radius=1.0)
+    origin = np.array([0.0, 0.0, 3.0])
+    x = np.array([[0, 0, 1.0], [math.sin(0.5), 0, math.cos(0.5)], [1.0, 0, 0]])
+    # the ray from the origin to each point against the sphere's normal (the point itself)
+    rays = x - origin
+    cos = np.sum(rays / np.linalg.norm(rays, axis=1, keepdims=True) * x, axis=1)
+    expected = 1 / np.maximum(cos**2, GRAZING_COS2_FLOOR) - 1
+    np.testing.assert_allclose(grazing_factor(f, x, origin), expected, rtol=1e-12)
+    assert grazing_factor(f, x, origin)[0] == pytest.approx(0.0, abs=1e-12)
 
 
 def test_reference_standardizes_with_the_weighted_field_variance_and_leaves_scans_out():
@@ -301,13 +319,16 @@ def test_reference_standardizes_with_the_weighted_field_variance_and_leaves_scan
     pts = np.r_[np.zeros((20, 3)), np.ones((20, 3))]
     vals = np.r_[np.full(20, 0.5), np.full(20, 2.0)]
     ref = LocalReference.from_values([(pts[:20], vals[:20]), (pts[20:], vals[20:])], k=4, quantity="distance")
-    ref.variance_scale = 2.0
+    ref.variance_scale, ref.grazing_scale = 2.0, 3.0
     x = np.zeros((1, 3))
     # all 4 neighbours of the origin come from scan 0: m_ref = 0.5, s_ref = 0
     assert ref.standardized(x, np.array([1.5]), np.array([0.125]), 0.5)[0] == pytest.approx(
         1.0 / math.sqrt(2.0 * 0.125 + 0.25))
+    assert ref.standardized(x, np.array([1.5]), np.array([0.125]), 0.5, np.array([2.0]))[0] == pytest.approx(
+        1.0 / math.sqrt(2.0 * 0.125 + 0.25 * (1 + 3.0 * 2.0)))
     alone = ref.without(0)
-    assert len(alone.points) == 20 and np.all(alone.values == 2.0) and alone.variance_scale == 2.0
+    assert len(alone.points) == 20 and np.all(alone.values == 2.0) and (alone.variance_scale, alone.grazing_scale) \
+        == (2.0, 3.0)
     assert alone.stats(x)[0][0] == pytest.approx(2.0)
     with pytest.raises(ValueError, match="owners"):
         LocalReference(pts, vals, k=4).without(0)
@@ -328,12 +349,13 @@ def test_fit_cross_fits_the_reference_scans():
         field = model.project(scan).field
         value, variance = field_quantity(field, scan, "distance", with_variance=True)
         alone = insp.reference_.without(j)
-        expected = aggregate(alone.standardized(scan, value, variance, noise), "top1")
+        expected = aggregate(alone.standardized(scan, value, variance, noise), "top1")  # no origin: no grazing
         assert insp.calibration_scores_[4 + j] == pytest.approx(expected, rel=1e-9)
     expected_held = insp.anomaly_scores(held)
     np.testing.assert_allclose(insp.calibration_scores_[:4], expected_held, rtol=1e-9)
     stored = insp.calibration()
     assert stored.roles == insp.calibration_roles_
     assert stored.extra["reference"]["variance_scale"] == insp.reference_.variance_scale
+    assert stored.extra["reference"]["grazing_scale"] == insp.reference_.grazing_scale == 0.0  # no sensor origins
     without = Inspector(SphereModel(), point_score="distance").fit(held, reference_scans=good, cross_fit=False)
     assert without.calibration_roles_ == ["held-back"] * 4
