@@ -12,7 +12,6 @@ DEMO_SIZES = dict(n_train=24, n_validation=10, n_test_good=8, n_test_defective=6
 QUICK_SIZES = dict(n_train=8, n_validation=4, n_test_good=4, n_test_defective=2, n_points=800)
 DEMO_EPOCHS = 120
 QUICK_EPOCHS = 3
-DEMO_ALPHA = 0.1
 
 
 def run_demo(out="demo_output", seed=0, quick=False, progress=True, echo=print):
@@ -21,7 +20,7 @@ def run_demo(out="demo_output", seed=0, quick=False, progress=True, echo=print):
     from datasets.parts import builtin_part
     from datasets.synth import synthesise
 
-    from .run import calibrate, score
+    from .run import calibrate, describe_calibration, score
 
     t_start = time.perf_counter()
     out = Path(out)
@@ -41,11 +40,10 @@ def run_demo(out="demo_output", seed=0, quick=False, progress=True, echo=print):
                       epochs=QUICK_EPOCHS if quick else DEMO_EPOCHS)
     echo(f"      trained with {'train_latent.py' if how == 'cli' else 'autodecoder.latent_train'} -> {model}")
     t2 = time.perf_counter()
-    echo("[3/4] calibrating on the held-back good training scans and the validation scans")
-    # ~5 held-back training scans + the validation scans: with n calibration scans the smallest p-value is
-    # 1/(n+1), so alpha = 0.01 would need 99 of them; the demo uses alpha = DEMO_ALPHA
-    insp, info = calibrate(model, data, alpha=DEMO_ALPHA, progress=progress)
-    echo(f"      {info['n']} calibration scans ({info['how']}), threshold {info['threshold']:.4g}")
+    echo("[3/4] calibrating with the defaults (the validation scans and the training scans, cross-fitted)")
+    insp, info = calibrate(model, data, progress=progress)
+    for line in describe_calibration(insp, info):
+        echo(f"      {line}")
     t3 = time.perf_counter()
     echo("[4/4] scoring the test split")
     summary = score(model, data, out / "results", split="test", progress=progress, echo=echo, maps="flagged")

@@ -68,6 +68,15 @@ def plot_roc(path, labels, scores, defects=None, title="ROC (object level)"):
 
 
 def plot_score_histograms(path, scores, labels, threshold=None, calibration_scores=None, title="anomaly scores"):
+    """Write :func:`score_histogram_figure` to ``path`` (PNG, atomically). Returns the path."""
+    plt = _pyplot()
+    fig = score_histogram_figure(scores, labels, threshold, calibration_scores, title)
+    _save(fig, path)
+    plt.close(fig)
+    return Path(path)
+
+
+def score_histogram_figure(scores, labels, threshold=None, calibration_scores=None, title="anomaly scores"):
     """Histograms of the scores of good and defective (and unknown) scans, calibration scores, and the threshold.
 
     Parameters
@@ -78,6 +87,10 @@ def plot_score_histograms(path, scores, labels, threshold=None, calibration_scor
         A vertical line (not drawn when infinite); a Threshold's legend entry gives its basis and predicted
         false-alarm rate with its interval.
     calibration_scores : (k,) array, optional
+
+    Returns
+    -------
+    matplotlib.figure.Figure
     """
     plt = _pyplot()
     scores, labels = np.asarray(scores, dtype=float), np.asarray(labels)
@@ -113,9 +126,7 @@ def plot_score_histograms(path, scores, labels, threshold=None, calibration_scor
     ax.set(xlabel="anomaly score (higher = more anomalous)", ylabel="scans", title=title)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    _save(fig, path)
-    plt.close(fig)
-    return Path(path)
+    return fig
 
 
 def plot_legend(path, cmap, vmin, vmax, label):

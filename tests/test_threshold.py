@@ -135,3 +135,17 @@ def test_alpha_validated():
     for bad in (0, 1, 1.5, "x", None):
         with pytest.raises(ValueError, match="alpha must be"):
             fit_threshold([1.0, 2.0, 3.0], bad)
+
+
+def test_the_threshold_is_drawn_with_its_predicted_rate():
+    from inspection.plots import score_histogram_figure
+
+    rng = np.random.default_rng(0)
+    good = np.exp(rng.normal(1.0, 0.3, 20))
+    t = fit_threshold(good, 0.01)
+    fig = score_histogram_figure(np.r_[good[:5], 40.0], np.array(["good"] * 5 + ["defective"]), t, good)
+    ax = fig.axes[0]
+    lines = [line for line in ax.get_lines() if np.allclose(line.get_xdata(), t.value)]
+    assert len(lines) == 1
+    legend = [text.get_text() for text in ax.get_legend().get_texts()]
+    assert any("log-normal" in x and "predicted false-alarm rate 1 %" in x for x in legend)
