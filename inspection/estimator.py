@@ -226,8 +226,8 @@ class Inspector(BaseEstimator):
         value = variance = grazing = None
         if self.point_score in REFERENCE_QUANTITY:
             value, variance = field_quantity(field, points, REFERENCE_QUANTITY[self.point_score], with_variance=True)
-            if origin is not None and hasattr(field, "mean_gradient"):
-                grazing = grazing_factor(field, points, origin)
+            if origin is not None and normals is not None:
+                grazing = grazing_factor(points, normals, origin)
         return _Projected(name, np.asarray(points, dtype=np.float64), field, origin, value, variance, grazing)
 
     def _score(self, good, reference):
