@@ -108,18 +108,18 @@ def _nn_baseline(train_points, scans, top=5.0):
 def _metrics(scores, labels, defects, cal_scores, alpha, good_test):
     from sklearn.metrics import roc_auc_score
 
-    from inspection.calibration import conformal_threshold
+    from inspection.threshold import conformal_threshold
 
     y = (labels == "defective").astype(int)
     res = {"auroc": roc_auc_score(y, scores)}
     for d in sorted(set(defects[y == 1])):
         sel = (y == 0) | (defects == d)
         res[d] = roc_auc_score(y[sel], scores[sel])
-    t = conformal_threshold(cal_scores, alpha, warn=False)
+    t = conformal_threshold(cal_scores, alpha)
     res["far"] = float(np.mean(scores[good_test] > t))
     res["det"] = float(np.mean(scores[y == 1] > t))
     # at the smallest alpha the calibration set supports, 1/(n+1) (threshold = the largest calibration score)
-    t_min = conformal_threshold(cal_scores, max(alpha, 1.0 / (len(cal_scores) + 1)), warn=False)
+    t_min = conformal_threshold(cal_scores, max(alpha, 1.0 / (len(cal_scores) + 1)))
     res["far_min"] = float(np.mean(scores[good_test] > t_min))
     res["det_min"] = float(np.mean(scores[y == 1] > t_min))
     return res

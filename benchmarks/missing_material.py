@@ -166,9 +166,9 @@ def _train(part, data, key, args, work):
 
 
 def _rates(test, cal, y, alpha):
-    from inspection.calibration import conformal_threshold
+    from inspection.threshold import conformal_threshold
 
-    t = conformal_threshold(cal, alpha, warn=False)
+    t = conformal_threshold(cal, alpha)
     return float(np.mean(test[y == 0] > t)), float(np.mean(test[y == 1] > t))
 
 

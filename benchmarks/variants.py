@@ -135,13 +135,57 @@ def study(data, model, alpha, floor=0.2):
     return rows
 
 
+def diagnose(data, model, floor=0.2, show=6):
+    """Where the worst points of the highest-scoring good test scans and of the lowest-scoring defective ones lie:
+    the share of each scan's top-1 % points (old ``distance`` score, no variance, no grazing term) at the scan's
+    border (fewer than 0.6 x the median number of neighbours within 4 point spacings), at grazing incidence
+    (|cos| of the sensor ray and the scan's normal < 0.3), and on the defect. Printed, one row per scan."""
+    from scipy.spatial import cKDTree
+
+    from inspection.scores import aggregate
+
+    z = ingredients(data, model)
+    role = np.array(z["role"])
+    noise = float(z["noise"])
+    dist = [m / np.maximum(g, floor) for m, g in zip(z["mean"], z["grad"])]
+    ref_idx = np.flatnonzero(role == "reference")
+    ref = Reference(np.concatenate([z["points"][i] for i in ref_idx]), np.concatenate([dist[i] for i in ref_idx]))
+    rows = []
+    for i in np.flatnonzero(role == "test"):
+        p = z["points"][i]
+        d_ref, s_ref, _, _ = ref.stats(p)
+        v = np.abs(dist[i] - d_ref) / np.sqrt(s_ref**2 + noise**2)
+        top = np.argsort(v)[-max(1, int(np.ceil(0.01 * len(v)))):]
+        tree = cKDTree(p)
+        spacing = np.median(tree.query(p, 2)[0][:, 1])
+        count = np.array([len(x) for x in tree.query_ball_point(p, 4 * spacing)])
+        border = count < 0.6 * np.median(count)
+        rays = p - z["origin"][i]
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        grazing = np.abs(np.sum(rays * z["normals"][i], axis=1)) < 0.3
+        on_defect = z["point_labels"][i] is not None and np.any(z["point_labels"][i])
+        rows.append((aggregate(v, "top1"), z["name"][i], border[top].mean(), grazing[top].mean(),
+                     (z["point_labels"][i][top] > 0).mean() if on_defect else 0.0, border.mean(), grazing.mean()))
+    good = sorted((r for r in rows if r[1].startswith("test/good")), key=lambda r: -r[0])[:show]
+    bad = sorted((r for r in rows if not r[1].startswith("test/good")), key=lambda r: r[0])[:show]
+    print(f"{'scan':<18} {'score':>6}  top-1 % points: {'border':>6} {'grazing':>7} {'defect':>6}  all points: "
+          f"{'border':>6} {'grazing':>7}")
+    for r in good + bad:
+        print(f"{r[1]:<18} {r[0]:6.2f}  {'':16}{r[2]:6.2f} {r[3]:7.2f} {r[4]:6.2f}  {'':12}{r[5]:6.2f} {r[6]:7.2f}")
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True)
     p.add_argument("--model", required=True)
     p.add_argument("--alpha", type=float, default=0.01)
+    p.add_argument("--diagnose", action="store_true", help="where the worst points of good and defective scans lie")
     args = p.parse_args(argv)
     from verdicts import _print_rows
+
+    if args.diagnose:
+        diagnose(args.data, args.model)
+        return
 
     rows = study(args.data, args.model, args.alpha)
     kinds = sorted(k for k in rows[0][1] if k not in ("auroc", "flag_def", "flag_good", "n_good"))
