@@ -113,13 +113,13 @@ def default_pipeline(part, data, model, args, work):
     """The README's shortest path on an uncalibrated copy: ``python -m inspection score``. Returns the summary."""
     from inspection.run import score
 
-    run = work / "defaults"
+    run = work / ("defaults_aligned" if args.align else "defaults")
     run.mkdir(parents=True, exist_ok=True)
     copy = run / "model.pt"
     shutil.copyfile(model, copy)  # uncalibrated: score calibrates on the held-back scans by itself
     lines = []
     summary = score(copy, data, run / "results", split="test", progress=not args.quiet, maps="flagged",
-                    echo=lines.append, overwrite=True)
+                    echo=lines.append, overwrite=True, align=args.align)
     for line in lines:
         if line.startswith(("note:", "threshold basis", "calibrated on")) or "not calibrated" in line:
             print(f"  {part}: {line}")
@@ -178,6 +178,7 @@ def main(argv=None):
     p.add_argument("--points", type=int, default=4000)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--jitter", type=float, default=0.0, help="pose jitter in degrees on every scan")
+    p.add_argument("--align", action="store_true", help="score with --align (ICP onto the training scans first)")
     p.add_argument("--epochs", type=int, default=None, help="train_latent epochs (default: its own)")
     p.add_argument("--variants", action="store_true", help="also the score study (point scores x aggregates)")
     p.add_argument("--work", default="results/verdicts")
