@@ -414,8 +414,10 @@ def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, p
 def _without(scan, mask):
     """The scan without the points where ``mask`` is True (labels follow)."""
     keep = ~mask
-    return replace(scan, points=scan.points[keep], normals=scan.normals[keep],
-                   point_labels=None if scan.point_labels is None else scan.point_labels[keep])
+    out = replace(scan, points=scan.points[keep], normals=scan.normals[keep],
+                  point_labels=None if scan.point_labels is None else scan.point_labels[keep])
+    out.points = np.asarray(scan.points[keep], dtype=np.float64)  # file-unit precision, as load_source keeps it
+    return out
 
 
 def _stray_report(scans, counts, dropped):
