@@ -461,10 +461,11 @@ def view_picture(path, scan, values, title, labels=None, vmax=None):
     axes[0].legend(loc="lower right", fontsize=8)
     axes[0].set_aspect("equal")
     fig.colorbar(sc, ax=axes[0], fraction=0.04)
-    bins = np.linspace(0, vmax, 50)
+    bins = np.linspace(0, max(float(values.max()), vmax), 60)
     lab = np.zeros(len(values), bool) if labels is None else labels > 0
     axes[1].hist([values[~lab], values[lab]], bins=bins, label=["good points", "defect points"], log=True)
     axes[1].legend()
+    axes[1].set_xlabel("point score (all values; the map's colours stop at the left panel's bar)")
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=80)
@@ -502,7 +503,7 @@ def diagnose(args):
     score = np.array([np.mean(np.sort(v)[-max(1, int(np.ceil(0.01 * len(v)))):]) for v in vals])
     good = np.array([s.label == "good" for s in test])
     feats = [point_features(s, tree, owner, len(train)) for s in test]
-    print(f"point score {insp.point_score}, aggregate {insp.aggregate}, noise floor {insp.noise:.4g} (model frame), "
+    print(f"point score {insp.point_score}, aggregate {insp.aggregate}, noise floor {insp.noise if insp.noise is not None else handle.model.noise:.4g} (model frame), "
           f"kernel lengthscale {handle.model.lengthscale:.4g}, median point spacing of the test scans "
           f"{np.median([np.median(cKDTree(s.points).query(s.points, 2)[0][:, 1]) for s in test]):.4g}")
     print("\ngood test scans: the worst 1 % of each scan's points (its top1 score) against all its points")
@@ -548,7 +549,60 @@ def diagnose(args):
             view_picture(pics / f"missed_{kind}_{test[i].name.split('/')[-1]}.png", test[i], vals[i],
                          f"{test[i].name}: lowest-scoring {kind}, score {score[i]:.2f} (worst good {thr:.2f})",
                          labels=test[i].point_labels, vmax=vmax)
+    for i in [*np.flatnonzero(good)[np.argsort(-score[good])][:2],
+              min((i for i, s in enumerate(test) if s.defect == "bump"), key=lambda i: score[i])]:
+        section_picture(pics / f"section_{test[i].name.split('/')[-1]}.png", test[i], vals[i],
+                        insp.inspect(test[i]).field, f"{test[i].name}: the projected mean surface (E f = 0) "
+                                                    f"through the worst non-stray point (x), real points within "
+                                                    f"1 spacing of the section")
     print(f"pictures in {pics}")
+
+
+def section_picture(path, scan, values, field, title):
+    """A cross-section through the scan's worst point, in the plane holding the ray to the sensor: the projected
+    mean surface (the zero level of E f) and the real points near the plane, coloured by score."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from scipy.spatial import cKDTree
+
+    from datasets.outliers import stray_points
+
+    p = np.asarray(scan.points, np.float64)
+    worst = int(np.argmax(np.where(stray_points(p), -np.inf, values)))  # the worst point on the surface
+    w = p[worst]
+    z = scan.sensor_origin - w
+    z /= np.linalg.norm(z)
+    x = np.cross(z, np.asarray(scan.normals[worst], np.float64))
+    if np.linalg.norm(x) < 1e-6:
+        x = np.cross(z, [1.0, 0.0, 0.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)  # the plane spanned by z (toward the sensor) and y; x is its normal
+    half = 0.15
+    u = np.linspace(-half, half, 160)
+    gu, gv = np.meshgrid(u, u)
+    grid = w + gu.reshape(-1, 1) * y + gv.reshape(-1, 1) * z
+    mean = np.asarray(field.mean(grid)).reshape(gu.shape)
+    spacing = float(np.median(cKDTree(p).query(p, 2)[0][:, 1]))
+    near = np.abs((p - w) @ x) < spacing
+    q = (p[near] - w) @ np.stack([y, z]).T
+    fig, ax = plt.subplots(figsize=(7, 7))
+    lim = float(np.quantile(np.abs(mean), 0.95))
+    ax.contourf(gu, gv, mean, levels=21, cmap="RdBu_r", vmin=-lim, vmax=lim, alpha=0.5)
+    ax.contour(gu, gv, mean, levels=[0.0], colors="k", linewidths=1.2)
+    sc = ax.scatter(q[:, 0], q[:, 1], c=values[near], s=14, cmap="turbo", vmin=0,
+                    vmax=max(float(np.quantile(values, 0.995)), 1e-9), edgecolors="none")
+    ax.scatter([0], [0], marker="x", c="m", s=60)
+    ax.annotate("to the sensor", xy=(-0.13, 0.14), xytext=(-0.13, 0.09), arrowprops=dict(arrowstyle="->"))
+    ax.set_xlim(-half, half)
+    ax.set_ylim(-half, half)
+    ax.set_aspect("equal")
+    fig.colorbar(sc, ax=ax, fraction=0.04, label="point score")
+    ax.set_title(title, fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
 
 
 def main(argv=None):
