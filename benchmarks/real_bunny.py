@@ -503,7 +503,8 @@ def diagnose(args):
     score = np.array([np.mean(np.sort(v)[-max(1, int(np.ceil(0.01 * len(v)))):]) for v in vals])
     good = np.array([s.label == "good" for s in test])
     feats = [point_features(s, tree, owner, len(train)) for s in test]
-    print(f"point score {insp.point_score}, aggregate {insp.aggregate}, noise floor {insp.noise if insp.noise is not None else handle.model.noise:.4g} (model frame), "
+    noise = insp.noise if insp.noise is not None else handle.model.noise
+    print(f"point score {insp.point_score}, aggregate {insp.aggregate}, noise floor {noise:.4g} (model frame), "
           f"kernel lengthscale {handle.model.lengthscale:.4g}, median point spacing of the test scans "
           f"{np.median([np.median(cKDTree(s.points).query(s.points, 2)[0][:, 1]) for s in test]):.4g}")
     print("\ngood test scans: the worst 1 % of each scan's points (its top1 score) against all its points")

@@ -403,7 +403,8 @@ def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, p
     ScanCollection.create(out, (frame.apply(s) for s in scans), frame=frame, provenance=provenance,
                           overwrite=overwrite)
     counts = np.array([len(s) for s in scans])
-    summary = {"out": str(out), "n_scans": len(scans), "n_dropped": n_dropped, "n_stray": int(sum(m.sum() for m in strays)),
+    summary = {"out": str(out), "n_scans": len(scans), "n_dropped": n_dropped,
+               "n_stray": int(sum(m.sum() for m in strays)),
                "strays_dropped": drop_strays, "frame": frame.as_dict(),
                "points_min": int(counts.min()), "points_median": float(np.median(counts)),
                "points_max": int(counts.max()), "groups": _group_counts((s.split, s.label, s.defect) for s in scans)}
