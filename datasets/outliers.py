@@ -3,6 +3,7 @@ import numpy as np
 
 STRAY_NEIGHBOURS = 8  # the local plane of a point is fitted to this many nearest neighbours (the point excluded)
 STRAY_FACTOR = 3.0  # a point this many local spacings off that plane is stray
+_CHUNK = 100_000  # points per block of neighbourhood arrays
 
 
 def stray_points(points, k=STRAY_NEIGHBOURS, factor=STRAY_FACTOR):
@@ -40,20 +41,22 @@ def stray_points(points, k=STRAY_NEIGHBOURS, factor=STRAY_FACTOR):
     if len(p) <= k:
         return np.zeros(len(p), dtype=bool)
     tree = cKDTree(p)
-    dist, idx = tree.query(p, k + 1)
-    # the query returns the point itself first, unless an exact duplicate came first: drop whichever is itself
-    is_self = idx == np.arange(len(p))[:, None]
-    first_other = ~is_self[:, 0]
-    nb = np.where(first_other[:, None], idx[:, :k], idx[:, 1:])  # (N, k)
-    nn = np.where(first_other, dist[:, 0], dist[:, 1])  # (N,) nearest other point
-    q = p[nb]  # (N, k, 3)
-    centre = q.mean(axis=1)
-    d = q - centre[:, None]
-    cov = np.einsum("nki,nkj->nij", d, d)  # (N, 3, 3)
-    _, vecs = np.linalg.eigh(cov)
-    normal = vecs[:, :, 0]  # eigenvector of the smallest eigenvalue: the plane's normal
-    off = np.abs(np.einsum("ni,ni->n", p - centre, normal))
-    spacing = np.median(nn[nb], axis=1)
+    nn = tree.query(p, 2)[0][:, 1]  # (N,) each point's nearest other point (0 for duplicates)
     positive = nn[nn > 0]
-    floor = float(np.median(positive)) if len(positive) else 0.0  # duplicated neighbourhoods have spacing 0
-    return off > factor * np.maximum(spacing, 0.1 * floor)
+    floor = 0.1 * float(np.median(positive)) if len(positive) else 0.0  # stands in for a spacing of 0 (duplicates)
+    out = np.empty(len(p), dtype=bool)
+    for start in range(0, len(p), _CHUNK):  # chunks keep the (n, k, 3) neighbourhoods of a large scan small
+        q_idx = np.arange(start, min(start + _CHUNK, len(p)))
+        _, idx = tree.query(p[q_idx], k + 1)
+        # the query returns the point itself first, unless an exact duplicate came first: drop whichever is itself
+        first_other = idx[:, 0] != q_idx
+        nb = np.where(first_other[:, None], idx[:, :k], idx[:, 1:])  # (n, k)
+        q = p[nb]  # (n, k, 3)
+        centre = q.mean(axis=1)
+        d = q - centre[:, None]
+        _, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", d, d))
+        normal = vecs[:, :, 0]  # eigenvector of the smallest eigenvalue: the plane's normal
+        off = np.abs(np.einsum("ni,ni->n", p[q_idx] - centre, normal))
+        spacing = np.median(nn[nb], axis=1)
+        out[q_idx] = off > factor * np.maximum(spacing, floor)
+    return out

@@ -66,9 +66,14 @@ def test_stray_points_finds_spurious_returns_not_the_surface():
     assert (cos < 0.3).sum() > 50 and not stray_points(points).any()
 
 
-def test_stray_points_is_unit_free_and_validates():
+def test_stray_points_is_unit_free_chunk_free_and_validates(monkeypatch):
+    import datasets.outliers
+
     cloud, truth = with_strays(range_view()[0])
-    np.testing.assert_array_equal(stray_points(cloud * 1000.0), stray_points(cloud))  # metres or millimetres
+    found = stray_points(cloud)
+    np.testing.assert_array_equal(stray_points(cloud * 1000.0), found)  # metres or millimetres
+    monkeypatch.setattr(datasets.outliers, "_CHUNK", 333)
+    np.testing.assert_array_equal(stray_points(cloud), found)  # blocks of a large scan give the same answer
     assert not stray_points(cloud[:5]).any()  # too few points to judge
     with pytest.raises(ValueError, match="k must be"):
         stray_points(cloud, k=2)
