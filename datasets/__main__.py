@@ -9,9 +9,10 @@ def _cmd_import(args):
     from .importer import import_tree
 
     s = import_tree(args.root, args.out, voxel=args.voxel, n_points=args.points, seed=args.seed,
-                    overwrite=args.overwrite)
+                    overwrite=args.overwrite, drop_strays=args.drop_strays)
     print(f"wrote {s['out']}: {s['n_scans']} scans, points per scan min {s['points_min']} / median "
-          f"{s['points_median']:g} / max {s['points_max']}, {s['n_dropped']} non-finite points dropped")
+          f"{s['points_median']:g} / max {s['points_max']}, {s['n_dropped']} non-finite points dropped, "
+          f"{s['n_stray']} stray points {'removed' if s['strays_dropped'] else 'found (kept; see info)'}")
     for (split, label, defect), n in s["groups"].items():
         print(f"  {split:<11}{label:<11}{defect or '-':<16}{n:>6}")
     print(f"  frame: {json.dumps(s['frame'])}")
@@ -49,6 +50,9 @@ def build_parser():
     size.add_argument("--points", type=int, metavar="N", help="keep a seeded random subset of N points per scan")
     p.add_argument("--seed", type=int, default=0, help="seed of the random subsets (default 0)")
     p.add_argument("--overwrite", action="store_true", help="replace --out if it exists")
+    p.add_argument("--drop-strays", action="store_true",
+                   help="remove stray points (isolated returns off the surface) from the scans; by default they are "
+                        "kept, counted (see info) and only left out of the frame's fit")
     p.set_defaults(func=_cmd_import)
 
     p = sub.add_parser("export", help="collection -> PLY files in the same tree layout")

@@ -43,6 +43,10 @@ class Frame:
     def fit(cls, points):
         """The frame that maps the bounding box of ``points`` to a cube centred at 0 whose longest side is 1.
 
+        The box is exact (CAD vertices, clean samples); scanner data is fitted on the points that survive
+        :func:`datasets.outliers.stray_points` (the importer does), so isolated returns off the part leave the frame
+        as it would be without them.
+
         Parameters
         ----------
         points : (N, 3) array

@@ -17,7 +17,7 @@ Sensor origin (optional, file units): an npz key ``sensor_origin`` or a sidecar 
 import json
 import logging
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Optional
 
@@ -25,6 +25,7 @@ import numpy as np
 
 from .cloud_io import CLOUD_SUFFIXES, read_cloud, write_cloud
 from .frame import Frame
+from .outliers import STRAY_FACTOR, STRAY_NEIGHBOURS, stray_points
 from .scan import SPLITS, Scan
 
 log = logging.getLogger(__name__)
@@ -33,6 +34,8 @@ MIN_POINTS = 3  # fewer finite points cannot define a tangent plane, let alone a
 _SIDECAR_SUFFIX = ".json"
 _NEIGHBOURS = 30  # max neighbours of the normal-estimation search
 _SPACING_RADIUS = 4.0  # search radius in median nearest-neighbour spacings (~50 neighbours on a uniform surface)
+_DECISIVE_COS = 0.3  # |cos(normal, ray to the sensor)| above which the sensor alone decides a normal's sign (~73 deg)
+_VOTE_NEIGHBOURS = 12  # neighbours whose orientation decides a grazing normal's sign
 
 
 @dataclass(frozen=True)
@@ -175,9 +178,8 @@ def estimate_normals(points, sensor_origin=None):
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=_SPACING_RADIUS * spacing,
                                                               max_nn=_NEIGHBOURS))
     if sensor_origin is not None:
-        # a depth sensor sees the outside of a surface, so outward normals face it
-        pcd.orient_normals_towards_camera_location(np.asarray(sensor_origin, dtype=np.float64))
-        return np.asarray(pcd.normals, dtype=np.float64)
+        return _orient_toward_sensor(pts, np.asarray(pcd.normals, dtype=np.float64),
+                                     np.asarray(sensor_origin, dtype=np.float64))
     if len(pts) > 16:
         try:  # propagate one orientation along a minimum spanning tree so neighbours agree...
             pcd.orient_normals_consistent_tangent_plane(15)
@@ -191,6 +193,51 @@ def estimate_normals(points, sensor_origin=None):
     # ...then pick the global sign that makes most normals point away from the centroid (outward on closed parts)
     if np.count_nonzero(np.einsum("ij,ij->i", normals, pts - pts.mean(0)) < 0) > len(pts) / 2:
         normals = -normals
+    return normals
+
+
+def _orient_toward_sensor(points, normals, origin, decisive=_DECISIVE_COS, k=_VOTE_NEIGHBOURS, rounds=3):
+    """Normals signed to face the sensor where the view decides, and like their neighbours where it does not.
+
+    A depth sensor sees the outside of a surface, so every true normal of a scan faces the sensor. open3d's
+    ``orient_normals_towards_camera_location`` applies that test to each estimated normal on its own, which is
+    right wherever the surface faces the sensor clearly; on a grazing surface the true normal is nearly
+    perpendicular to the ray and the noise of a real scan tilts the estimate across it, so the test flips some of
+    some of them (on real Cyberware views, docs/results.md). There the sign is taken
+    from the neighbours instead: a few rounds of a vote of sum_j (n_i . n_j) over the ``k`` nearest neighbours,
+    the decisively oriented ones counted twice.
+
+    Parameters
+    ----------
+    points, normals : (N, 3) float64 arrays
+        Unit normals, any sign.
+    origin : (3,) float64 array
+        Sensor position, same units as ``points``.
+    decisive : float
+        |cos| between a normal and the ray to the sensor above which the sensor test alone decides.
+
+    Returns
+    -------
+    (N, 3) float64 array
+    """
+    from scipy.spatial import cKDTree
+
+    to_sensor = origin - points
+    to_sensor /= np.maximum(np.linalg.norm(to_sensor, axis=1, keepdims=True), 1e-300)
+    cos = np.einsum("ij,ij->i", normals, to_sensor)
+    normals = np.where((cos < 0)[:, None], -normals, normals)
+    unsure = np.flatnonzero(np.abs(cos) < decisive)
+    if len(unsure) == 0 or len(points) <= k:
+        return normals
+    _, nb = cKDTree(points).query(points[unsure], k + 1)
+    nb = nb[:, 1:]  # (U, k)
+    weight = np.where(np.abs(cos[nb]) >= decisive, 2.0, 1.0)
+    for _ in range(rounds):
+        vote = np.sum(weight * np.einsum("uj,ukj->uk", normals[unsure], normals[nb]), axis=1)
+        flip = unsure[vote < 0]
+        if len(flip) == 0:
+            break
+        normals[flip] *= -1
     return normals
 
 
@@ -289,11 +336,14 @@ def load_source(src, voxel=None, n_points=None, seed=0):
 
 
 # ---- whole folders ---------------------------------------------------------------------------------------------------
-def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, progress=None):
+def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, progress=None, drop_strays=False):
     """Import a tree or flat folder of scanner files into a new collection at ``out``.
 
     The frame is fitted to the bounding box of all training points (of all points when there is no train split)
-    and applied to every scan. Everything is read and checked before anything is written, so any bad file raises
+    and applied to every scan; stray points (:func:`datasets.outliers.stray_points`, found per scan after
+    downsampling) are counted in the provenance (``stray_points``, shown by ``python -m datasets info``) and left out
+    of the frame's fit, so a few isolated returns far from the part do not shrink it; they stay in the scans unless
+    ``drop_strays``. Everything is read and checked before anything is written, so any bad file raises
     one ValueError naming it and leaves ``out`` untouched. The preprocessed scans are held in memory until written
     (use --voxel / --points for large trees).
 
@@ -308,11 +358,14 @@ def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, p
     overwrite : bool
     progress : bool or None
         tqdm bar over files; None shows it only on a terminal.
+    drop_strays : bool
+        Remove the stray points from the scans (default: keep them; they are only counted).
 
     Returns
     -------
     dict
-        Summary: out, n_scans, counts per split/label/defect, n_dropped, frame, points per scan min/median/max.
+        Summary: out, n_scans, counts per split/label/defect, n_dropped, n_stray, frame, points per scan
+        min/median/max.
     """
     from tqdm import tqdm
 
@@ -330,24 +383,52 @@ def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, p
     if not out.parent.is_dir():  # say so now, not after reading every file
         raise FileNotFoundError(f"{out.parent}: output folder does not exist")
     sources = find_sources(root, exclude=out)
-    scans, n_dropped = [], 0
+    scans, strays, n_dropped = [], [], 0
     for src in tqdm(sources, desc="import", unit="file", disable=None if progress is None else not progress):
         scan, dropped = load_source(src, voxel=voxel, n_points=n_points, seed=seed)
+        stray = stray_points(scan.points)
+        if drop_strays and stray.any():
+            scan = _without(scan, stray)
         scans.append(scan)
+        strays.append(stray)
         n_dropped += dropped
-    train = [s.points for s in scans if s.split == "train"]
-    frame = Frame.fit(np.concatenate(train if train else [s.points for s in scans]))
+    fit_on = [i for i, s in enumerate(scans) if s.split == "train"] or range(len(scans))
+    # fitted on the points that survive stray detection: one return 10 cm off the part would otherwise set the box
+    frame = Frame.fit(np.concatenate([scans[i].points if drop_strays else scans[i].points[~strays[i]]
+                                      for i in fit_on]))
     provenance = {"source": "import", "root": str(root.resolve()), "files": len(sources), "voxel": voxel,
                   "points": n_points, "seed": seed, "dropped_nonfinite": n_dropped,
-                  "frame_fitted_on": "train" if train else "all (no train split)"}
+                  "frame_fitted_on": "train" if isinstance(fit_on, list) else "all (no train split)",
+                  "stray_points": _stray_report(scans, [int(m.sum()) for m in strays], drop_strays)}
     ScanCollection.create(out, (frame.apply(s) for s in scans), frame=frame, provenance=provenance,
                           overwrite=overwrite)
     counts = np.array([len(s) for s in scans])
-    summary = {"out": str(out), "n_scans": len(scans), "n_dropped": n_dropped, "frame": frame.as_dict(),
+    summary = {"out": str(out), "n_scans": len(scans), "n_dropped": n_dropped,
+               "n_stray": int(sum(m.sum() for m in strays)),
+               "strays_dropped": drop_strays, "frame": frame.as_dict(),
                "points_min": int(counts.min()), "points_median": float(np.median(counts)),
                "points_max": int(counts.max()), "groups": _group_counts((s.split, s.label, s.defect) for s in scans)}
     log.info("imported %d scans from %s into %s", len(scans), root, out)
     return summary
+
+
+def _without(scan, mask):
+    """The scan without the points where ``mask`` is True (labels follow)."""
+    keep = ~mask
+    out = replace(scan, points=scan.points[keep], normals=scan.normals[keep],
+                  point_labels=None if scan.point_labels is None else scan.point_labels[keep])
+    out.points = np.asarray(scan.points[keep], dtype=np.float64)  # file-unit precision, as load_source keeps it
+    return out
+
+
+def _stray_report(scans, counts, dropped):
+    """The provenance entry on stray points: the rule, totals, and the scans with the most."""
+    counts = np.asarray(counts)
+    worst = np.argsort(-counts, kind="stable")[:5]
+    return {"rule": f"off the plane of its {STRAY_NEIGHBOURS} nearest neighbours by > {STRAY_FACTOR:g} local spacings",
+            "total": int(counts.sum()), "scans_with": int(np.count_nonzero(counts)),
+            "max_per_scan": int(counts.max(initial=0)), "dropped": bool(dropped), "in_frame_fit": False,
+            "worst": [[scans[i].name, int(counts[i])] for i in worst if counts[i] > 0]}
 
 
 def _group_counts(rows):
@@ -423,6 +504,13 @@ def collection_info(path):
             lines.append(f"points per scan: min {n.min()}, median {np.median(n):g}, max {n.max()}, total {n.sum()}")
             lines.append(f"with point labels: {sum(m['has_labels'] for m in meta)}, with sensor origin: "
                          f"{sum(m['sensor_origin'] is not None for m in meta)}")
+        stray = c.provenance.get("stray_points")
+        if stray is not None:
+            worst = ", ".join(f"{n} {k}" for n, k in stray["worst"])
+            lines.append(f"stray points at import ({stray['rule']}): {stray['total']} in {stray['scans_with']} scans, "
+                         f"at most {stray['max_per_scan']} in one"
+                         + (f" ({worst})" if worst else "")
+                         + ("; removed" if stray["dropped"] else "; kept in the scans, left out of the frame's fit"))
         lines.append(f"frame: center {c.frame.as_dict()['center']}, scale {c.frame.scale:.6g} "
                      f"(x_collection = scale * (x_file - center))")
         lines.append(f"provenance: {json.dumps(c.provenance, sort_keys=True)}")
