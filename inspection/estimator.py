@@ -27,7 +27,8 @@ from sklearn.exceptions import NotFittedError
 class _Projected:
     """A scan projected into the model: its name, points (m, 3), field, sensor origin (None when unknown), and for
     reference-based point scores the compared quantity (m,), the field's variance in its units (m,) and the grazing
-    factor of the sensor's rays (m,) (None without a sensor origin)."""
+    factor of the sensor's rays (m,) (None without a sensor origin); ``stray`` (m,) bool marks isolated returns off
+    the surface their neighbours define (:func:`datasets.outliers.stray_points`)."""
 
     name: str
     points: np.ndarray
@@ -36,6 +37,7 @@ class _Projected:
     value: np.ndarray = None
     variance: np.ndarray = None
     grazing: np.ndarray = None
+    stray: np.ndarray = None
 
 
 @dataclass
@@ -228,7 +230,10 @@ class Inspector(BaseEstimator):
             value, variance = field_quantity(field, points, REFERENCE_QUANTITY[self.point_score], with_variance=True)
             if origin is not None and normals is not None:
                 grazing = grazing_factor(points, normals, origin)
-        return _Projected(name, np.asarray(points, dtype=np.float64), field, origin, value, variance, grazing)
+        from datasets.outliers import stray_points
+
+        points = np.asarray(points, dtype=np.float64)
+        return _Projected(name, points, field, origin, value, variance, grazing, stray_points(points))
 
     def _score(self, good, reference):
         """A :class:`ScanResult` of a projected scan against ``reference`` (components: points, rays)."""
@@ -237,7 +242,10 @@ class Inspector(BaseEstimator):
             values = reference.standardized(good.points, good.value, good.variance, noise, good.grazing)
         else:
             values = point_scores(good.field, good.points, kind=self.point_score, noise=self.noise)
-        score = aggregate_scores(values, self.aggregate)
+        # a stray point (a lone return off the surface) is not a defect unless many points agree: the scan's score
+        # aggregates the others; the map keeps every point's score
+        kept = values if good.stray is None or good.stray.all() else values[~good.stray]
+        score = aggregate_scores(kept, self.aggregate)
         result = ScanResult(score, values, good.field, components={"points": score})
         if self.rays:
             from .ray_evidence import check_ray_options, ray_evidence

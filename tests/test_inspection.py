@@ -359,3 +359,59 @@ def test_fit_cross_fits_the_reference_scans():
     assert stored.extra["reference"]["grazing_scale"] == insp.reference_.grazing_scale == 0.0  # no sensor origins
     without = Inspector(SphereModel(), point_score="distance").fit(held, reference_scans=good, cross_fit=False)
     assert without.calibration_roles_ == ["held-back"] * 4
+
+
+def test_a_handful_of_stray_points_does_not_flag_a_good_scan():
+    """Real scanners return a few isolated points off the part; the scan score aggregates the points that lie on
+    a surface, so a stray point is not a defect unless many points agree (a dent of many points still is)."""
+    good = [sphere_scan(seed=s, n=1500)[0] for s in range(10)]
+    held = [sphere_scan(seed=s, n=1500)[0] for s in range(20, 26)]
+    insp = Inspector(SphereModel(), point_score="distance", alpha=0.05).fit(held, reference_scans=good)
+    clean = sphere_scan(seed=40, n=1500)[0]
+    rng = np.random.default_rng(1)
+    picked = clean[rng.choice(len(clean), 5, replace=False)]
+    strays = picked * 1.15  # 5 lone returns 0.15 off the unit sphere (the noise is 0.003)
+    scan = np.r_[clean, strays]
+    result = insp.inspect(scan)
+    assert result.point_scores[-5:].min() > 10 * insp.threshold_  # the map still shows them
+    assert insp.predict([scan])[0] == 1 and result.score == pytest.approx(insp.inspect(clean).score, rel=0.05)
+    # the same 5 points' worth of evidence as a surface (a dent of many points) is flagged
+    assert insp.predict([sphere_scan(seed=40, n=1500, dent=0.06)[0]])[0] == -1
+
+
+def _cap_scan(seed, n=2000, noise=0.002, name="cap"):
+    """A unit sphere's cap as a sensor 3 units away sees it (a random view within 60 degrees of +z), the noise
+    growing where the ray grazes the surface (sd noise / |cos|, as a real range sensor's), with the sensor origin
+    recorded: a datasets.Scan."""
+    from datasets import Scan
+
+    rng = np.random.default_rng(seed)
+    tilt, turn = np.arccos(rng.uniform(0.5, 1.0)), rng.uniform(0, 2 * np.pi)
+    o = 3.0 * np.array([np.sin(tilt) * np.cos(turn), np.sin(tilt) * np.sin(turn), np.cos(tilt)])
+    d = rng.normal(size=(8 * n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    ray = d - o
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    cos = -np.sum(ray * d, axis=1)
+    d, cos = d[cos > 0.05][:n], cos[cos > 0.05][:n]  # the visible cap, out to grazing incidence
+    points = d * (1 + rng.normal(size=len(d)) * noise / cos)[:, None]
+    return Scan(name, points.astype(np.float32), d.astype(np.float32), sensor_origin=o)
+
+
+def test_a_good_scan_whose_border_grazes_the_surface_is_not_flagged_for_it():
+    """Good scans from many views whose noise grows at grazing incidence (where one view grazes a place, others saw
+    it head-on, so the per-location reference alone does not know): the grazing term, fitted on good scans, keeps
+    new good scans within the calibration scans' range; a constant noise floor lets their grazing border set their
+    score."""
+    good = [_cap_scan(s, name=f"train/{s}") for s in range(16)]
+    held = [_cap_scan(s, name=f"held/{s}") for s in range(20, 26)]
+    insp = Inspector(SphereModel(), point_score="distance", alpha=0.05).fit(held, reference_scans=good)
+    assert insp.reference_.grazing_scale > 0
+    fitted_scale = insp.reference_.grazing_scale
+    for seed in (40, 41, 42):
+        scan = _cap_scan(seed, name="test")
+        score = insp.inspect(scan).score
+        assert insp.predict([scan])[0] == 1 and score <= insp.calibration_scores_.max()
+        insp.reference_.grazing_scale = 0.0  # a constant noise floor
+        assert insp.inspect(scan).score > 1.3 * score
+        insp.reference_.grazing_scale = fitted_scale
