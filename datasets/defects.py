@@ -72,6 +72,61 @@ class Defect:
         # A thin wall's far side lies within the radius too but was not moved: the depth test keeps it out.
         return (np.linalg.norm(offset, axis=1) < self.radius) & (np.abs(along) <= abs(self.height) + 1e-3 * self.radius)
 
+    def seen_through(self, original, sensor, points, step_fraction=0.02):
+        """Which points were seen through removed material: the sensor's ray to them crossed the original solid
+        where a ``missing`` defect took it away (a hole through a thin wall shows the surfaces behind it).
+
+        Parameters
+        ----------
+        original : trimesh.Trimesh
+            The undamaged part (watertight), in the same coordinates as ``self.mesh``.
+        sensor : (3,) array
+            The sensor position, mesh coordinates.
+        points : (n, 3) array
+            Points the sensor returned from ``self.mesh``, mesh coordinates (noise-free hits label best).
+        step_fraction : float
+            Spacing of the samples along each ray's chord of the removed ball, as a fraction of its radius.
+
+        Returns
+        -------
+        (n,) bool array
+            All False for other kinds than ``missing``.
+        """
+        import open3d as o3d
+
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        out = np.zeros(len(points), dtype=bool)
+        if self.kind != "missing" or len(points) == 0:
+            return out
+        sensor = np.asarray(sensor, dtype=np.float64).reshape(3)
+        offset = points - sensor
+        length = np.linalg.norm(offset, axis=1)
+        d = offset / np.maximum(length, 1e-300)[:, None]
+        # the chord of each ray inside the removed ball, clipped to the segment [sensor, point)
+        b = (sensor - self.center) @ d.T  # (n,)
+        disc = b ** 2 - (np.sum((sensor - self.center) ** 2) - self.radius ** 2)
+        crossing = np.flatnonzero(disc > 0)
+        root = np.sqrt(disc[crossing])
+        t0 = np.maximum(-b[crossing] - root, 0.0)
+        t1 = np.minimum(-b[crossing] + root, length[crossing])
+        keep = t1 > t0
+        crossing, t0, t1 = crossing[keep], t0[keep], t1[keep]
+        if len(crossing) == 0:
+            return out
+        n_steps = int(np.ceil(2.0 / step_fraction)) + 1
+        u = (np.arange(n_steps) + 0.5) / n_steps
+        t = t0[:, None] + (t1 - t0)[:, None] * u  # (k, S), chord samples strictly inside the segment
+        x = sensor + t[..., None] * d[crossing, None, :]
+        scene = o3d.t.geometry.RaycastingScene()
+        shift = np.asarray(original.vertices, dtype=np.float64).mean(axis=0)  # open3d is float32: work near 0
+        scene.add_triangles(o3d.core.Tensor((np.asarray(original.vertices) - shift).astype(np.float32)),
+                            o3d.core.Tensor(np.asarray(original.faces, dtype=np.uint32)))
+        inside = scene.compute_occupancy(o3d.core.Tensor((x.reshape(-1, 3) - shift).astype(np.float32))).numpy()
+        # a ray passing through the removed material ran inside the old solid; the point's own surface (a lining
+        # point lies on the ball) is the segment's end, which the open samples leave out
+        out[crossing] = (inside.reshape(t.shape) > 0.5).any(axis=1)
+        return out
+
 
 def pick_spot(scan, radius, seed=None, max_normal_deg=25.0, min_facing=0.6):
     """Pick a defect site that a scan sees, away from sharp edges where possible.
@@ -201,11 +256,18 @@ def _displace(mesh, kind, center, normal, radius, height):
     vertices, faces = _refine_near(np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces), center,
                                    radius, radius / 6.0)
     refined = trimesh.Trimesh(vertices, faces, process=False)
-    distance = np.linalg.norm(vertices - center, axis=1)
-    # Only the sheet the spot lies on moves: the far side of a thin wall, or a side wall met at a sharp edge, is
-    # within the radius too, but its normals point elsewhere.
-    moving = (distance < radius) & (refined.vertex_normals @ normal > 0.5)
-    profile = (1.0 - (distance[moving] / radius) ** 2) ** 2
+    offset = vertices - center
+    distance = np.linalg.norm(offset, axis=1)
+    facing = refined.vertex_normals @ normal
+    # The surface the spot lies on moves, and so does the far side of a wall thinner than the radius (a dent in a
+    # sheet moves the whole sheet, as pressing sheet metal does; moving one side alone would push it through the
+    # other). A side wall met at a sharp edge is within the radius too, but its normals point elsewhere: it stays.
+    near_side = (distance < radius) & (facing > 0.5)
+    far_side = (distance < radius) & (facing < -0.5)
+    moving = near_side | far_side
+    # the far side follows the profile of the point of the near side opposite it (distance across the sheet)
+    lateral = np.linalg.norm(offset - (offset @ normal)[:, None] * normal, axis=1)
+    profile = (1.0 - (np.where(far_side, lateral, distance)[moving] / radius) ** 2) ** 2
     vertices = vertices.copy()
     vertices[moving] += (height * profile)[:, None] * normal
     changed = moving[faces].any(axis=1)

@@ -1,4 +1,4 @@
-"""Parts to scan: the built-in mechanical part generated in code, and loading a CAD mesh from a file."""
+"""Parts to scan: the built-in parts generated in code (a solid bracket, thin-walled and open parts) and CAD meshes."""
 from pathlib import Path
 
 import numpy as np
@@ -49,13 +49,116 @@ def builtin_part():
     return part
 
 
+def sheet_enclosure(size=(100.0, 70.0, 50.0), wall=1.5):
+    """A sheet-metal enclosure cover in millimetres: a thin-walled box open at the bottom, with openings in its walls.
+
+    The top has a rectangular vent (40 x 16) and a round hole (diameter 14); the two long side walls each have a
+    rectangular cut-out (30 x 12), one short wall a round hole (diameter 18). Scans see the outside of the sheet, and
+    its inside through the openings and the open bottom: the case a hole through the sheet looks like.
+
+    Parameters
+    ----------
+    size : (3,) floats
+        Outer extents (x, y, z) in mm.
+    wall : float
+        Sheet thickness in mm (walls and top alike).
+
+    Returns
+    -------
+    trimesh.Trimesh
+        Watertight and deterministic; bounding box [-size/2, size/2] in x, y and [0, size z] in z.
+    """
+    import trimesh
+    from trimesh.creation import box, cylinder
+
+    sx, sy, sz = (float(s) for s in size)
+    outer = box(extents=(sx, sy, sz), transform=_translation((0.0, 0.0, sz / 2)))
+    # the cavity overshoots the bottom so the cover is open there
+    inner = box(extents=(sx - 2 * wall, sy - 2 * wall, sz), transform=_translation((0.0, 0.0, sz / 2 - wall)))
+    depth = 4.0 * wall  # cutting tools pass through the sheet with room to spare
+    tools = [
+        box(extents=(40.0, 16.0, depth), transform=_translation((-15.0, 10.0, sz - wall / 2))),
+        cylinder(radius=7.0, height=depth, sections=48, transform=_translation((28.0, -18.0, sz - wall / 2))),
+        box(extents=(30.0, depth, 12.0), transform=_translation((-12.0, sy / 2 - wall / 2, sz / 2))),
+        box(extents=(30.0, depth, 12.0), transform=_translation((18.0, -sy / 2 + wall / 2, sz / 2 + 6.0))),
+        cylinder(radius=9.0, height=depth, sections=48,
+                 transform=_translation((sx / 2 - wall / 2, 0.0, sz / 2)) @ _rotation_to_x()),
+    ]
+    part = trimesh.boolean.difference([outer, inner, *tools], engine="manifold")
+    return _checked(part, "sheet_enclosure")
+
+
+def open_cup(radius=40.0, height=70.0, wall=1.5, sections=96):
+    """A thin open cup in millimetres: a cylindrical wall on a hemispherical bottom, open at the top.
+
+    A curved sheet ``wall`` thick everywhere, seen from outside and, from above, through its opening.
+
+    Parameters
+    ----------
+    radius : float
+        Outer radius in mm.
+    height : float
+        Overall height in mm (bottom of the hemisphere to the rim); must exceed ``radius``.
+    wall : float
+        Sheet thickness in mm.
+    sections : int
+        Facets around the axis.
+
+    Returns
+    -------
+    trimesh.Trimesh
+        Watertight and deterministic; bounding box about [-radius, radius]^2 x [0, height] (the facets lie inside
+        the circle of ``radius``).
+    """
+    import trimesh
+    from trimesh.creation import capsule
+
+    radius, height, wall = float(radius), float(height), float(wall)
+    if not height > radius > wall > 0:
+        raise ValueError(f"open_cup needs height > radius > wall > 0, got {height}, {radius}, {wall}")
+    # a capsule's cylinder runs from -length/2 to +length/2 with hemispheres beyond; this one's bottom pole is at 0
+    length = 2.0 * (height - radius)
+    count = [sections, sections // 2]
+    outer = capsule(height=length, radius=radius, count=count, transform=_translation((0, 0, radius + length / 2)))
+    inner = capsule(height=length, radius=radius - wall, count=count,
+                    transform=_translation((0, 0, radius + length / 2)))
+    cut = trimesh.creation.box(extents=(4 * radius, 4 * radius, 2 * radius),
+                               transform=_translation((0, 0, height + radius)))
+    part = trimesh.boolean.difference([outer, inner, cut], engine="manifold")
+    return _checked(part, "open_cup")
+
+
+def _translation(offset):
+    matrix = np.eye(4)
+    matrix[:3, 3] = offset
+    return matrix
+
+
+def _rotation_to_x():
+    """(4, 4) rotation taking the z axis (trimesh's cylinder axis) to the x axis."""
+    import trimesh
+
+    return trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0])
+
+
+def _checked(part, name):
+    part.merge_vertices()
+    if not part.is_watertight or part.volume <= 0:
+        raise RuntimeError(f"{name}: the boolean result is not a watertight solid (manifold3d changed behaviour?)")
+    return part
+
+
+BUILTIN_PARTS = {"builtin": builtin_part, "enclosure": sheet_enclosure, "cup": open_cup}
+
+
 def load_part(path):
-    """Load a part's triangle mesh from an OBJ / STL / PLY / OFF file, or the built-in part.
+    """Load a part's triangle mesh from an OBJ / STL / PLY / OFF file, or a built-in part by name.
 
     Parameters
     ----------
     path : str or Path
-        A mesh file, or the string ``"builtin"`` for `builtin_part`.
+        A mesh file, or the name of a built-in part (a key of `BUILTIN_PARTS`): ``"builtin"`` (`builtin_part`, the
+        solid bracket), ``"enclosure"`` (`sheet_enclosure`), ``"cup"`` (`open_cup`).
 
     Returns
     -------
@@ -67,13 +170,13 @@ def load_part(path):
         Naming the file, when it does not exist, has an unknown extension, cannot be read, or holds no triangles
         (an empty file, a point cloud).
     """
-    if isinstance(path, str) and path == "builtin":
-        return builtin_part()
+    if isinstance(path, str) and path in BUILTIN_PARTS:
+        return BUILTIN_PARTS[path]()
     import trimesh
 
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"mesh file {str(path)!r} not found")
+        raise ValueError(f"mesh file {str(path)!r} not found (nor is it a built-in part: {sorted(BUILTIN_PARTS)})")
     suffix = path.suffix.lower()
     if suffix not in MESH_SUFFIXES:
         raise ValueError(f"mesh file {str(path)!r}: unknown extension {suffix!r} (expected one of {MESH_SUFFIXES})")

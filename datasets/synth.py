@@ -116,7 +116,11 @@ def _defective_scan(mesh, scanner, kind, rng, view_options, options, min_fractio
         defect = defect_for_view(mesh, scanner, view, kind, seed=rng, fov_deg=options["fov_deg"])
         result = VirtualScanner(defect.mesh).scan(view, seed=rng, **options)
         # Label the noise-free hits, by the triangles they hit: noise must not move a point on or off the defect.
-        labels = defect.region(result.to_mesh_frame(result.clean_points), result.triangle_ids)
+        clean = result.to_mesh_frame(result.clean_points)
+        labels = defect.region(clean, result.triangle_ids)
+        if kind == "missing":
+            # a hole through a thin wall has almost no surface of its own: what the sensor saw through it counts
+            labels |= defect.seen_through(mesh, result.to_mesh_frame(result.sensor_origin[None])[0], clean)
         if labels.sum() >= needed:
             return result, labels.astype(np.uint8), defect
         best = max(best, int(labels.sum()))
