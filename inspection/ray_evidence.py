@@ -37,7 +37,8 @@ from .scores import aggregate as aggregate_values, check_aggregate
 
 log = logging.getLogger(__name__)
 
-RAY_DEFAULTS = {"n_rays": 384, "n_empty": 128, "gap": 2.0, "aggregate": "top1", "seed": 0, "clearance": None}
+RAY_DEFAULTS = {"n_rays": 384, "n_empty": 128, "gap": 2.0, "aggregate": "top1", "seed": 0, "clearance": None,
+                "own_depth": "auto"}
 _MAX_OFF_AXIS_COS = 0.087  # cos 85 deg: wider views are not one pinhole image
 _MAX_GRID_CELLS = 400_000
 
@@ -70,6 +71,63 @@ class RayEvidence:
     empty_directions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     empty_values: np.ndarray = field(default_factory=lambda: np.zeros(0))
     empty_surprisal: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    entries: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+    def entry_points(self):
+        """(k, 3) where the blocked rays (P(blocked) >= 1/2, both kinds) enter the expected material."""
+        return self.entries
+
+
+class RayReference:
+    """Where the rays of good scans enter the material their projected fields expect (a per-location reference
+    of the ray score, as :class:`inspection.scores.LocalReference` is of the point scores).
+
+    A latent field of a partial scan is a one-sided Poisson field: negative everywhere behind the surface it saw.
+    On an open or thin-walled part the cavity behind a sheet is "solid" to it, so the rays of GOOD scans that look
+    through the part's openings enter expected material too (benchmarks/thin_walled.py: every good scan of the
+    sheet-metal enclosure seen from above scored ~50 nats through its vent). Those rays enter where good rays
+    always do (the openings); a ray through a hole in the sheet enters at the sheet, where good rays end at the
+    surface instead. A tested ray whose entry point lies within ``radius`` of a good ray's entry point is
+    explained by the reference, and its surprisal does not count.
+
+    Parameters
+    ----------
+    entries : (k, 3) array
+        Entry points of the good scans' blocked rays (:meth:`RayEvidence.entry_points`), the scans' frame.
+    radius : float
+        World units (the benchmark and :meth:`from_evidence` use the field's kernel lengthscale).
+    """
+
+    def __init__(self, entries, radius):
+        from scipy.spatial import cKDTree
+
+        self.entries = np.asarray(entries, dtype=np.float64).reshape(-1, 3)
+        if not float(radius) > 0:
+            raise ValueError(f"RayReference radius must be > 0 (world units), got {radius!r}")
+        self.radius = float(radius)
+        self._tree = cKDTree(self.entries) if len(self.entries) else None
+
+    @classmethod
+    def from_evidence(cls, evidences, radius):
+        """The reference of good scans' :class:`RayEvidence` (computed without a reference)."""
+        entries = [e.entry_points() for e in evidences]
+        return cls(np.concatenate(entries) if entries else np.zeros((0, 3)), radius)
+
+    def explained(self, x):
+        """(m, 3) entry points (NaN rows: rays that enter nothing) -> (m,) bool: near a good ray's entry."""
+        x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
+        out = np.zeros(len(x), dtype=bool)
+        finite = np.isfinite(x).all(1)
+        if self._tree is not None and finite.any():
+            out[finite] = np.isfinite(self._tree.query(x[finite], k=1, distance_upper_bound=self.radius)[0])
+        return out
+
+    def as_dict(self):
+        return {"entries": self.entries.tolist(), "radius": self.radius}
+
+    @classmethod
+    def from_dict(cls, d):
+        return cls(np.asarray(d["entries"], dtype=np.float64), d["radius"])
 
 
 def check_ray_options(options):
@@ -90,6 +148,11 @@ def check_ray_options(options):
         if not float(opts["clearance"]) >= 0:
             raise ValueError(f"ray option clearance must be None or >= 0 (world units), got {opts['clearance']!r}")
         opts["clearance"] = float(opts["clearance"])
+    if opts["own_depth"] not in (None, "auto"):
+        if not float(opts["own_depth"]) > 0:
+            raise ValueError(f"ray option own_depth must be None, 'auto' or > 0 (world units), got "
+                             f"{opts['own_depth']!r}")
+        opts["own_depth"] = float(opts["own_depth"])
     check_aggregate(opts["aggregate"])
     return opts
 
@@ -182,7 +245,8 @@ def image_holes(points, origin, gap=RAY_DEFAULTS["gap"]):
 
 def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=RAY_DEFAULTS["n_empty"],
                  gap=RAY_DEFAULTS["gap"], aggregate=RAY_DEFAULTS["aggregate"], seed=RAY_DEFAULTS["seed"],
-                 clearance=RAY_DEFAULTS["clearance"], **check_options):
+                 clearance=RAY_DEFAULTS["clearance"], own_depth=RAY_DEFAULTS["own_depth"], reference=None,
+                 **check_options):
     """The ray score of one scan under its projected field.
 
     Parameters
@@ -206,6 +270,11 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
     clearance : float, optional
         Ray samples this close to any of the scan's points are left out (world units; default the field's kernel
         lengthscale; see :func:`autodecoder.free_space.blocked_probability`).
+    own_depth : float, 'auto' or None
+        How far before a point its own surface may lie (world units; 'auto': 3 kernel lengthscales; None: no
+        limit); material farther back on its ray is tested (:func:`autodecoder.free_space.blocked_probability`).
+    reference : RayReference, optional
+        Rays entering the expected material near where good scans' rays do count as free (surprisal 0, P 0).
     **check_options
         Passed to :func:`autodecoder.free_space.blocked_probability` (``outside_sigma``, ``step``, ...).
 
@@ -223,8 +292,14 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
     m = len(points)
     index = np.arange(m) if m <= n_rays else np.sort(rng.choice(m, n_rays, replace=False))
     check_options = dict(check_options, observed=points, clearance=clearance, seed=seed)
-    check = blocked_probability(field, origin, points[index], **check_options)
+    check = blocked_probability(field, origin, points[index], own_depth=own_depth, **check_options)
     values, surprisal = check.p_blocked, -check.log_free
+    d_rays = points[index] - origin
+    d_rays /= np.linalg.norm(d_rays, axis=1, keepdims=True)
+    entries = [origin + check.t_enter[:, None] * d_rays]
+    if reference is not None:
+        explained = reference.explained(entries[0])
+        values, surprisal = np.where(explained, 0.0, values), np.where(explained, 0.0, surprisal)
     # every point takes the value of the nearest tested ray: the points seen through a hole lie together
     nearest = cKDTree(points[index]).query(points, k=1)[1]
     point_map = values[nearest].astype(np.float64)
@@ -239,6 +314,10 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
             options = {k: v for k, v in check_options.items() if k != "outside_sigma"}
             empty = missing_return_probability(field, origin, e_dirs, t_far=t_far, **options)
             e_values, e_surprisal = empty.p_blocked, -empty.log_free
+            entries.append(origin + empty.t_enter[:, None] * e_dirs)
+            if reference is not None:
+                explained = reference.explained(entries[-1])
+                e_values, e_surprisal = np.where(explained, 0.0, e_values), np.where(explained, 0.0, e_surprisal)
             # the rim of a hole shows what its missing returns say
             for k, near in enumerate(cKDTree(uv).query_ball_point(h_uv, (gap + 1.5) * pitch)):
                 if near:
@@ -247,5 +326,8 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
     # all look alike, so a top-k mean of them cannot tell a ray the field is unsure about from one through a wall
     # it is sure of; their surprisals can (P = 0.99: 4.6 nats; a wall 5 sd deep: ~15)
     score = aggregate_values(np.concatenate([surprisal, e_surprisal]), aggregate)
+    blocked = np.concatenate([values, e_values]) >= 0.5
+    entries = np.concatenate(entries)[blocked]
     return RayEvidence(score=score, point_map=point_map, ray_index=index, ray_values=values, ray_surprisal=surprisal,
-                       empty_directions=e_dirs, empty_values=e_values, empty_surprisal=e_surprisal)
+                       empty_directions=e_dirs, empty_values=e_values, empty_surprisal=e_surprisal,
+                       entries=entries[np.isfinite(entries).all(1)])
