@@ -225,17 +225,12 @@ def run_part(part, args, work):
     if len(point_cache) < len(cal_scans) + len(test_scans):
         insp.fit_reference(ref_scans)
     if args.reference_radius > 0:
-        from autodecoder.free_space import _field_lengthscale
-        from inspection.ray_evidence import RayReference, ray_evidence
+        from inspection.ray_evidence import RayReference
 
         t0 = time.perf_counter()
-        evidences, h = [], None
-        for s in ref_scans:
-            field = insp.model.project(s.points, s.normals, **insp.projection).field
-            h = _field_lengthscale(field)
-            evidences.append(ray_evidence(field, s.points, s.sensor_origin,
-                                          **dict(ray_options, n_rays=args.reference_rays)))
-        reference = RayReference.from_evidence(evidences, args.reference_radius * h)
+        fields = ((s.points, s.sensor_origin, insp.model.project(s.points, s.normals, **insp.projection).field)
+                  for s in ref_scans)
+        reference = RayReference.build(fields, args.reference_radius, **dict(ray_options, n_rays=args.reference_rays))
         ray_options = dict(ray_options, reference=reference)
         print(f"[{part}] ray reference: {len(reference.entries)} entry points of good rays from {len(ref_scans)} "
               f"training scans, radius {reference.radius:.4f}, {time.perf_counter() - t0:.0f} s")
@@ -434,7 +429,8 @@ def main(argv=None):
                         "lengthscales (0: no reference)")
     parser.add_argument("--reference-rays", type=int, default=1536, help="returned rays per training scan that "
                         "build the ray reference")
-    parser.add_argument("--alpha", type=float, default=0.1)
+    parser.add_argument("--alpha", type=float, default=0.2, help="false-alarm rate of the FAR/det columns (8 "
+                        "calibration scans: p-values start at 1/9)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--train-only", action="store_true", help="synthesise and train (cache), score nothing")
     parser.add_argument("--figures", action="store_true", help="write the diagnosis pictures to --work")

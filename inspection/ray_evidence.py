@@ -20,6 +20,15 @@ The sensor's rays can (:mod:`autodecoder.free_space`). Two kinds of ray are test
   specular patch that returns nothing is a hole to it (the calibration scans, taken with the same sensor, set how
   much of that is normal).
 
+On open and thin-walled parts the projected field of a partial scan is one-sided: negative everywhere behind the
+surface the scan saw, the cavity behind a sheet included (benchmarks/thin_walled.py, figures in
+``results/thin_walled/``). A point seen through a hole in the sheet then lies deep inside that "solid", and so do
+the rays of good scans through the part's real openings. Two things make the rays work there: ``own_depth`` (a
+point's own surface lies at most that far before it; material farther back is tested) and a :class:`RayReference`
+of where good scans' rays enter expected material: a ray that enters it where good rays do (an opening) is
+explained; a ray through a hole enters at the sheet, where good rays end on the surface. Without a reference,
+``own_depth='auto'`` tests no deep material (the rule before; it keeps the rays' noise on good scans low).
+
 The scan's ray score aggregates the surprisals -log P(free) = -log(1 - P) of both kinds of ray together, in nats
 (the rays' negative log likelihood, as the NLL is the points'; ``aggregate`` as for point scores: ``'top1'`` is the
 mean of the worst 1 %). Measured on benchmarks/missing_material.py's thin-walled box, the surprisal separated
@@ -106,6 +115,40 @@ class RayReference:
             raise ValueError(f"RayReference radius must be > 0 (world units), got {radius!r}")
         self.radius = float(radius)
         self._tree = cKDTree(self.entries) if len(self.entries) else None
+
+    @classmethod
+    def build(cls, scans_and_fields, radius_factor=1.0, **ray_options):
+        """The reference of good scans, each with its own projected field.
+
+        Parameters
+        ----------
+        scans_and_fields : iterable of (points (m, 3), sensor origin (3,), field)
+            Good scans (e.g. the model's training scans) in the model's frame, and their projected fields.
+        radius_factor : float
+            The radius in kernel lengthscales of the fields.
+        **ray_options
+            Options of :func:`ray_evidence` (``n_rays``: more rays than a scan's inspection tests give a denser
+            reference). ``own_depth='auto'`` is resolved as when scoring with a reference, so that the good rays
+            are tested the way the rays they explain are.
+
+        Returns
+        -------
+        RayReference
+        """
+        from autodecoder.free_space import OWN_DEPTH_FACTOR, _field_lengthscale
+
+        evidences, scale = [], None
+        for points, origin, field_ in scans_and_fields:
+            scale = _field_lengthscale(field_)
+            if scale is None:
+                raise ValueError("RayReference.build: the field does not say its kernel lengthscale")
+            options = dict(ray_options)
+            if options.get("own_depth", RAY_DEFAULTS["own_depth"]) == "auto":
+                options["own_depth"] = OWN_DEPTH_FACTOR * scale
+            evidences.append(ray_evidence(field_, points, origin, **options))
+        if scale is None:
+            raise ValueError("RayReference.build: no good scans given")
+        return cls.from_evidence(evidences, radius_factor * scale)
 
     @classmethod
     def from_evidence(cls, evidences, radius):
@@ -271,8 +314,11 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
         Ray samples this close to any of the scan's points are left out (world units; default the field's kernel
         lengthscale; see :func:`autodecoder.free_space.blocked_probability`).
     own_depth : float, 'auto' or None
-        How far before a point its own surface may lie (world units; 'auto': 3 kernel lengthscales; None: no
-        limit); material farther back on its ray is tested (:func:`autodecoder.free_space.blocked_probability`).
+        How far before a point its own surface may lie (world units; None: no limit); material farther back on its
+        ray is tested (:func:`autodecoder.free_space.blocked_probability`). 'auto': 3 kernel lengthscales when a
+        ``reference`` is given, else no limit. Without a reference, the rays of good scans through an open part's
+        openings enter the field's "solid" cavity as a hole's do, and testing deep material only adds their noise
+        (benchmarks/thin_walled.py, enclosure).
     reference : RayReference, optional
         Rays entering the expected material near where good scans' rays do count as free (surprisal 0, P 0).
     **check_options
@@ -292,6 +338,8 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
     m = len(points)
     index = np.arange(m) if m <= n_rays else np.sort(rng.choice(m, n_rays, replace=False))
     check_options = dict(check_options, observed=points, clearance=clearance, seed=seed)
+    if own_depth == "auto" and reference is None:
+        own_depth = None
     check = blocked_probability(field, origin, points[index], own_depth=own_depth, **check_options)
     values, surprisal = check.p_blocked, -check.log_free
     d_rays = points[index] - origin
