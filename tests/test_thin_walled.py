@@ -127,7 +127,7 @@ def test_points_seen_through_a_hole_are_labelled_missing(enclosure):
 
 
 # ---------------------------------------------------------------------------------------------- the field of a sheet
-def _sheet_cloud(thickness, n=800, seed=0):
+def _sheet_cloud(thickness, n=600, seed=0):
     """Oriented points on the square [-1, 1]^2 of the plane z = 0 (normals +z) and, when ``thickness`` is given,
     of the plane z = -thickness (normals -z): a sheet seen from one side, or from both."""
     rng = np.random.default_rng(seed)
@@ -143,7 +143,7 @@ def _sheet_cloud(thickness, n=800, seed=0):
 def _fit(points, normals):
     from autodecoder import fit_cloud
 
-    return fit_cloud(points, normals, seed=0, quiet=True, width=64, depth=2, features=32, steps=150,
+    return fit_cloud(points, normals, seed=0, quiet=True, width=64, depth=2, features=32, steps=120,
                      mean_batch=1024, screen_batch=512, pair_clusters=48, covariance_every=8)
 
 
