@@ -18,13 +18,19 @@ Which samples of a ray are tested
 * **Start.** t_near is where the ray enters the field's box (``field.bounds``; 0 when the field has none): outside
   it the field was never trained, and the sensor's surroundings are no concern of the model.
 * **End, for a returned point p** (:func:`blocked_probability`): the last *clearly outside* sample before p, where
-  E f >= ``outside_sigma`` sd f (default 2). Everything between it and p is the point's own surface, and is left
-  out however far the field's mean surface sits from p: the latent fields are not distances (E f saturates at
-  ~1-2 % of the part's size a short way off the surface) and their mean surface sits up to ~7 % of the part's size
-  off good points at features the projection cannot follow (fandisk, 1 % of the points), as deep as a pit. A fixed
-  margin before p would either flag those points or miss thin walls. So the test is for material *separated from
-  the point by free space*: what the per-point scores cannot see. A point lying inside the expected material (the
-  bottom of a pit) is the per-point scores' business, not this one's.
+  E f >= ``outside_sigma`` sd f (default 2), or ``own_depth`` before p, whichever comes later. Between that end and
+  p lies the point's own surface, left out however far the field's mean surface sits from p up to ``own_depth``:
+  the latent fields are not distances (E f saturates at ~1-2 % of the part's size a short way off the surface) and
+  their mean surface sits up to a few lengthscales off good points at features the projection cannot follow
+  (fandisk, 1 % of the points), as deep as a pit. Without the depth limit (``own_depth=None``) the test is only for
+  material *separated from the point by free space*; that misses the case the rays exist for on thin-walled parts
+  (benchmarks/thin_walled.py): seen through a hole in a sheet, a point on the far side of a cavity lies deep inside
+  what a one-sided view's field calls solid (a partial scan's Poisson field is negative everywhere behind the
+  surface it saw), so no sample after the sheet is clearly outside and the whole ray, sheet included, was taken
+  for the point's own surface. With the limit, material more than ``own_depth`` before the point is tested
+  whatever lies between: a point that deep inside the expected material was seen through it. Default (
+  :data:`OWN_DEPTH_FACTOR` = 3 kernel lengthscales): beyond the kernel's support (2 lengthscales), so the
+  blur of the point's own surface never counts.
 * **End, for a ray with no return** (:func:`missing_return_probability`): where the ray leaves the box.
 * **Observed surfaces.** Given the scan's points (``observed``), samples within ``clearance`` (default the kernel
   lengthscale) of any of them are left out: material next to a surface the scan saw is that surface, blurred by the
@@ -59,6 +65,7 @@ DEFAULT_OUTSIDE_SIGMA = 2.0
 DEFAULT_MAX_SAMPLES = 128
 DEFAULT_SELECT = 8
 DEFAULT_Q_FLOOR = 1e-3
+OWN_DEPTH_FACTOR = 3.0  # default own_depth in kernel lengthscales (see the module docstring)
 _MIN_VARIANCE = 1e-20
 _LOG_FLOOR = math.log(1e-300)  # P(free) below this is reported as this (a surprisal of 690.8 nats)
 
@@ -80,6 +87,10 @@ class FreeSpaceCheck:
         tested, p_blocked = 0).
     t_block : (B,) float64
         Distance of the sample most likely inside (where the blocking material would be; NaN when untested).
+    t_enter : (B,) float64
+        Distance of the first tested sample with P(f <= 0) >= 1/2: where the ray enters the expected material
+        (NaN when it never does). Rays entering the material where good scans' rays do are what
+        :class:`inspection.ray_evidence.RayReference` discounts.
     """
 
     p_blocked: np.ndarray
@@ -89,6 +100,7 @@ class FreeSpaceCheck:
     t_end: np.ndarray
     t_obs: np.ndarray
     t_block: np.ndarray
+    t_enter: np.ndarray = None
 
 
 def _field_lengthscale(field):
@@ -134,6 +146,7 @@ class _Options:
     chunk: int = 256
     observed: np.ndarray = None
     clearance: float = None
+    own_depth: float = None
 
     def check(self, field):
         if not (int(self.max_samples) >= 3 and int(self.n_select) >= 1 and self.q_floor >= 0):
@@ -151,6 +164,10 @@ class _Options:
                 self.clearance = scale
             if not self.clearance >= 0:
                 raise ValueError(f"clearance must be >= 0 (world units), got {self.clearance}")
+        if self.own_depth == "auto":
+            self.own_depth = None if scale is None else OWN_DEPTH_FACTOR * scale
+        if self.own_depth is not None and not float(self.own_depth) > 0:
+            raise ValueError(f"own_depth must be None, 'auto' or > 0 (world units), got {self.own_depth!r}")
         return self
 
 
@@ -163,7 +180,7 @@ def _check_origin(origin):
 
 def blocked_probability(field, origin, points, outside_sigma=DEFAULT_OUTSIDE_SIGMA, observed=None, clearance=None,
                         step=None, max_samples=DEFAULT_MAX_SAMPLES, n_select=DEFAULT_SELECT,
-                        q_floor=DEFAULT_Q_FLOOR, qmc_samples=256, seed=0, chunk=256):
+                        q_floor=DEFAULT_Q_FLOOR, qmc_samples=256, seed=0, chunk=256, own_depth="auto"):
     """Probability that the field puts solid material on the sensor's rays to observed points, apart from the
     surface the points lie on (see the module docstring for which part of each ray is tested).
 
@@ -195,6 +212,11 @@ def blocked_probability(field, origin, points, outside_sigma=DEFAULT_OUTSIDE_SIG
         Sobol points and scrambling seed of the Genz estimator (deterministic for a given seed).
     chunk : int
         Rays per batch (bounds the memory: chunk x max_samples points at a time).
+    own_depth : float, 'auto' or None
+        The point's own surface is at most this far before it (world units): material farther back is tested even
+        when no clearly outside sample separates it from the point. 'auto': ``OWN_DEPTH_FACTOR`` x the field's
+        kernel lengthscale (None when the field does not say it); None: no limit (only material separated from
+        the point by a clearly outside sample is tested).
 
     Returns
     -------
@@ -209,7 +231,8 @@ def blocked_probability(field, origin, points, outside_sigma=DEFAULT_OUTSIDE_SIG
     origin = _check_origin(origin)
     if not outside_sigma >= 0:
         raise ValueError(f"outside_sigma must be >= 0, got {outside_sigma}")
-    opts = _Options(step, max_samples, n_select, q_floor, qmc_samples, seed, chunk, observed, clearance).check(field)
+    opts = _Options(step, max_samples, n_select, q_floor, qmc_samples, seed, chunk, observed, clearance,
+                    own_depth).check(field)
     offsets = points - origin
     t_obs = np.linalg.norm(offsets, axis=1)
     if (t_obs <= 0).any():
@@ -275,7 +298,7 @@ def _segments(field, origin, d, t_near, t_stop, q_out, opts):
         from scipy.spatial import cKDTree
 
         tree = cKDTree(opts.observed)
-    keys = ("log_free", "max_marginal", "t_end", "t_block")
+    keys = ("log_free", "max_marginal", "t_end", "t_block", "t_enter")
     out = {k: np.empty(len(d)) for k in keys}
     with torch.no_grad():
         for s in range(0, len(d), opts.chunk):
@@ -285,7 +308,7 @@ def _segments(field, origin, d, t_near, t_stop, q_out, opts):
                 out[k][sl] = res[k]
     return FreeSpaceCheck(p_blocked=-np.expm1(out["log_free"]), log_free=out["log_free"],
                           max_marginal=out["max_marginal"], t_near=t_near, t_end=out["t_end"], t_obs=t_stop,
-                          t_block=out["t_block"])
+                          t_block=out["t_block"], t_enter=out["t_enter"])
 
 
 def _check_segments(field, origin, d, t_near, t_stop, step, q_out, tree, opts):
@@ -307,8 +330,11 @@ def _check_segments(field, origin, d, t_near, t_stop, step, q_out, tree, opts):
         has_out = length > 0
         j_end = np.where(has_out, t.shape[1] - 1, -1)
     else:
-        # the tested segment ends at the last clearly outside sample: beyond it lies the point's own surface
+        # the tested segment ends at the last clearly outside sample, or own_depth before the point if that is
+        # later: between the end and the point lies the point's own surface
         outside = (q <= q_out) & (length[:, None] > 0)
+        if opts.own_depth is not None:
+            outside |= (t <= (t_stop - opts.own_depth)[:, None]) & (length[:, None] > 0)
         has_out = outside.any(1)
         j_end = np.where(has_out, outside.shape[1] - 1 - np.argmax(outside[:, ::-1], axis=1), -1)
     keep = np.arange(t.shape[1]) <= j_end[:, None]
@@ -325,6 +351,8 @@ def _check_segments(field, origin, d, t_near, t_stop, step, q_out, tree, opts):
     max_q[:] = q[np.arange(b), j_max]
     log_free = np.maximum(log_p_out[np.arange(b), j_max], _LOG_FLOOR)  # one sample alone: an upper bound of P(free)
     t_block[rows] = t[rows, j_max[rows]]
+    entering = q >= 0.5
+    t_enter = np.where(entering.any(1), t[np.arange(b), np.argmax(entering, axis=1)], np.nan)
     hot = np.flatnonzero(max_q >= max(opts.q_floor, 1e-300))
     k = min(opts.n_select, t.shape[1])
     if len(hot) and k >= 2:
@@ -341,4 +369,4 @@ def _check_segments(field, origin, d, t_near, t_stop, step, q_out, tree, opts):
             log_s = np.log(survival[:, -1].numpy())
         # the orthant estimate carries QMC error: it never goes above the exact single-sample bound
         log_free[hot] = np.maximum(np.minimum(log_s, log_free[hot]), _LOG_FLOOR)
-    return {"log_free": log_free, "max_marginal": max_q, "t_end": t_end, "t_block": t_block}
+    return {"log_free": log_free, "max_marginal": max_q, "t_end": t_end, "t_block": t_block, "t_enter": t_enter}

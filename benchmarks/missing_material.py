@@ -21,8 +21,9 @@ on the defect's new surface or its ray passed through the removed material (the 
 For each part: train the latent model on the good training scans (``inspection.training.train_model``; 20 % held
 back), calibrate on the held-back and validation scans, project and score every test scan once, and print object
 AUROC for the NLL and the default ``distance`` point score, alone and combined with the ray score
-(:mod:`inspection.combine`: the larger of the two standardized scores, exactly what ``Inspector(rays=True)``
-computes), the ray score alone, false-alarm and detection rates at ``--alpha``, point AUROC of the ray map and the
+(:class:`inspection.combine.Combination`'s default, gated rule, exactly what ``Inspector(rays=True)`` computes:
+the standardized point score, plus the standardized ray score where it exceeds every calibration scan's by 2 sd),
+the ray score alone, false-alarm and detection rates at ``--alpha``, point AUROC of the ray map and the
 point maps against the labels above, and seconds per scan (projection + point scores, then the ray score).
 """
 import argparse

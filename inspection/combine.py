@@ -1,20 +1,37 @@
 """One anomaly score from several per-scan scores (the point score and the ray score), calibrated on good scans.
 
 Each component j of a scan's scores s (higher = more anomalous) is standardized against the good calibration scans,
-z_j = (s_j - mean_j) / sd_j, and the combined score is the largest: c(s) = max_j z_j. A scan is as anomalous as its
-most anomalous component, measured in the spread good scans show on that component; the union of the components'
-detections, like a Bonferroni combination of p-values, but continuous: conformal p-values of the components stop at
-1 / (n + 1) beyond the largest calibration score, so with a few dozen calibration scans a min-p (or Fisher)
-combination ties every clearly defective scan and can no longer rank them.
+z_j = (s_j - mean_j) / sd_j. Two rules make one score of them:
+
+* ``'gated'`` (the default): the first component (the point score) is the base, and every other one (the ray score)
+  adds only what it shows beyond the most the good scans showed on it:
+
+      c(s) = z_0 + sum_{j >= 1} max(0, z_j - tau_j),   tau_j = max over the calibration scans of z_j + GATE_MARGIN
+
+  (each calibration scan's own z_j is left out of its tau_j, see below). The ray score is evidence of one defect
+  type (material missing where the sensor looked through) and noise on all others: on an unseen part, good and
+  dented scans alike get rays that graze the field's blurred walls. Below tau_j that noise changes nothing, so a
+  scan is ranked by its point score exactly as without the rays, and no defect type the point score finds is
+  pulled down by ray noise of the good scans it is ranked against (unless a good scan's rays beat every
+  calibration scan's by ``GATE_MARGIN`` (2) of their standard deviations: the largest of a few dozen good scans is
+  a noisy estimate of how far good scans go, and on benchmarks/thin_walled.py's enclosure good test scans went
+  1-2 sd beyond it).
+* ``'max'``: c(s) = max_j z_j, a scan as anomalous as its most anomalous component: the union of the components'
+  detections, like a Bonferroni combination of p-values, but continuous (conformal p-values stop at 1 / (n + 1)
+  beyond the largest calibration score, so with a few dozen calibration scans a min-p (or Fisher) combination ties
+  every clearly defective scan and can no longer rank them). Measured on benchmarks/thin_walled.py, a ray score
+  whose spread on good scans is small lets every good scan's ray noise outrank the point score's defects.
 
 The combined score is then calibrated like any other (:mod:`inspection.calibration`): the calibration scans'
-own combined scores are computed leave-one-out (scan i standardized with the statistics of the other n - 1), so
-that each is computed the way a new scan's is, from statistics it took no part in; the split-conformal threshold
-on them keeps its false-alarm guarantee up to the n - 1 vs n difference.
+own combined scores are computed leave-one-out (scan i standardized, and gated, with the statistics of the other
+n - 1), so that each is computed the way a new scan's is, from statistics it took no part in; the split-conformal
+threshold on them keeps its false-alarm guarantee up to the n - 1 vs n difference.
 """
 import numpy as np
 
 MIN_SCANS = 3
+RULES = ("gated", "max")
+GATE_MARGIN = 2.0  # in standard deviations of the calibration scores (see the module docstring)
 _REL_FLOOR = 1e-3
 _ABS_FLOOR = 1e-9
 
@@ -45,45 +62,64 @@ def standardization(matrix):
 
 
 class Combination:
-    """The max-of-standardized-scores combination fitted on good calibration scans.
+    """The combination of standardized scores fitted on good calibration scans (see the module docstring).
 
     Parameters
     ----------
     components : dict name -> (n,) array, or a list of n dicts name -> float
         Component scores of the calibration scans (at least ``MIN_SCANS``).
     names : sequence of str, optional
-        Component order (default: the dict's).
+        Component order (default: the dict's). With ``rule='gated'`` the first is the base score.
+    rule : {'gated', 'max'}
     """
 
-    def __init__(self, components, names=None):
+    def __init__(self, components, names=None, rule="gated"):
+        if rule not in RULES:
+            raise ValueError(f"rule must be one of {RULES}, got {rule!r}")
+        self.rule = rule
         self.names, self.matrix = _as_matrix(components, names)
         if len(self.matrix) < MIN_SCANS:
             raise ValueError(f"combining scores needs at least {MIN_SCANS} calibration scans, got "
                              f"{len(self.matrix)}")
         self.mean, self.sd = standardization(self.matrix)
+        self.gate = _gate(self.matrix, self.mean, self.sd)
 
     def score(self, components):
         """Combined scores of scans: dict name -> (k,) array or list of dicts -> (k,) array."""
-        _, matrix = _as_matrix(components, self.names)
-        return ((matrix - self.mean) / self.sd).max(1)
+        return self._combine(self.standardized(components), self.gate)
 
     def standardized(self, components):
         """The standardized components (k, J), in ``names`` order."""
         _, matrix = _as_matrix(components, self.names)
         return (matrix - self.mean) / self.sd
 
+    def _combine(self, z, gate):
+        if self.rule == "max":
+            return z.max(1)
+        return z[:, 0] + np.maximum(z[:, 1:] - gate[1:], 0.0).sum(1)
+
     def calibration_scores(self):
         """Leave-one-out combined scores (n,) of the calibration scans (see the module docstring)."""
         out = np.empty(len(self.matrix))
         for i in range(len(self.matrix)):
-            mean, sd = standardization(np.delete(self.matrix, i, axis=0))
-            out[i] = ((self.matrix[i] - mean) / sd).max()
+            others = np.delete(self.matrix, i, axis=0)
+            mean, sd = standardization(others)
+            out[i] = self._combine(((self.matrix[i] - mean) / sd)[None], _gate(others, mean, sd))[0]
         return out
 
     def as_dict(self):
-        """Plain Python values: the calibration component scores (the statistics follow from them)."""
-        return {name: [float(v) for v in self.matrix[:, j]] for j, name in enumerate(self.names)}
+        """Plain Python values: the calibration component scores (the statistics follow from them) and the rule."""
+        out = {name: [float(v) for v in self.matrix[:, j]] for j, name in enumerate(self.names)}
+        return {**out, "rule": self.rule} if self.rule != "gated" else out
 
     @classmethod
     def from_dict(cls, d):
-        return cls({k: np.asarray(v, dtype=np.float64) for k, v in d.items()})
+        d = dict(d)
+        rule = d.pop("rule", "gated")
+        return cls({k: np.asarray(v, dtype=np.float64) for k, v in d.items()}, rule=rule)
+
+
+def _gate(matrix, mean, sd):
+    """tau (J,): the largest standardized score of the calibration scans (n, J) on each component, plus the
+    margin."""
+    return ((matrix - mean) / sd).max(0) + GATE_MARGIN

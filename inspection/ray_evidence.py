@@ -20,6 +20,15 @@ The sensor's rays can (:mod:`autodecoder.free_space`). Two kinds of ray are test
   specular patch that returns nothing is a hole to it (the calibration scans, taken with the same sensor, set how
   much of that is normal).
 
+On open and thin-walled parts the projected field of a partial scan is one-sided: negative everywhere behind the
+surface the scan saw, the cavity behind a sheet included (benchmarks/thin_walled.py, figures in
+``results/thin_walled/``). A point seen through a hole in the sheet then lies deep inside that "solid", and so do
+the rays of good scans through the part's real openings. Two things make the rays work there: ``own_depth`` (a
+point's own surface lies at most that far before it; material farther back is tested) and a :class:`RayReference`
+of where good scans' rays enter expected material: a ray that enters it where good rays do (an opening) is
+explained; a ray through a hole enters at the sheet, where good rays end on the surface. Without a reference,
+``own_depth='auto'`` tests no deep material (the rule before; it keeps the rays' noise on good scans low).
+
 The scan's ray score aggregates the surprisals -log P(free) = -log(1 - P) of both kinds of ray together, in nats
 (the rays' negative log likelihood, as the NLL is the points'; ``aggregate`` as for point scores: ``'top1'`` is the
 mean of the worst 1 %). Measured on benchmarks/missing_material.py's thin-walled box, the surprisal separated
@@ -37,7 +46,8 @@ from .scores import aggregate as aggregate_values, check_aggregate
 
 log = logging.getLogger(__name__)
 
-RAY_DEFAULTS = {"n_rays": 384, "n_empty": 128, "gap": 2.0, "aggregate": "top1", "seed": 0, "clearance": None}
+RAY_DEFAULTS = {"n_rays": 384, "n_empty": 128, "gap": 2.0, "aggregate": "top1", "seed": 0, "clearance": None,
+                "own_depth": "auto"}
 _MAX_OFF_AXIS_COS = 0.087  # cos 85 deg: wider views are not one pinhole image
 _MAX_GRID_CELLS = 400_000
 
@@ -70,6 +80,97 @@ class RayEvidence:
     empty_directions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     empty_values: np.ndarray = field(default_factory=lambda: np.zeros(0))
     empty_surprisal: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    entries: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+    def entry_points(self):
+        """(k, 3) where the blocked rays (P(blocked) >= 1/2, both kinds) enter the expected material."""
+        return self.entries
+
+
+class RayReference:
+    """Where the rays of good scans enter the material their projected fields expect (a per-location reference
+    of the ray score, as :class:`inspection.scores.LocalReference` is of the point scores).
+
+    A latent field of a partial scan is a one-sided Poisson field: negative everywhere behind the surface it saw.
+    On an open or thin-walled part the cavity behind a sheet is "solid" to it, so the rays of GOOD scans that look
+    through the part's openings enter expected material too (benchmarks/thin_walled.py: every good scan of the
+    sheet-metal enclosure seen from above scored ~50 nats through its vent). Those rays enter where good rays
+    always do (the openings); a ray through a hole in the sheet enters at the sheet, where good rays end at the
+    surface instead. A tested ray whose entry point lies within ``radius`` of a good ray's entry point is
+    explained by the reference, and its surprisal does not count.
+
+    Parameters
+    ----------
+    entries : (k, 3) array
+        Entry points of the good scans' blocked rays (:meth:`RayEvidence.entry_points`), the scans' frame.
+    radius : float
+        World units (the benchmark and :meth:`from_evidence` use the field's kernel lengthscale).
+    """
+
+    def __init__(self, entries, radius):
+        from scipy.spatial import cKDTree
+
+        self.entries = np.asarray(entries, dtype=np.float64).reshape(-1, 3)
+        if not float(radius) > 0:
+            raise ValueError(f"RayReference radius must be > 0 (world units), got {radius!r}")
+        self.radius = float(radius)
+        self._tree = cKDTree(self.entries) if len(self.entries) else None
+
+    @classmethod
+    def build(cls, scans_and_fields, radius_factor=1.0, **ray_options):
+        """The reference of good scans, each with its own projected field.
+
+        Parameters
+        ----------
+        scans_and_fields : iterable of (points (m, 3), sensor origin (3,), field)
+            Good scans (e.g. the model's training scans) in the model's frame, and their projected fields.
+        radius_factor : float
+            The radius in kernel lengthscales of the fields.
+        **ray_options
+            Options of :func:`ray_evidence` (``n_rays``: more rays than a scan's inspection tests give a denser
+            reference). ``own_depth='auto'`` is resolved as when scoring with a reference, so that the good rays
+            are tested the way the rays they explain are.
+
+        Returns
+        -------
+        RayReference
+        """
+        from autodecoder.free_space import OWN_DEPTH_FACTOR, _field_lengthscale
+
+        evidences, scale = [], None
+        for points, origin, field_ in scans_and_fields:
+            scale = _field_lengthscale(field_)
+            if scale is None:
+                raise ValueError("RayReference.build: the field does not say its kernel lengthscale")
+            options = dict(ray_options)
+            if options.get("own_depth", RAY_DEFAULTS["own_depth"]) == "auto":
+                options["own_depth"] = OWN_DEPTH_FACTOR * scale
+            evidences.append(ray_evidence(field_, points, origin, **options))
+        if scale is None:
+            raise ValueError("RayReference.build: no good scans given")
+        return cls.from_evidence(evidences, radius_factor * scale)
+
+    @classmethod
+    def from_evidence(cls, evidences, radius):
+        """The reference of good scans' :class:`RayEvidence` (computed without a reference)."""
+        entries = [e.entry_points() for e in evidences]
+        return cls(np.concatenate(entries) if entries else np.zeros((0, 3)), radius)
+
+    def explained(self, x):
+        """(m, 3) entry points (NaN rows: rays that enter nothing) -> (m,) bool: near a good ray's entry."""
+        x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
+        out = np.zeros(len(x), dtype=bool)
+        finite = np.isfinite(x).all(1)
+        if self._tree is not None and finite.any():
+            out[finite] = np.isfinite(self._tree.query(x[finite], k=1, distance_upper_bound=self.radius)[0])
+        return out
+
+    def as_dict(self):
+        return {"entries": self.entries.tolist(), "radius": self.radius}
+
+    @classmethod
+    def from_dict(cls, d):
+        return cls(np.asarray(d["entries"], dtype=np.float64), d["radius"])
 
 
 def check_ray_options(options):
@@ -90,6 +191,11 @@ def check_ray_options(options):
         if not float(opts["clearance"]) >= 0:
             raise ValueError(f"ray option clearance must be None or >= 0 (world units), got {opts['clearance']!r}")
         opts["clearance"] = float(opts["clearance"])
+    if opts["own_depth"] not in (None, "auto"):
+        if not float(opts["own_depth"]) > 0:
+            raise ValueError(f"ray option own_depth must be None, 'auto' or > 0 (world units), got "
+                             f"{opts['own_depth']!r}")
+        opts["own_depth"] = float(opts["own_depth"])
     check_aggregate(opts["aggregate"])
     return opts
 
@@ -182,7 +288,8 @@ def image_holes(points, origin, gap=RAY_DEFAULTS["gap"]):
 
 def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=RAY_DEFAULTS["n_empty"],
                  gap=RAY_DEFAULTS["gap"], aggregate=RAY_DEFAULTS["aggregate"], seed=RAY_DEFAULTS["seed"],
-                 clearance=RAY_DEFAULTS["clearance"], **check_options):
+                 clearance=RAY_DEFAULTS["clearance"], own_depth=RAY_DEFAULTS["own_depth"], reference=None,
+                 **check_options):
     """The ray score of one scan under its projected field.
 
     Parameters
@@ -206,6 +313,14 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
     clearance : float, optional
         Ray samples this close to any of the scan's points are left out (world units; default the field's kernel
         lengthscale; see :func:`autodecoder.free_space.blocked_probability`).
+    own_depth : float, 'auto' or None
+        How far before a point its own surface may lie (world units; None: no limit); material farther back on its
+        ray is tested (:func:`autodecoder.free_space.blocked_probability`). 'auto': 3 kernel lengthscales when a
+        ``reference`` is given, else no limit. Without a reference, the rays of good scans through an open part's
+        openings enter the field's "solid" cavity as a hole's do, and testing deep material only adds their noise
+        (benchmarks/thin_walled.py, enclosure).
+    reference : RayReference, optional
+        Rays entering the expected material near where good scans' rays do count as free (surprisal 0, P 0).
     **check_options
         Passed to :func:`autodecoder.free_space.blocked_probability` (``outside_sigma``, ``step``, ...).
 
@@ -223,8 +338,16 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
     m = len(points)
     index = np.arange(m) if m <= n_rays else np.sort(rng.choice(m, n_rays, replace=False))
     check_options = dict(check_options, observed=points, clearance=clearance, seed=seed)
-    check = blocked_probability(field, origin, points[index], **check_options)
+    if own_depth == "auto" and reference is None:
+        own_depth = None
+    check = blocked_probability(field, origin, points[index], own_depth=own_depth, **check_options)
     values, surprisal = check.p_blocked, -check.log_free
+    d_rays = points[index] - origin
+    d_rays /= np.linalg.norm(d_rays, axis=1, keepdims=True)
+    entries = [origin + check.t_enter[:, None] * d_rays]
+    if reference is not None:
+        explained = reference.explained(entries[0])
+        values, surprisal = np.where(explained, 0.0, values), np.where(explained, 0.0, surprisal)
     # every point takes the value of the nearest tested ray: the points seen through a hole lie together
     nearest = cKDTree(points[index]).query(points, k=1)[1]
     point_map = values[nearest].astype(np.float64)
@@ -239,6 +362,10 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
             options = {k: v for k, v in check_options.items() if k != "outside_sigma"}
             empty = missing_return_probability(field, origin, e_dirs, t_far=t_far, **options)
             e_values, e_surprisal = empty.p_blocked, -empty.log_free
+            entries.append(origin + empty.t_enter[:, None] * e_dirs)
+            if reference is not None:
+                explained = reference.explained(entries[-1])
+                e_values, e_surprisal = np.where(explained, 0.0, e_values), np.where(explained, 0.0, e_surprisal)
             # the rim of a hole shows what its missing returns say
             for k, near in enumerate(cKDTree(uv).query_ball_point(h_uv, (gap + 1.5) * pitch)):
                 if near:
@@ -247,5 +374,8 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
     # all look alike, so a top-k mean of them cannot tell a ray the field is unsure about from one through a wall
     # it is sure of; their surprisals can (P = 0.99: 4.6 nats; a wall 5 sd deep: ~15)
     score = aggregate_values(np.concatenate([surprisal, e_surprisal]), aggregate)
+    blocked = np.concatenate([values, e_values]) >= 0.5
+    entries = np.concatenate(entries)[blocked]
     return RayEvidence(score=score, point_map=point_map, ray_index=index, ray_values=values, ray_surprisal=surprisal,
-                       empty_directions=e_dirs, empty_values=e_values, empty_surprisal=e_surprisal)
+                       empty_directions=e_dirs, empty_values=e_values, empty_surprisal=e_surprisal,
+                       entries=entries[np.isfinite(entries).all(1)])

@@ -12,7 +12,7 @@ from autodecoder.free_space import blocked_probability, box_interval, missing_re
 from autodecoder.rays import monte_carlo_survival
 from inspection import Inspector, NotFittedError
 from inspection.calibration import Calibration
-from inspection.combine import Combination
+from inspection.combine import GATE_MARGIN, Combination
 from inspection.ray_evidence import check_ray_options, image_holes, ray_evidence
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -218,7 +218,7 @@ def test_ray_options_validated():
 # ---------------------------------------------------------------------------------------------- combination
 def test_combination_by_hand():
     cal = {"points": [1.0, 2.0, 3.0, 4.0], "rays": [0.0, 0.0, 0.0, 0.4]}
-    comb = Combination(cal)
+    comb = Combination(cal, rule="max")
     sd_p, sd_r = np.std([1, 2, 3, 4], ddof=1), np.std([0, 0, 0, 0.4], ddof=1)
     np.testing.assert_allclose(comb.score({"points": [2.5, 2.5], "rays": [0.1, 0.9]}),
                                [0.0, (0.9 - 0.1) / sd_r])
@@ -229,7 +229,33 @@ def test_combination_by_hand():
     assert Combination.from_dict(comb.as_dict()).score(cal).tolist() == comb.score(cal).tolist()
     with pytest.raises(ValueError, match="at least 3"):
         Combination({"points": [1.0, 2.0], "rays": [0.0, 0.0]})
+    with pytest.raises(ValueError, match="rule"):
+        Combination(cal, rule="sum")
     assert sd_p > 0
+
+
+def test_gated_combination_by_hand():
+    cal = {"points": [1.0, 2.0, 3.0, 4.0], "rays": [0.0, 0.1, 0.2, 0.5]}
+    comb = Combination(cal)
+    m_p, sd_p = 2.5, np.std([1, 2, 3, 4], ddof=1)
+    m_r, sd_r = 0.2, np.std([0, 0.1, 0.2, 0.5], ddof=1)
+    tau = (0.5 - m_r) / sd_r + GATE_MARGIN  # beyond the largest standardized ray score of the good scans
+    z_p = (np.array([2.5, 6.0, 2.5]) - m_p) / sd_p
+    z_r = (np.array([0.45, 0.3, 1.2]) - m_r) / sd_r
+    # below the gate the rays change nothing (scans 0 and 1); beyond it they add what exceeds it (scan 2)
+    np.testing.assert_allclose(comb.score({"points": [2.5, 6.0, 2.5], "rays": [0.45, 0.3, 1.2]}),
+                               z_p + np.maximum(z_r - tau, 0.0))
+    assert comb.score({"points": [2.5], "rays": [1.2]})[0] > 0 and z_r[2] > tau and z_r[0] < tau
+    # leave-one-out: the scan with the largest ray score is gated by the other three, whose largest is 0.2
+    loo = comb.calibration_scores()
+    others = np.array([0.0, 0.1, 0.2])
+    z3 = (0.5 - others.mean()) / others.std(ddof=1)
+    tau3 = (0.2 - others.mean()) / others.std(ddof=1)
+    assert loo[3] == pytest.approx((4 - 2) / 1.0 + z3 - tau3 - GATE_MARGIN)
+    assert loo[0] == pytest.approx((1 - 3) / 1.0)  # its rays (0.0) are below the others' largest
+    again = Combination.from_dict(comb.as_dict())
+    assert again.rule == "gated" and again.score(cal).tolist() == comb.score(cal).tolist()
+    assert Combination.from_dict(Combination(cal, rule="max").as_dict()).rule == "max"
 
 
 # ---------------------------------------------------------------------------------------------- Inspector
