@@ -1,6 +1,6 @@
 """Command line of the inspection package: calibrate a model on good scans, score scans, run the demo.
 
-    python -m inspection calibrate --model model.pt --data good.h5 [--alpha 0.01] [--aggregate top1] [--rays]
+    python -m inspection calibrate --model model.pt --data good.h5 [--alpha 0.01] [--aggregate top1] [--no-rays]
     python -m inspection score --model model.pt --data tree.h5 --out results/ [--split test] [--align]
     python -m inspection demo --out demo_output
 
@@ -40,9 +40,12 @@ def _parser():
                                                            "autodecoder.projection.ProjectionOptions), 'default' "
                                                            "(inspection's: steps=60,starts=2,explore=20,"
                                                            "max_candidates=16) or 'model' (the projector's own)")
-    c.add_argument("--rays", action="store_true",
-                   help="add the ray score (material the model expects where the sensor saw free space, e.g. a "
-                        "hole in a thin wall), combined with the point score; scans need a sensor origin")
+    rays = c.add_mutually_exclusive_group()
+    rays.add_argument("--rays", dest="rays", action="store_const", const=True, default="auto",
+                      help="add the ray score (material the model expects where the sensor saw free space, e.g. a "
+                           "hole in a thin wall), combined with the point score; scans need a sensor origin "
+                           "(default: on when every scan has one)")
+    rays.add_argument("--no-rays", dest="rays", action="store_const", const=False, help="point score only")
     c.add_argument("--ray-options", default="", help="ray score settings as KEY=VALUE,... (n_rays=384, "
                                                       "n_empty=128, gap=2.0, aggregate=top1, seed=0, clearance=WORLD "
                                                       "UNITS; default: the field's lengthscale)")
@@ -119,9 +122,9 @@ def main(argv=None):
             if args.projection not in ("default", "model"):
                 _projection(args.projection)  # validate before any work
             ray_options = _ray_options(args.ray_options)
-            if ray_options and not args.rays:
-                raise ValueError("--ray-options needs --rays")
-            if args.rays:
+            if ray_options and args.rays is False:
+                raise ValueError("--ray-options contradicts --no-rays")
+            if args.rays is not False:
                 from .ray_evidence import check_ray_options
 
                 check_ray_options(ray_options)  # validate before any work

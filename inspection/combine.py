@@ -6,7 +6,11 @@ z_j = (s_j - mean_j) / sd_j. Two rules make one score of them:
 * ``'gated'`` (the default): the first component (the point score) is the base, and every other one (the ray score)
   adds only what it shows beyond the most the good scans showed on it:
 
-      c(s) = z_0 + sum_{j >= 1} max(0, z_j - tau_j),   tau_j = max over the calibration scans of z_j + GATE_MARGIN
+      c(s) = s_0 + sd_0 sum_{j >= 1} max(0, z_j - tau_j),   tau_j = max over the calibration scans of z_j + GATE_MARGIN
+
+  (the point score itself plus the excess in units of its spread on good scans: a monotone transform of
+  z_0 + sum ..., kept on the point score's positive scale, which the log-normal tail of :mod:`inspection.threshold`
+  needs)
 
   (each calibration scan's own z_j is left out of its tau_j, see below). The ray score is evidence of one defect
   type (material missing where the sensor looked through) and noise on all others: on an unseen part, good and
@@ -86,17 +90,17 @@ class Combination:
 
     def score(self, components):
         """Combined scores of scans: dict name -> (k,) array or list of dicts -> (k,) array."""
-        return self._combine(self.standardized(components), self.gate)
+        return self._combine(self.standardized(components), self.gate, self.mean, self.sd)
 
     def standardized(self, components):
         """The standardized components (k, J), in ``names`` order."""
         _, matrix = _as_matrix(components, self.names)
         return (matrix - self.mean) / self.sd
 
-    def _combine(self, z, gate):
+    def _combine(self, z, gate, mean, sd):
         if self.rule == "max":
             return z.max(1)
-        return z[:, 0] + np.maximum(z[:, 1:] - gate[1:], 0.0).sum(1)
+        return mean[0] + sd[0] * (z[:, 0] + np.maximum(z[:, 1:] - gate[1:], 0.0).sum(1))
 
     def calibration_scores(self):
         """Leave-one-out combined scores (n,) of the calibration scans (see the module docstring)."""
@@ -104,7 +108,7 @@ class Combination:
         for i in range(len(self.matrix)):
             others = np.delete(self.matrix, i, axis=0)
             mean, sd = standardization(others)
-            out[i] = self._combine(((self.matrix[i] - mean) / sd)[None], _gate(others, mean, sd))[0]
+            out[i] = self._combine(((self.matrix[i] - mean) / sd)[None], _gate(others, mean, sd), mean, sd)[0]
         return out
 
     def as_dict(self):

@@ -17,6 +17,8 @@ DEFAULT_POINT_SCORE = "residual"
 # projection loss after 60 steps from the 2 best of 16 candidate starts matches the trainer's defaults (150 steps,
 # 4 of 64 starts) to 3 digits at ~1/10 of the time (see benchmarks/inspect_fandisk.py).
 DEFAULT_PROJECTION = {"steps": 60, "starts": 2, "explore": 20, "max_candidates": 16}
+# rays per good scan of the ray reference (denser than a scan's inspection, which tests RAY_DEFAULTS["n_rays"])
+REFERENCE_RAYS = 1536
 
 
 from sklearn.base import BaseEstimator
@@ -235,8 +237,9 @@ class Inspector(BaseEstimator):
         points = np.asarray(points, dtype=np.float64)
         return _Projected(name, points, field, origin, value, variance, grazing, stray_points(points))
 
-    def _score(self, good, reference):
-        """A :class:`ScanResult` of a projected scan against ``reference`` (components: points, rays)."""
+    def _score(self, good, reference, ray_reference=None):
+        """A :class:`ScanResult` of a projected scan against ``reference`` and ``ray_reference`` (default: the
+        fitted ray reference, if any) (components: points, rays)."""
         if self.point_score in REFERENCE_QUANTITY:
             noise = float(getattr(good.field, "noise", 0.0) if self.noise is None else self.noise)
             values = reference.standardized(good.points, good.value, good.variance, noise, good.grazing)
@@ -250,7 +253,10 @@ class Inspector(BaseEstimator):
         if self.rays:
             from .ray_evidence import check_ray_options, ray_evidence
 
-            result.rays = ray_evidence(good.field, good.points, good.origin, **check_ray_options(self.ray_options))
+            if ray_reference is None:
+                ray_reference = getattr(self, "ray_reference_", None)
+            result.rays = ray_evidence(good.field, good.points, good.origin, reference=ray_reference,
+                                       **check_ray_options(self.ray_options))
             result.components["rays"] = result.rays.score
         return result
 
@@ -290,6 +296,12 @@ class Inspector(BaseEstimator):
         self.reference_ = LocalReference.from_values([(g.points, g.value) for g in goods], max_points=max_points,
                                                      seed=seed, quantity=REFERENCE_QUANTITY[self.point_score])
         self._reference_scans = goods
+        self.ray_reference_ = None
+        if self.rays and all(g.origin is not None for g in goods):
+            from .ray_evidence import RayReference, check_ray_options
+
+            options = dict(check_ray_options(self.ray_options), n_rays=REFERENCE_RAYS)
+            self.ray_reference_ = RayReference.build(((g.points, g.origin, g.field) for g in goods), **options)
         return self
 
     def fit(self, good_scans, y=None, names=None, reference_scans=None, cross_fit=True):
@@ -335,12 +347,15 @@ class Inspector(BaseEstimator):
         if self.rays and any(g.origin is None for g in crossed):
             crossed = []
         references = [self.reference_] * len(held) + [self.reference_.without(j) for j in range(len(crossed))]
+        ray_reference = getattr(self, "ray_reference_", None)
+        ray_references = [ray_reference] * len(held) + [
+            None if ray_reference is None else ray_reference.without(j) for j in range(len(crossed))]
         goods = held + crossed
         kappa, lam = self._fit_noise_model(goods, references)
         components = []
-        for good, reference in zip(goods, references):
+        for good, reference, ray_ref in zip(goods, references, ray_references):
             reference.variance_scale, reference.grazing_scale = kappa, lam
-            components.append(self._score(good, reference).components)
+            components.append(self._score(good, reference, ray_ref).components)
         roles = ["held-back"] * len(held) + ["cross-fitted"] * len(crossed)
         return self.fit_components(components, names + [g.name for g in crossed], roles)
 
@@ -411,10 +426,14 @@ class Inspector(BaseEstimator):
         rays = (calibration.extra or {}).get("rays")
         self.rays = rays is not None
         self.ray_options = None if rays is None else dict(rays["options"])
+        self.ray_reference_ = None
         if rays is not None:
             from .combine import Combination
+            from .ray_evidence import RayReference
 
             self.combination_ = Combination.from_dict(rays["components"])
+            if rays.get("reference") is not None:
+                self.ray_reference_ = RayReference.from_dict(rays["reference"])
         else:
             self.combination_ = None
         self._check_params()
@@ -440,7 +459,9 @@ class Inspector(BaseEstimator):
             return None
         from .ray_evidence import check_ray_options
 
-        return {"options": check_ray_options(self.ray_options), "components": self._combination().as_dict()}
+        ray_reference = getattr(self, "ray_reference_", None)
+        return {"options": check_ray_options(self.ray_options), "components": self._combination().as_dict(),
+                "reference": None if ray_reference is None else ray_reference.as_dict()}
 
     # ------------------------------------------------------------------------------------ sklearn outlier API
     def p_values_from_scores(self, anomaly_scores):

@@ -105,16 +105,29 @@ class RayReference:
         Entry points of the good scans' blocked rays (:meth:`RayEvidence.entry_points`), the scans' frame.
     radius : float
         World units (the benchmark and :meth:`from_evidence` use the field's kernel lengthscale).
+    owners : (k,) int array, optional
+        Which good scan each entry came from; lets :meth:`without` leave one scan out (cross-fitting). Not stored.
     """
 
-    def __init__(self, entries, radius):
+    def __init__(self, entries, radius, owners=None):
         from scipy.spatial import cKDTree
 
         self.entries = np.asarray(entries, dtype=np.float64).reshape(-1, 3)
         if not float(radius) > 0:
             raise ValueError(f"RayReference radius must be > 0 (world units), got {radius!r}")
         self.radius = float(radius)
+        self.owners = None if owners is None else np.asarray(owners, dtype=np.int64).reshape(-1)
+        if self.owners is not None and len(self.owners) != len(self.entries):
+            raise ValueError(f"owners must have one entry per entry point ({len(self.entries)}), got "
+                             f"{len(self.owners)}")
         self._tree = cKDTree(self.entries) if len(self.entries) else None
+
+    def without(self, owner):
+        """The same reference without the entries of good scan ``owner`` (needs ``owners``)."""
+        if self.owners is None:
+            raise ValueError("this RayReference does not know which scan each entry came from (owners)")
+        keep = self.owners != owner
+        return RayReference(self.entries[keep], self.radius, self.owners[keep])
 
     @classmethod
     def build(cls, scans_and_fields, radius_factor=1.0, **ray_options):
@@ -152,9 +165,12 @@ class RayReference:
 
     @classmethod
     def from_evidence(cls, evidences, radius):
-        """The reference of good scans' :class:`RayEvidence` (computed without a reference)."""
+        """The reference of good scans' :class:`RayEvidence` (computed without a reference); ``owners`` records
+        which evidence each entry came from."""
         entries = [e.entry_points() for e in evidences]
-        return cls(np.concatenate(entries) if entries else np.zeros((0, 3)), radius)
+        owners = [np.full(len(e), i) for i, e in enumerate(entries)]
+        return cls(np.concatenate(entries) if entries else np.zeros((0, 3)), radius,
+                   np.concatenate(owners) if owners else np.zeros(0, dtype=np.int64))
 
     def explained(self, x):
         """(m, 3) entry points (NaN rows: rays that enter nothing) -> (m,) bool: near a good ray's entry."""

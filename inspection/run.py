@@ -201,11 +201,13 @@ def check_sensor_origins(scans, data):
 
 
 def calibrate(model, data, alpha=DEFAULT_ALPHA, aggregate=None, point_score=None, noise=None, split=None, progress=True,
-              write=True, projection="default", rays=False, ray_options=None):
+              write=True, projection="default", rays="auto", ray_options=None):
     """Calibrate ``model`` on good scans and store the calibration in the model file. Returns (Inspector, info).
 
-    ``rays=True`` adds the ray score (:mod:`inspection.ray_evidence`, settings ``ray_options``) and calibrates
-    its combination with the point score; every calibration scan then needs a sensor origin."""
+    ``rays=True`` adds the ray score (:mod:`inspection.ray_evidence`, settings ``ray_options``, with a reference of
+    where the training scans' rays enter material) and calibrates its combination with the point score; every
+    calibration scan then needs a sensor origin. ``rays='auto'`` (the default): on when every calibration and
+    reference scan has one (scans that carry their sensor origin use it without a flag), else off."""
     from tqdm import tqdm
 
     from .calibration import write_calibration
@@ -213,9 +215,11 @@ def calibrate(model, data, alpha=DEFAULT_ALPHA, aggregate=None, point_score=None
     from .model_io import load_model
     from .scores import REFERENCE_QUANTITY
 
+    if rays not in (True, False, "auto"):
+        raise InspectionError(f"rays must be True, False or 'auto', got {rays!r}")
     handle = load_model(model)
     scans, info, how = calibration_scans(handle, data, split=split)
-    if rays:
+    if rays is True:
         check_sensor_origins(scans, data)
     reference = None
     if point_score is None or point_score in REFERENCE_QUANTITY:
@@ -223,6 +227,8 @@ def calibrate(model, data, alpha=DEFAULT_ALPHA, aggregate=None, point_score=None
         if reference is None and point_score is not None:
             raise InspectionError(f"{data}: point score {point_score!r} needs the model's training scans, and this "
                                   f"is not its training collection (or the model records no training scan names)")
+    if rays == "auto":
+        rays = all(s.sensor_origin is not None for s in [*scans, *(reference or [])])
     if point_score is None:
         point_score = "distance" if reference else DEFAULT_POINT_SCORE
     insp = Inspector(handle.model, alpha=alpha, aggregate=aggregate or DEFAULT_AGGREGATE,

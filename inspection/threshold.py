@@ -272,8 +272,10 @@ def fit_threshold(calibration_scores, alpha, basis="auto"):
     if basis == "log-normal":
         raise ValueError(f"the log-normal tail needs >= {MIN_TAIL_SCANS} positive calibration scores, got {n}")
     reach = 1 / (n + 1)
+    why = (f"calibrate on at least {MIN_TAIL_SCANS} good scans" if n < MIN_TAIL_SCANS else
+           "the log-normal tail needs positive scores")
     note = (f"{n} calibration scan(s) are too few for alpha={alpha:g}: using the smallest reachable rate, "
-            f"{reach:.3g} (the largest calibration score); calibrate on at least {MIN_TAIL_SCANS} good scans")
+            f"{reach:.3g} (the largest calibration score); {why}")
     return Threshold(float(cal.max()), alpha, "conformal", n, reach, conformal_far_interval(n, reach), note,
                      alpha_used=reach)
 

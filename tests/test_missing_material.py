@@ -242,17 +242,18 @@ def test_gated_combination_by_hand():
     tau = (0.5 - m_r) / sd_r + GATE_MARGIN  # beyond the largest standardized ray score of the good scans
     z_p = (np.array([2.5, 6.0, 2.5]) - m_p) / sd_p
     z_r = (np.array([0.45, 0.3, 1.2]) - m_r) / sd_r
-    # below the gate the rays change nothing (scans 0 and 1); beyond it they add what exceeds it (scan 2)
+    # below the gate the rays change nothing (scans 0 and 1: their point scores); beyond it they add what exceeds
+    # it, in units of the point score's spread (scan 2)
     np.testing.assert_allclose(comb.score({"points": [2.5, 6.0, 2.5], "rays": [0.45, 0.3, 1.2]}),
-                               z_p + np.maximum(z_r - tau, 0.0))
-    assert comb.score({"points": [2.5], "rays": [1.2]})[0] > 0 and z_r[2] > tau and z_r[0] < tau
+                               m_p + sd_p * (z_p + np.maximum(z_r - tau, 0.0)))
+    assert comb.score({"points": [2.5], "rays": [1.2]})[0] > 2.5 and z_r[2] > tau and z_r[0] < tau
     # leave-one-out: the scan with the largest ray score is gated by the other three, whose largest is 0.2
     loo = comb.calibration_scores()
     others = np.array([0.0, 0.1, 0.2])
     z3 = (0.5 - others.mean()) / others.std(ddof=1)
     tau3 = (0.2 - others.mean()) / others.std(ddof=1)
-    assert loo[3] == pytest.approx((4 - 2) / 1.0 + z3 - tau3 - GATE_MARGIN)
-    assert loo[0] == pytest.approx((1 - 3) / 1.0)  # its rays (0.0) are below the others' largest
+    assert loo[3] == pytest.approx(4 + 1.0 * (z3 - tau3 - GATE_MARGIN))  # the others' points: sd 1
+    assert loo[0] == pytest.approx(1.0)  # its rays (0.0) are below the others' largest: its point score
     again = Combination.from_dict(comb.as_dict())
     assert again.rule == "gated" and again.score(cal).tolist() == comb.score(cal).tolist()
     assert Combination.from_dict(Combination(cal, rule="max").as_dict()).rule == "max"
@@ -288,7 +289,10 @@ def test_inspector_with_rays_flags_the_hole_and_round_trips():
     tests = _scans("good", [50, 51]) + _scans("hole", [60, 61])
     res = [insp.inspect(s) for s in tests]
     assert [r.components["rays"] > 0.5 for r in res] == [False, False, True, True]
-    assert insp.predict(tests).tolist() == [1, 1, -1, -1]
+    assert insp.predict(tests[2:]).tolist() == [-1, -1]
+    # below the gate the rays change nothing: a good scan is judged by its point score alone, at the threshold the
+    # point score alone would have
+    assert [r.score for r in res[:2]] == [r.components["points"] for r in res[:2]]
     # the point score alone cannot tell: the points seen through the hole lie on a good surface
     plain = Inspector(WallModel(), alpha=0.2).fit(good)
     assert plain.predict(tests[2:]).tolist() == [1, 1]
@@ -381,6 +385,7 @@ def test_cli_calibrate_and_score_with_rays(tmp_path, capsys):
     rc = main(["score", "--model", str(model), "--data", str(bare), "--out", str(tmp_path / "r2"), "--quiet"])
     err = capsys.readouterr().err.strip()
     assert rc == 2 and len(err.splitlines()) == 1 and "bare.h5" in err and "no sensor origin" in err
-    # --ray-options without --rays
-    rc = main(["calibrate", "--model", str(model), "--data", str(data), "--ray-options", "n_rays=5", "--quiet"])
-    assert rc == 2 and "--ray-options needs --rays" in capsys.readouterr().err
+    # --ray-options with --no-rays
+    rc = main(["calibrate", "--model", str(model), "--data", str(data), "--ray-options", "n_rays=5", "--no-rays",
+               "--quiet"])
+    assert rc == 2 and "--ray-options contradicts --no-rays" in capsys.readouterr().err
