@@ -148,7 +148,8 @@ def baseline(data, model, alpha):
     cal_scores, _ = nn_scores(train_points, cal)
     crossed = [nn_scores(np.concatenate([t.points for j, t in enumerate(train) if j != i]), [s])[0][0]
                for i, s in enumerate(train)]
-    decision = fit_threshold(np.r_[cal_scores, crossed], alpha)
+    decision = fit_threshold(np.r_[cal_scores, crossed], alpha,
+                             ["held-back"] * len(cal_scores) + ["cross-fitted"] * len(crossed))
     labels = np.array([s.label for s in test])
     defects = np.array([s.defect for s in test])
     return rates(test_scores, labels, defects, decision.value), decision, seconds

@@ -50,7 +50,7 @@ class Calibration:
 
     def threshold(self, alpha=None):
         """The :class:`inspection.threshold.Threshold` of these scores at ``alpha`` (default: the stored one)."""
-        return fit_threshold(self.scores, self.alpha if alpha is None else alpha)
+        return fit_threshold(self.scores, self.alpha if alpha is None else alpha, self.roles or None)
 
     def as_dict(self):
         d = asdict(self)

@@ -5,7 +5,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .calibration import Calibration
-from .threshold import check_alpha, fit_threshold, threshold_p_values
+from .threshold import check_alpha, fit_threshold
 from .scores import (POINT_SCORES, REFERENCE_QUANTITY, LocalReference, aggregate as aggregate_scores, check_aggregate,
                      field_quantity, grazing_factor, point_scores)
 
@@ -409,7 +409,9 @@ class Inspector(BaseEstimator):
         self.calibration_scores_ = scores
         self.calibration_names_ = list(names)
         self.n_calibration_ = len(scores)
-        self.decision_threshold_ = fit_threshold(scores, self.alpha)
+        roles = getattr(self, "calibration_roles_", None)
+        self.decision_threshold_ = fit_threshold(scores, self.alpha,
+                                                 roles if roles is not None and len(roles) == len(scores) else None)
         self.threshold_ = self.decision_threshold_.value
         self.offset_ = -self.threshold_
         return self
@@ -466,10 +468,10 @@ class Inspector(BaseEstimator):
     # ------------------------------------------------------------------------------------ sklearn outlier API
     def p_values_from_scores(self, anomaly_scores):
         """p-values (n,) of given anomaly scores on the threshold's basis (split-conformal or the log-normal
-        predictive tail, :func:`inspection.threshold.threshold_p_values`); ``p <= decision_threshold_.alpha_used``
+        predictive tail, :meth:`inspection.threshold.Threshold.p_values`); ``p <= decision_threshold_.alpha_used``
         exactly when the score exceeds ``threshold_``."""
         self._check_is_fitted()
-        return threshold_p_values(self.decision_threshold_, self.calibration_scores_, anomaly_scores)
+        return self.decision_threshold_.p_values(anomaly_scores)
 
     def p_values(self, scans):
         """p-values (n,) of scans; small = unlike the good calibration scans."""

@@ -30,7 +30,7 @@ own rate, F_bar(t) = Phi_bar(Z + q W) with Z = (m - mu) / sigma ~ N(0, 1/n), W =
 """
 import logging
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -107,64 +107,81 @@ def conformal_threshold(calibration_scores, alpha):
     return float(cal[k])
 
 
-def _log_stats(calibration_scores):
-    """(mean, standard deviation, n) of the log scores; a ValueError when a score is not positive."""
-    cal = _scores(calibration_scores)
-    if np.any(cal <= 0):
-        raise ValueError(f"the log-normal tail needs positive scores; got a minimum of {cal.min():.4g}")
-    y = np.log(cal)
-    return float(y.mean()), float(max(y.std(ddof=1), 1e-12 * max(1.0, abs(y.mean())))), len(y)
+def _log_fit(level_scores, spread_scores=()):
+    """The log-normal fit (module docstring): (m, s, n_level, df).
+
+    m: mean log score of ``level_scores``; s: the standard deviation of the log scores pooled within the two groups
+    (each around its own mean), with df = n_level + n_spread - 2 (n_level - 1 without spread scores)."""
+    level = _scores(level_scores)
+    spread = np.asarray(spread_scores, dtype=np.float64).reshape(-1)
+    both = np.concatenate([level, spread])
+    if not np.all(np.isfinite(both)) or np.any(both <= 0):
+        raise ValueError(f"the log-normal tail needs positive finite scores; got a minimum of {both.min():.4g}")
+    y, x = np.log(level), np.log(spread)
+    m = float(y.mean())
+    squares = float(np.sum((y - m) ** 2) + (np.sum((x - x.mean()) ** 2) if len(x) else 0.0))
+    df = len(y) - 1 + (len(x) - 1 if len(x) else 0)
+    if df < MIN_TAIL_SCANS - 1:
+        raise ValueError(f"the log-normal tail needs >= {MIN_TAIL_SCANS - 1} degrees of freedom for its spread "
+                         f"(>= {MIN_TAIL_SCANS} scores), got {df}")
+    s = max(math.sqrt(squares / df), 1e-12 * max(1.0, abs(m)))
+    return m, s, len(y), df
 
 
-def _tail_factor(n, alpha):
+def _tail_factor(n_level, df, alpha):
     from scipy import stats
 
-    return float(stats.t.ppf(1 - alpha, n - 1) * math.sqrt(1 + 1 / n))
+    return float(stats.t.ppf(1 - alpha, df) * math.sqrt(1 + 1 / n_level))
 
 
-def lognormal_threshold(calibration_scores, alpha):
-    """exp(m + t_{n-1}(1 - alpha) s sqrt(1 + 1/n)) of the log scores (module docstring); needs n >= 3."""
+def lognormal_threshold(calibration_scores, alpha, spread_scores=()):
+    """exp(m + t_df(1 - alpha) s sqrt(1 + 1/n) ) of the log scores (module docstring)."""
     alpha = check_alpha(alpha)
-    m, s, n = _log_stats(calibration_scores)
-    if n < MIN_TAIL_SCANS:
-        raise ValueError(f"the log-normal tail needs >= {MIN_TAIL_SCANS} calibration scores, got {n}")
-    return float(math.exp(m + _tail_factor(n, alpha) * s))
+    m, s, n, df = _log_fit(calibration_scores, spread_scores)
+    return float(math.exp(m + _tail_factor(n, df, alpha) * s))
 
 
-def lognormal_p_values(calibration_scores, scores):
+def lognormal_p_values(calibration_scores, scores, spread_scores=()):
     """Predictive p-values P(Y_new >= log s) of ``scores`` under the log-normal fit (module docstring): (m,)."""
+    m, s, n, df = _log_fit(calibration_scores, spread_scores)
+    return _t_p_values(scores, m, s, n, df)
+
+
+def _t_p_values(scores, m, s, n, df):
     from scipy import stats
 
-    m, s, n = _log_stats(calibration_scores)
     x = np.asarray(scores, dtype=np.float64).reshape(-1)
     with np.errstate(divide="ignore"):
         y = np.log(np.maximum(x, 0.0))  # a score <= 0 is as normal as it gets: p = 1
-    return stats.t.sf((y - m) / (s * math.sqrt(1 + 1 / n)), n - 1)
+    return stats.t.sf((y - m) / (s * math.sqrt(1 + 1 / n)), df)
 
 
-def _lognormal_far_cdf(a, n, q):
-    """P(F_bar(t) <= a) for the log-normal threshold with factor q from n scores (module docstring)."""
+def _lognormal_far_cdf(a, n, df, q):
+    """P(F_bar(t) <= a) for the log-normal threshold with factor q, level from n scores, spread with df degrees of
+    freedom (module docstring)."""
     from scipy import integrate, stats
 
     z_a = stats.norm.isf(a)
-    chi = stats.chi(n - 1)
-    scale = math.sqrt(n - 1)
+    chi = stats.chi(df)
+    scale = math.sqrt(df)
 
-    def integrand(u):  # u ~ chi_{n-1}; W = u / sqrt(n - 1)
+    def integrand(u):  # u ~ chi_df; W = u / sqrt(df)
         return stats.norm.sf(math.sqrt(n) * (z_a - q * u / scale)) * chi.pdf(u)
 
     lo, hi = chi.ppf(1e-12), chi.ppf(1 - 1e-12)
     return float(integrate.quad(integrand, lo, hi, limit=200, epsabs=1e-12)[0])
 
 
-def lognormal_far_interval(n, alpha, level=FAR_INTERVAL_LEVEL):
-    """The central ``level`` probability interval of the false-alarm rate F_bar(t) of a log-normal threshold."""
+def lognormal_far_interval(n, alpha, level=FAR_INTERVAL_LEVEL, df=None):
+    """The central ``level`` probability interval of the false-alarm rate F_bar(t) of a log-normal threshold whose
+    level rests on n scores and spread on df degrees of freedom (default n - 1)."""
     from scipy import optimize
 
-    q = _tail_factor(n, alpha)
+    df = n - 1 if df is None else df
+    q = _tail_factor(n, df, alpha)
     out = []
     for target in ((1 - level) / 2, (1 + level) / 2):
-        f = lambda log_a: _lognormal_far_cdf(math.exp(log_a), n, q) - target  # noqa: E731
+        f = lambda log_a: _lognormal_far_cdf(math.exp(log_a), n, df, q) - target  # noqa: E731
         lo, hi = math.log(_FAR_FLOOR), math.log(1 - 1e-6)
         # with very few scores the rate can be below any floor with probability > target: report 0
         out.append(0.0 if f(lo) >= 0 else float(math.exp(optimize.brentq(f, lo, hi, xtol=1e-10))))
@@ -197,7 +214,7 @@ class Threshold:
     basis : {'conformal', 'log-normal'}
         Exact split-conformal, or extrapolated with the log-normal predictive tail (module docstring).
     n : int
-        Calibration scores it rests on.
+        Calibration scores it rests on (held back and cross-fitted).
     predicted_far : float
         False-alarm rate on good scans, averaged over calibration draws: (k + 1) / (n + 1) or alpha.
     far_interval : (2,) floats
@@ -205,8 +222,12 @@ class Threshold:
     note : str
         One line for the user when the threshold is not exact split-conformal at alpha ('' otherwise).
     alpha_used : float
-        The rate the p-values are compared with: ``alpha``, or 1 / (n + 1) when fewer than ``MIN_TAIL_SCANS`` scores
-        allow nothing smaller. ``p <= alpha_used`` exactly when ``score > value``.
+        The rate the p-values are compared with: ``alpha``, or 1 / (n + 1) when too few scores allow nothing
+        smaller. ``p <= alpha_used`` exactly when ``score > value``.
+    fit : dict
+        The log-normal fit (``mean``, ``sd``, ``n_level``, ``df``) or the conformal scores (``scores``): what the
+        p-values of new scores need. ``cross_fit_shift``: how much lower the cross-fitted scans' mean log score was
+        than the held-back ones' (the optimism the level avoids), when there were both.
     """
 
     value: float
@@ -217,16 +238,25 @@ class Threshold:
     far_interval: tuple
     note: str = ""
     alpha_used: float = None
+    fit: dict = field(default_factory=dict)
 
     def __post_init__(self):
         if self.alpha_used is None:
             self.alpha_used = self.alpha
+
+    def p_values(self, scores):
+        """p-values of scores on this threshold's basis: ``p <= alpha_used`` exactly when score > value."""
+        if self.basis == "log-normal":
+            f = self.fit
+            return _t_p_values(scores, f["mean"], f["sd"], f["n_level"], f["df"])
+        return conformal_p_values(self.fit["scores"], scores)
 
     def as_dict(self):
         d = asdict(self)
         d["value"] = None if not math.isfinite(self.value) else float(self.value)
         d["far_interval"] = [float(v) for v in self.far_interval]
         d["far_interval_level"] = FAR_INTERVAL_LEVEL
+        d["fit"] = {k: v for k, v in self.fit.items() if k != "scores"}
         return d
 
 
@@ -235,53 +265,61 @@ def format_rate(rate):
     return "<0.001 %" if 0 < rate < 1e-5 else f"{100 * rate:.2g} %"
 
 
-def fit_threshold(calibration_scores, alpha, basis="auto"):
+def fit_threshold(calibration_scores, alpha, roles=None):
     """The threshold at false-alarm rate ``alpha`` from good scans' scores.
 
     Parameters
     ----------
     calibration_scores : (n,) array
-        Scores of good scans the model did not train on (higher = more anomalous).
+        Scores of good scans (higher = more anomalous).
     alpha : float in (0, 1)
-    basis : {'auto', 'conformal', 'log-normal'}
-        ``'auto'``: split-conformal when n >= 1 / alpha - 1 (it can reach alpha), else the log-normal tail (n >= 3
-        positive scores), else conformal at its smallest reachable rate, 1 / (n + 1).
+    roles : (n,) sequence of {'held-back', 'cross-fitted'}, optional
+        Which scores come from scans the model did not train on (default: all) and which from training scans
+        scored as if new (:meth:`inspection.Inspector.fit`). Cross-fitted scores can be optimistic (the nets saw
+        those scans): they never set the threshold's level, only the spread of the log-normal tail.
 
     Returns
     -------
     Threshold
+        Split-conformal on the held-back scores when there are n_h >= 1 / alpha - 1 of them (it can reach alpha
+        exactly); else the log-normal tail, its level the held-back scores' mean log score and its spread pooled
+        within the held-back and cross-fitted groups (needs positive scores and >= 2 degrees of freedom); else
+        conformal at its smallest reachable rate, 1 / (n_h + 1).
     """
     alpha = check_alpha(alpha)
     cal = _scores(calibration_scores)
-    n = len(cal)
-    if basis not in ("auto",) + BASES:
-        raise ValueError(f"basis must be 'auto' or one of {BASES}, got {basis!r}")
+    roles = np.array(["held-back"] * len(cal) if roles is None else list(roles))
+    if roles.shape != cal.shape or not np.isin(roles, ("held-back", "cross-fitted")).all():
+        raise ValueError(f"roles: one 'held-back' or 'cross-fitted' per score ({len(cal)}), got {list(roles)}")
+    held, crossed = cal[roles == "held-back"], cal[roles == "cross-fitted"]
+    if len(held) == 0:
+        raise ValueError("fit_threshold needs at least one held-back score (a good scan the model did not train on)")
+    n_h, n = len(held), len(cal)
     need = math.ceil(1 / alpha - 1 - _TOL)
-    if basis == "conformal" or (basis == "auto" and allowed_exceedances(n, alpha) >= 0):
-        k = allowed_exceedances(n, alpha)
-        note = "" if k >= 0 else (f"{n} calibration scans are too few for alpha={alpha:g} (a conformal threshold "
-                                  f"needs {need}): nothing can be flagged")
-        return Threshold(conformal_threshold(cal, alpha), alpha, "conformal", n,
-                         0.0 if k < 0 else min(1.0, (k + 1) / (n + 1)), conformal_far_interval(n, alpha), note)
-    if n >= MIN_TAIL_SCANS and np.all(cal > 0):
-        lo, hi = lognormal_far_interval(n, alpha)
-        note = (f"{n} calibration scans are fewer than the {need} an exact conformal threshold at alpha={alpha:g} "
-                f"needs: threshold extrapolated from a log-normal fit of their scores (predicted false-alarm rate "
-                f"{format_rate(alpha)}, {100 * FAR_INTERVAL_LEVEL:.0f} % interval {format_rate(lo)} to {format_rate(hi)})")
-        return Threshold(lognormal_threshold(cal, alpha), alpha, "log-normal", n, alpha, (lo, hi), note)
-    if basis == "log-normal":
-        raise ValueError(f"the log-normal tail needs >= {MIN_TAIL_SCANS} positive calibration scores, got {n}")
-    reach = 1 / (n + 1)
-    why = (f"calibrate on at least {MIN_TAIL_SCANS} good scans" if n < MIN_TAIL_SCANS else
-           "the log-normal tail needs positive scores")
-    note = (f"{n} calibration scan(s) are too few for alpha={alpha:g}: using the smallest reachable rate, "
-            f"{reach:.3g} (the largest calibration score); {why}")
-    return Threshold(float(cal.max()), alpha, "conformal", n, reach, conformal_far_interval(n, reach), note,
-                     alpha_used=reach)
-
-
-def threshold_p_values(threshold, calibration_scores, scores):
-    """p-values of ``scores`` on the threshold's basis: flagging p <= alpha is flagging score > threshold."""
-    if threshold.basis == "log-normal":
-        return lognormal_p_values(calibration_scores, scores)
-    return conformal_p_values(calibration_scores, scores)
+    k = allowed_exceedances(n_h, alpha)
+    if k >= 0:
+        return Threshold(conformal_threshold(held, alpha), alpha, "conformal", n_h, min(1.0, (k + 1) / (n_h + 1)),
+                         conformal_far_interval(n_h, alpha), "", fit={"scores": held.tolist()})
+    df = n_h - 1 + (len(crossed) - 1 if len(crossed) else 0)
+    if np.all(cal > 0) and df >= MIN_TAIL_SCANS - 1:
+        m, sd, _, df = _log_fit(held, crossed)
+        lo, hi = lognormal_far_interval(n_h, alpha, df=df)
+        fit = {"mean": m, "sd": sd, "n_level": n_h, "df": df}
+        how = f"{n} good scans' scores"
+        if len(crossed):
+            fit["cross_fit_shift"] = float(np.log(held).mean() - np.log(crossed).mean())
+            how = (f"the {n_h} held-back scans' level and the spread of all {n} (cross-fitted scans scored "
+                   f"{100 * (1 - math.exp(-fit['cross_fit_shift'])):.0f} % lower)")
+        note = (f"{n_h} held-back scans are fewer than the {need} an exact conformal threshold at alpha={alpha:g} "
+                f"needs: threshold extrapolated from a log-normal fit of {how} (predicted false-alarm rate "
+                f"{format_rate(alpha)}, {100 * FAR_INTERVAL_LEVEL:.0f} % interval {format_rate(lo)} to "
+                f"{format_rate(hi)})")
+        value = float(math.exp(m + _tail_factor(n_h, df, alpha) * sd))
+        return Threshold(value, alpha, "log-normal", n, alpha, (lo, hi), note, fit=fit)
+    reach = 1 / (n_h + 1)
+    why = ("the log-normal tail needs positive scores" if not np.all(cal > 0) else
+           f"calibrate on at least {MIN_TAIL_SCANS} good scans")
+    note = (f"{n_h} held-back scan(s) are too few for alpha={alpha:g}: using the smallest reachable rate, "
+            f"{reach:.3g} (the largest held-back score); {why}")
+    return Threshold(float(held.max()), alpha, "conformal", n_h, reach, conformal_far_interval(n_h, reach), note,
+                     alpha_used=reach, fit={"scores": held.tolist()})

@@ -131,7 +131,7 @@ def test_score_calibrates_an_uncalibrated_model_on_its_held_back_scans(workdir, 
     decision = summary["decision"]
     assert decision["n"] == 6 and decision["basis"] == "log-normal" and decision["alpha"] == 0.01
     assert summary["threshold"] == pytest.approx(decision["value"]) and "99" in decision["note"]
-    assert "threshold basis: log-normal on 6 good scans" in said and "note: 6 calibration scans" in said
+    assert "threshold basis: log-normal on 6 good scans" in said and "note: 3 held-back scans are fewer" in said
 
 
 def test_uncalibrated_model_on_other_data_is_an_error(workdir, tmp_path, capsys):

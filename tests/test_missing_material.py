@@ -385,7 +385,6 @@ def test_cli_calibrate_and_score_with_rays(tmp_path, capsys):
     rc = main(["score", "--model", str(model), "--data", str(bare), "--out", str(tmp_path / "r2"), "--quiet"])
     err = capsys.readouterr().err.strip()
     assert rc == 2 and len(err.splitlines()) == 1 and "bare.h5" in err and "no sensor origin" in err
-    # --ray-options with --no-rays
-    rc = main(["calibrate", "--model", str(model), "--data", str(data), "--ray-options", "n_rays=5", "--no-rays",
-               "--quiet"])
-    assert rc == 2 and "--ray-options contradicts --no-rays" in capsys.readouterr().err
+    # --ray-options without the rays
+    rc = main(["calibrate", "--model", str(model), "--data", str(data), "--ray-options", "n_rays=5", "--quiet"])
+    assert rc == 2 and "--ray-options needs --rays" in capsys.readouterr().err

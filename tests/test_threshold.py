@@ -7,7 +7,7 @@ from scipy import stats
 
 from inspection.threshold import (FAR_INTERVAL_LEVEL, conformal_far_interval, conformal_p_values,
                                   conformal_threshold, fit_threshold, lognormal_far_interval, lognormal_p_values,
-                                  lognormal_threshold, threshold_p_values)
+                                  lognormal_threshold)
 
 
 # ------------------------------------------------------------------------------------------- split-conformal
@@ -112,8 +112,8 @@ def test_fit_threshold_is_conformal_with_enough_scans_and_log_normal_below():
     t = fit_threshold(few, 0.01)
     assert t.basis == "log-normal" and t.value == pytest.approx(lognormal_threshold(few, 0.01))
     assert t.predicted_far == 0.01 and t.far_interval == pytest.approx(lognormal_far_interval(6, 0.01))
-    assert "6 calibration scans" in t.note and "99" in t.note and "log-normal" in t.note
-    np.testing.assert_array_equal(threshold_p_values(t, few, many) <= t.alpha_used, many > t.value)
+    assert "6 held-back scans" in t.note and "99" in t.note and "log-normal" in t.note
+    np.testing.assert_array_equal(t.p_values(many) <= t.alpha_used, many > t.value)
 
 
 def test_fit_threshold_with_two_scans_uses_the_smallest_reachable_rate():
@@ -121,7 +121,34 @@ def test_fit_threshold_with_two_scans_uses_the_smallest_reachable_rate():
     assert t.basis == "conformal" and t.value == 2.0 and t.alpha_used == pytest.approx(1 / 3)
     assert "too few" in t.note
     s = np.array([0.5, 1.5, 2.0, 2.5])
-    np.testing.assert_array_equal(threshold_p_values(t, [1.0, 2.0], s) <= t.alpha_used, s > t.value)
+    np.testing.assert_array_equal(t.p_values(s) <= t.alpha_used, s > t.value)
+
+
+def test_cross_fitted_scores_set_the_spread_and_never_the_level():
+    """Held-back scores set the level, cross-fitted ones (possibly optimistic: lower) only the pooled spread: by
+    hand, and by simulation with cross-fitted scores biased low the rate still averages alpha."""
+    rng = np.random.default_rng(5)
+    held, crossed = np.exp(rng.normal(1.0, 0.3, 6)), np.exp(rng.normal(0.6, 0.3, 26))
+    t = fit_threshold(np.r_[held, crossed], 0.01, ["held-back"] * 6 + ["cross-fitted"] * 26)
+    y, x = np.log(held), np.log(crossed)
+    df = 6 + 26 - 2
+    sd = math.sqrt((np.sum((y - y.mean()) ** 2) + np.sum((x - x.mean()) ** 2)) / df)
+    assert t.value == pytest.approx(math.exp(y.mean() + stats.t.ppf(0.99, df) * math.sqrt(1 + 1 / 6) * sd))
+    assert t.value == pytest.approx(lognormal_threshold(held, 0.01, spread_scores=crossed))
+    assert t.fit["cross_fit_shift"] == pytest.approx(y.mean() - x.mean()) and "lower" in t.note
+    assert t.far_interval == pytest.approx(lognormal_far_interval(6, 0.01, df=df))
+    # the p-values of new scores need nothing but the threshold
+    s_new = np.geomspace(1, 30, 300)
+    np.testing.assert_array_equal(t.p_values(s_new) <= 0.01, s_new > t.value)
+    rates = []
+    for _ in range(3000):
+        held, crossed = rng.normal(1.0, 0.3, 6), rng.normal(0.5, 0.3, 26)  # cross-fitted 0.5 lower in log
+        t = lognormal_threshold(np.exp(held), 0.01, spread_scores=np.exp(crossed))  # fit_threshold's value
+        rates.append(stats.norm.sf((math.log(t) - 1.0) / 0.3))
+    rates = np.array(rates)
+    assert abs(rates.mean() - 0.01) < 4 * rates.std() / math.sqrt(len(rates))
+    lo, hi = lognormal_far_interval(6, 0.01, df=30)
+    assert abs(np.mean(rates > hi) - 0.05) < 0.02
 
 
 def test_threshold_record_is_json_ready():
@@ -129,6 +156,7 @@ def test_threshold_record_is_json_ready():
 
     d = fit_threshold(np.exp(np.random.default_rng(0).normal(size=8)), 0.01).as_dict()
     assert json.loads(json.dumps(d))["basis"] == "log-normal" and d["far_interval_level"] == FAR_INTERVAL_LEVEL
+    assert set(d["fit"]) == {"mean", "sd", "n_level", "df"}
 
 
 def test_alpha_validated():
