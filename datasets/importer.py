@@ -101,14 +101,20 @@ def find_sources(root, exclude=None):
                                           defect, gt if gt.is_file() else None, all_good))
     if not sources:
         raise ValueError(f"{root}: no point-cloud files found (looked for {', '.join(CLOUD_SUFFIXES)} "
-                         f"in {'train/ validation/ test/' if split_dirs else 'the folder itself'}; MVTec-3D-AD .tiff point "
-                         f"maps must be converted to one of these first)")
+                         f"in {'train/ validation/ test/' if split_dirs else 'the folder itself'}; nor is it a class "
+                         f"folder of a known layout: {', '.join(_public_layouts())})")
     seen = {}
     for s in sources:
         if s.name in seen:
             raise ValueError(f"{s.path}: same scan name {s.name!r} as {seen[s.name]} (one cloud per file stem)")
         seen[s.name] = s.path
     return sources
+
+
+def _public_layouts():
+    from .layouts import LAYOUT_SIGNS
+
+    return [f"{name} ({sign})" for name, sign in LAYOUT_SIGNS.items()]
 
 
 # ---- per-file processing ---------------------------------------------------------------------------------------------
@@ -289,8 +295,12 @@ def load_source(src, voxel=None, n_points=None, seed=0):
 
 
 # ---- whole folders ---------------------------------------------------------------------------------------------------
-def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, progress=None):
+def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, progress=None, layout="auto",
+                **public_options):
     """Import a tree or flat folder of scanner files into a new collection at ``out``.
+
+    A class folder of a public benchmark (Real3D-AD, Anomaly-ShapeNet, MVTec 3D-AD) is recognised (``layout='auto'``)
+    or named (``layout``) and read by :mod:`datasets.layouts` as its own loaders read it; ``public_options`` go there.
 
     The frame is fitted to the bounding box of all training points (of all points when there is no train split)
     and applied to every scan. Everything is read and checked before anything is written, so any bad file raises
@@ -308,6 +318,8 @@ def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, p
     overwrite : bool
     progress : bool or None
         tqdm bar over files; None shows it only on a terminal.
+    layout : {'auto', 'tree', 'real3d-ad', 'anomaly-shapenet', 'mvtec3d'}
+        'tree': this module's own layout (above); 'auto': detected from the folder.
 
     Returns
     -------
@@ -316,7 +328,7 @@ def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, p
     """
     from tqdm import tqdm
 
-    from .collection import ScanCollection
+    from .layouts import import_public, resolve_layout
 
     root, out = Path(root), Path(out)
     if voxel is not None and n_points is not None:
@@ -329,25 +341,41 @@ def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, p
         raise FileExistsError(f"{out}: already exists (use --overwrite to replace it)")
     if not out.parent.is_dir():  # say so now, not after reading every file
         raise FileNotFoundError(f"{out.parent}: output folder does not exist")
+    layout = resolve_layout(root, layout)
+    if layout != "tree":
+        return import_public(root, out, layout, voxel=voxel, n_points=n_points, seed=seed, overwrite=overwrite,
+                             progress=progress, **public_options)
+    if public_options:
+        raise ValueError(f"{root}: options {sorted(public_options)} apply to the public layouts only, not 'tree'")
     sources = find_sources(root, exclude=out)
     scans, n_dropped = [], 0
     for src in tqdm(sources, desc="import", unit="file", disable=None if progress is None else not progress):
         scan, dropped = load_source(src, voxel=voxel, n_points=n_points, seed=seed)
         scans.append(scan)
         n_dropped += dropped
+    provenance = {"source": "import", "root": str(root.resolve()), "files": len(sources), "voxel": voxel,
+                  "points": n_points, "seed": seed, "dropped_nonfinite": n_dropped}
+    summary = write_scans(scans, out, provenance, overwrite)
+    summary["n_dropped"] = n_dropped
+    log.info("imported %d scans from %s into %s", len(scans), root, out)
+    return summary
+
+
+def write_scans(scans, out, provenance, overwrite=False):
+    """Fit the collection frame to the training points (all points when there is no train split), move the scans
+    (file units) into it and write the collection atomically. Returns the summary dict of :func:`import_tree`
+    (without ``n_dropped``)."""
+    from .collection import ScanCollection
+
     train = [s.points for s in scans if s.split == "train"]
     frame = Frame.fit(np.concatenate(train if train else [s.points for s in scans]))
-    provenance = {"source": "import", "root": str(root.resolve()), "files": len(sources), "voxel": voxel,
-                  "points": n_points, "seed": seed, "dropped_nonfinite": n_dropped,
-                  "frame_fitted_on": "train" if train else "all (no train split)"}
+    provenance = dict(provenance, frame_fitted_on="train" if train else "all (no train split)")
     ScanCollection.create(out, (frame.apply(s) for s in scans), frame=frame, provenance=provenance,
                           overwrite=overwrite)
     counts = np.array([len(s) for s in scans])
-    summary = {"out": str(out), "n_scans": len(scans), "n_dropped": n_dropped, "frame": frame.as_dict(),
-               "points_min": int(counts.min()), "points_median": float(np.median(counts)),
-               "points_max": int(counts.max()), "groups": _group_counts((s.split, s.label, s.defect) for s in scans)}
-    log.info("imported %d scans from %s into %s", len(scans), root, out)
-    return summary
+    return {"out": str(out), "n_scans": len(scans), "frame": frame.as_dict(),
+            "points_min": int(counts.min()), "points_median": float(np.median(counts)),
+            "points_max": int(counts.max()), "groups": _group_counts((s.split, s.label, s.defect) for s in scans)}
 
 
 def _group_counts(rows):
