@@ -178,6 +178,51 @@ def bench_part(part, args, work):
             "timings": timings, "names": len(names)}
 
 
+def view_check(part, args, work, per_template=2):
+    """How well the rendered views match what a ray caster sees of the part: for the first ``per_template`` training
+    views of each template, the share of the view's points that the mesh leaves visible from the view's sensor
+    (precision) and the share of the template's visible points that the view kept (recall). A template point counts
+    as visible when the first hit along the ray from the sensor lies within 1 % of the diagonal of it and the
+    surface faces the sensor there."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    from datasets import ScanCollection, read_cloud
+    from datasets.parts import load_part
+
+    pdir = next(work.glob(f"{part}_*"), None)
+    if pdir is None or not (pdir / "data.h5").is_file():
+        raise SystemExit(f"{part}: no imported collection in {work}; run the benchmark first")
+    mesh = load_part(PARTS[part])
+    diag = float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
+    caster = trimesh.ray.ray_triangle.RayMeshIntersector(mesh)
+    rows = []
+    with ScanCollection(pdir / "data.h5") as c:
+        frame = c.frame
+        for k in range(1, 5):
+            template = read_cloud(pdir / "tree" / "train" / f"{k}_template.pcd")[0]
+            face = trimesh.proximity.closest_point(mesh, template)[2]
+            normals = mesh.face_normals[face]
+            for i in range(per_template):
+                view = c[c.names.index(f"train/{k}_template/view_{i:03d}")]
+                origin = frame.to_file(view.sensor_origin)
+                d_view, kept = cKDTree(template).query(frame.to_file(view.points))
+                assert d_view.max() < 1e-3 * diag, "a view point is not a template point"
+                dirs = template - origin
+                dist = np.linalg.norm(dirs, axis=1)
+                loc, ray, _ = caster.intersects_location(np.repeat(origin[None], len(template), 0),
+                                                         dirs / dist[:, None], multiple_hits=False)
+                first = np.full(len(template), np.inf)
+                first[ray] = np.linalg.norm(loc - origin, axis=1)
+                visible = (first >= dist - 0.01 * diag) & (np.einsum("ij,ij->i", normals, origin - template) > 0)
+                rows.append((visible[kept].mean(), np.isin(np.flatnonzero(visible), kept).mean(), len(kept),
+                             int(visible.sum())))
+    r = np.array(rows)
+    print(f"{part}: {len(rows)} views: precision {r[:, 0].mean():.3f} (min {r[:, 0].min():.3f}), recall "
+          f"{r[:, 1].mean():.3f} (min {r[:, 1].min():.3f}), points a view {r[:, 2].mean():.0f} of "
+          f"{r[:, 3].mean():.0f} visible")
+
+
 def _read_csv(path):
     import csv
 
@@ -197,6 +242,8 @@ def main(argv=None):
     parser.add_argument("--epochs", type=int, default=None, help="train_latent epochs (default: its own)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--work", default="results/four_templates")
+    parser.add_argument("--view-check", action="store_true",
+                        help="only compare the imported views with ray-cast visibility (after a run)")
     args = parser.parse_args(argv)
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
@@ -204,7 +251,10 @@ def main(argv=None):
     for part in args.parts.split(","):
         if part not in PARTS:
             parser.error(f"unknown part {part!r}; known: {', '.join(PARTS)}")
-        bench_part(part, args, work)
+        if args.view_check:
+            view_check(part, args, work)
+        else:
+            bench_part(part, args, work)
 
 
 if __name__ == "__main__":
