@@ -8,11 +8,10 @@ import sys
 def _cmd_import(args):
     from .importer import import_tree
 
-    public = {}
-    if args.layout != "tree":  # options of the public layouts (datasets.layouts), when given
-        public = {k: v for k, v in (("views", args.views), ("validation_views", args.validation_views),
-                                    ("keep_plane", args.keep_plane or None), ("max_points", args.max_points))
-                  if v is not None}
+    # options of the public layouts (datasets.layouts), passed only when given: a 'tree' import refuses them
+    public = {k: v for k, v in (("views", args.views), ("validation_views", args.validation_views),
+                                ("keep_plane", args.keep_plane or None), ("max_points", args.max_points))
+              if v is not None}
     s = import_tree(args.root, args.out, voxel=args.voxel, n_points=args.points, seed=args.seed,
                     overwrite=args.overwrite, layout=args.layout, **public)
     print(f"wrote {s['out']}: {s['n_scans']} scans, points per scan min {s['points_min']} / median "

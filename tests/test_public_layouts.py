@@ -343,3 +343,23 @@ def test_template_views_are_partial_visible_seeded_and_face_their_sensor():
         # normals (from the template's, outward) face the sensor
         assert np.all(np.einsum("ij,ij->i", v.normals, origin - v.points) > 0)
         np.testing.assert_allclose(v.normals, nrm[idx], atol=1e-6)
+
+
+def test_table_plane_removal_on_a_large_map_uses_a_subset_and_agrees():
+    """Over 5000 points DBSCAN runs on a seeded subset; the object's pixels must still be exactly those off the
+    table's band, and the floating speck must still go."""
+    from datasets.layouts import _CLUSTER_SUBSAMPLE, remove_table_plane
+
+    n, pixel = 120, 0.0005  # 14,400 pixels of 0.5 mm
+    v, u = np.mgrid[0:n, 0:n].astype(float)
+    x, y = (u - n / 2) * pixel, (v - n / 2) * pixel
+    table = TABLE_Z + 0.03 * x
+    height = np.sqrt(np.clip(0.024**2 - x**2 - y**2, 0, None))
+    z = table - height
+    z[3:7, 110:114] = table[3:7, 110:114] - 0.02  # 16 points floating 20 mm above the table
+    grid = np.stack([x, y, z], axis=2)
+    keep = remove_table_plane(grid, seed=0)
+    off_table = height / np.sqrt(1 + 0.03**2) >= 0.005
+    assert off_table.sum() > _CLUSTER_SUBSAMPLE  # the subset path is taken
+    np.testing.assert_array_equal(keep, off_table)
+    np.testing.assert_array_equal(remove_table_plane(grid, seed=0), keep)  # seeded
