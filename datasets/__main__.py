@@ -20,6 +20,9 @@ def _cmd_import(args):
         how = "from the training clouds' spacing" if s["voxel_auto"] else "given"
         print(f"  layout {s['layout']} ({s['units']}); voxel "
               + (f"{s['voxel']:.4g} {s['units']} ({how})" if s["voxel"] else "none (no downsampling)"))
+        if s["n_without_origin"]:
+            print(f"  normals of {s['oriented_by_templates']} of the {s['n_without_origin']} test scans without a "
+                  f"sensor origin oriented like the templates (the others lie off them: another pose)")
     for (split, label, defect), n in s["groups"].items():
         print(f"  {split:<11}{label:<11}{defect or '-':<16}{n:>6}")
     print(f"  frame: {json.dumps(s['frame'])}")

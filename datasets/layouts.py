@@ -383,6 +383,36 @@ def auto_voxel(sources, max_points, keep_plane=False, seed=0):
     return voxel or None
 
 
+def orient_like_templates(points, normals, templates, max_offset=3.0):
+    """The normals of a scan without a sensor origin, flipped as a whole when most disagree with the templates'.
+
+    A partial scan's normals can be oriented consistently with one another, but their global sign is a guess without
+    the sensor (pointing away from the scan's own centroid fails for about half the views of an open, flat part);
+    the complete templates' normals are reliable. When the scan lies on the templates (its median distance to them is
+    at most ``max_offset`` template spacings: it is in their frame), the sign that agrees with the nearest template
+    normal at most points is kept. A scan in another pose is left as it is.
+
+    Parameters
+    ----------
+    points, normals : (N, 3) float arrays
+        The scan, file units; unit normals.
+    templates : (cKDTree, (M, 3) float array, float)
+        KD-tree over the templates' points, their unit normals, their median point spacing.
+
+    Returns
+    -------
+    normals : (N, 3) float array
+    on_templates : bool
+        Whether the scan lay on the templates (and its sign was decided by them).
+    """
+    tree, template_normals, spacing = templates
+    d, j = tree.query(points, k=1)
+    if not np.median(d) <= max_offset * spacing:
+        return normals, False
+    agree = np.einsum("ij,ij->i", normals, template_normals[j]) > 0
+    return (normals if agree.mean() >= 0.5 else -normals), True
+
+
 def import_public(root, out, layout, views=DEFAULT_VIEWS, validation_views=DEFAULT_VALIDATION_VIEWS,
                   keep_plane=False, max_points=DEFAULT_MAX_POINTS, voxel=None, n_points=None, seed=0,
                   overwrite=False, progress=None):
@@ -435,7 +465,9 @@ def import_public(root, out, layout, views=DEFAULT_VIEWS, validation_views=DEFAU
         if voxel is not None:
             log.info("%s: voxel size %.4g %s from the training clouds' spacing (target %d points a scan)", root,
                      voxel, UNITS[layout], max_points)
-    scans, n_dropped = [], 0
+    from scipy.spatial import cKDTree
+
+    scans, n_dropped, template_clouds, templates, n_oriented = [], 0, [], None, 0
     for src in tqdm(sources, desc=f"import {layout}", unit="file", disable=None if progress is None else not progress):
         points, labels, origin, dropped = read_public_source(src, keep_plane, seed)
         n_dropped += dropped
@@ -446,10 +478,20 @@ def import_public(root, out, layout, views=DEFAULT_VIEWS, validation_views=DEFAU
             rng = np.random.default_rng([seed, zlib.crc32(src.name.encode())])
             keep = np.sort(rng.choice(len(points), size=n_points, replace=False))
             points, labels = points[keep], None if labels is None else labels[keep]
-        if src.role == "template":
-            scans += render_views(src.name, points, estimate_normals(points), views, validation_views, seed)
+        if src.role == "template":  # the sources list templates first
+            normals = estimate_normals(points)
+            template_clouds.append((points, normals))
+            scans += render_views(src.name, points, normals, views, validation_views, seed)
             continue
-        scan = Scan(name=src.name, points=points, normals=estimate_normals(points, origin), split=src.split,
+        normals = estimate_normals(points, origin)
+        if origin is None and template_clouds:
+            if templates is None:
+                tp = np.concatenate([p for p, _ in template_clouds])
+                templates = (cKDTree(tp), np.concatenate([n for _, n in template_clouds]),
+                             max(cloud_spacing(p, seed) for p, _ in template_clouds))
+            normals, on = orient_like_templates(points, normals, templates)
+            n_oriented += on
+        scan = Scan(name=src.name, points=points, normals=normals, split=src.split,
                     label=src.label, defect=src.defect, point_labels=labels, sensor_origin=origin)
         scan.points = points  # keep file-unit precision until the frame is applied
         scans.append(scan)
@@ -459,8 +501,11 @@ def import_public(root, out, layout, views=DEFAULT_VIEWS, validation_views=DEFAU
     if layout == "mvtec3d":
         provenance["table_plane"] = "kept" if keep_plane else "removed"
     else:
-        provenance.update(template_views=views, template_validation_views=validation_views)
+        provenance.update(template_views=views, template_validation_views=validation_views,
+                          scans_oriented_by_templates=n_oriented)
     summary = write_scans(scans, out, provenance, overwrite)
-    summary.update(n_dropped=n_dropped, layout=layout, units=UNITS[layout], voxel=voxel, voxel_auto=voxel_auto)
+    summary.update(n_dropped=n_dropped, layout=layout, units=UNITS[layout], voxel=voxel, voxel_auto=voxel_auto,
+                   oriented_by_templates=n_oriented,
+                   n_without_origin=sum(s.sensor_origin is None and s.split == "test" for s in scans))
     log.info("imported %d scans (%s layout) from %s into %s", len(scans), layout, root, out)
     return summary

@@ -164,6 +164,30 @@ def test_real3d_splits_labels_units_and_untouched_files(tmp_path):
     assert frame.scale == pytest.approx(1 / (2 * R3D_RADIUS), rel=0.05)
 
 
+def test_test_scans_without_origin_are_oriented_like_the_templates(tmp_path):
+    from scipy.spatial import cKDTree
+
+    from datasets.layouts import orient_like_templates
+
+    root = tmp_path / "airplane"
+    make_real3d(root)
+    s = import_tree(root, tmp_path / "a.h5", views=2, validation_views=1, progress=False)
+    assert s["oriented_by_templates"] == s["n_without_origin"] == 3
+    with ScanCollection(tmp_path / "a.h5") as c:
+        for scan in c.read_many(c.select(split="test")):
+            outward = c.frame.to_file(scan.points) / R3D_RADIUS  # the sphere is centred at the origin
+            assert np.mean(np.einsum("ij,ij->i", scan.normals, outward) > 0) > 0.95
+    # the rule itself: a scan whose normals all point inward is turned outward; one in another pose is left alone
+    tp, tn = sphere(2000, radius=R3D_RADIUS)
+    templates = (cKDTree(tp), tn, 0.5)
+    cap = tp[tp[:, 2] > 4.0]
+    inward = -cap / R3D_RADIUS
+    fixed, on = orient_like_templates(cap, inward, templates)
+    assert on and np.allclose(fixed, -inward)
+    moved, on = orient_like_templates(cap + 100.0, inward, templates)
+    assert not on and np.array_equal(moved, inward)
+
+
 def test_real3d_missing_ground_truth_names_the_file(tmp_path):
     root = tmp_path / "car"
     make_real3d(root)
