@@ -184,6 +184,7 @@ def view_check(part, args, work, per_template=2):
     (precision) and the share of the template's visible points that the view kept (recall). A template point counts
     as visible when the first hit along the ray from the sensor lies within 1 % of the diagonal of it and the
     surface faces the sensor there."""
+    import open3d as o3d
     import trimesh
     from scipy.spatial import cKDTree
 
@@ -195,7 +196,9 @@ def view_check(part, args, work, per_template=2):
         raise SystemExit(f"{part}: no imported collection in {work}; run the benchmark first")
     mesh = load_part(PARTS[part])
     diag = float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
-    caster = trimesh.ray.ray_triangle.RayMeshIntersector(mesh)
+    scene = o3d.t.geometry.RaycastingScene()  # (trimesh's pure-numpy caster needs tens of GB on fandisk)
+    scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
+                        o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
     rows = []
     with ScanCollection(pdir / "data.h5") as c:
         frame = c.frame
@@ -210,10 +213,8 @@ def view_check(part, args, work, per_template=2):
                 assert d_view.max() < 1e-3 * diag, "a view point is not a template point"
                 dirs = template - origin
                 dist = np.linalg.norm(dirs, axis=1)
-                loc, ray, _ = caster.intersects_location(np.repeat(origin[None], len(template), 0),
-                                                         dirs / dist[:, None], multiple_hits=False)
-                first = np.full(len(template), np.inf)
-                first[ray] = np.linalg.norm(loc - origin, axis=1)
+                rays = np.hstack([np.repeat(origin[None], len(template), 0), dirs / dist[:, None]])
+                first = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy()
                 visible = (first >= dist - 0.01 * diag) & (np.einsum("ij,ij->i", normals, origin - template) > 0)
                 rows.append((visible[kept].mean(), np.isin(np.flatnonzero(visible), kept).mean(), len(kept),
                              int(visible.sum())))
