@@ -8,11 +8,22 @@ import sys
 def _cmd_import(args):
     from .importer import import_tree
 
+    # options of the public layouts (datasets.layouts), passed only when given: a 'tree' import refuses them
+    public = {k: v for k, v in (("views", args.views), ("validation_views", args.validation_views),
+                                ("keep_plane", args.keep_plane or None), ("max_points", args.max_points))
+              if v is not None}
     s = import_tree(args.root, args.out, voxel=args.voxel, n_points=args.points, seed=args.seed,
-                    overwrite=args.overwrite, drop_strays=args.drop_strays)
+                    overwrite=args.overwrite, drop_strays=args.drop_strays, layout=args.layout, **public)
     print(f"wrote {s['out']}: {s['n_scans']} scans, points per scan min {s['points_min']} / median "
-          f"{s['points_median']:g} / max {s['points_max']}, {s['n_dropped']} non-finite points dropped, "
+          f"{s['points_median']:g} / max {s['points_max']}, {s.get('n_dropped', 0)} non-finite points dropped, "
           f"{s['n_stray']} stray points {'removed' if s['strays_dropped'] else 'found (kept; see info)'}")
+    if "layout" in s:
+        how = "from the training clouds' spacing" if s["voxel_auto"] else "given"
+        print(f"  layout {s['layout']} ({s['units']}); voxel "
+              + (f"{s['voxel']:.4g} {s['units']} ({how})" if s["voxel"] else "none (no downsampling)"))
+        if s["n_without_origin"]:
+            print(f"  normals of {s['oriented_by_templates']} of the {s['n_without_origin']} test scans without a "
+                  f"sensor origin oriented like the templates (the others lie off them: another pose)")
     for (split, label, defect), n in s["groups"].items():
         print(f"  {split:<11}{label:<11}{defect or '-':<16}{n:>6}")
     print(f"  frame: {json.dumps(s['frame'])}")
@@ -53,6 +64,18 @@ def build_parser():
     p.add_argument("--drop-strays", action="store_true",
                    help="remove stray points (isolated returns off the surface) from the scans; by default they are "
                         "kept, counted (see info) and only left out of the frame's fit")
+    p.add_argument("--layout", default="auto",
+                   choices=("auto", "tree", "real3d-ad", "anomaly-shapenet", "mvtec3d"),
+                   help="folder layout: a public benchmark's class folder (docs/public_layouts.md), 'tree' for "
+                        "this toolkit's own, or 'auto' to detect it (default)")
+    p.add_argument("--views", type=int, metavar="N",
+                   help="real3d-ad / anomaly-shapenet: partial training views rendered per template (default 16)")
+    p.add_argument("--validation-views", type=int, metavar="N",
+                   help="real3d-ad / anomaly-shapenet: held-back views per template for calibration (default 4)")
+    p.add_argument("--keep-plane", action="store_true", help="mvtec3d: keep the table plane (default: removed)")
+    p.add_argument("--max-points", type=int, metavar="N",
+                   help="public layouts without --voxel/--points: voxel size from the data's spacing so a scan keeps "
+                        "about N points (default 20000; 0: no downsampling)")
     p.set_defaults(func=_cmd_import)
 
     p = sub.add_parser("export", help="collection -> PLY files in the same tree layout")

@@ -1,4 +1,4 @@
-"""Reading scanner point-cloud files (PLY, PCD, XYZ/PTS/TXT, NPY, NPZ) and writing binary PLY."""
+"""Reading scanner point-cloud files (PLY, PCD, XYZ/PTS/TXT, NPY, NPZ; organised TIFF point maps) and writing PLY."""
 import logging
 import os
 import tempfile
@@ -135,6 +135,40 @@ def _read_numpy(path, suffix):
     if normals is not None and normals.shape != points.shape:
         raise ValueError(f"'normals' has shape {normals.shape}, expected {points.shape} like '{key}'")
     return points, normals
+
+
+def read_organized_cloud(path):
+    """An organised point cloud stored as an H x W x 3 float TIFF (MVTec 3D-AD's ``xyz/NNN.tiff``), read with tifffile.
+
+    Parameters
+    ----------
+    path : str or Path
+
+    Returns
+    -------
+    grid : (H, W, 3) float64 array
+        One point per pixel, in the file's units (metres for MVTec 3D-AD); NaN where the sensor returned no point:
+        the pixel holds (0, 0, 0) or a non-finite value. (The MVTec 3D-AD baselines drop a pixel with ANY zero
+        coordinate, ``np.all(pc != 0, axis=1)``; a real point can have x = 0 exactly, so only all three count here.)
+
+    Raises
+    ------
+    ValueError
+        Not a readable TIFF, or not H x W x 3; the message names the file.
+    """
+    import tifffile
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    try:
+        grid = np.asarray(tifffile.imread(path), dtype=np.float64)
+    except Exception as e:  # tifffile raises many types for corrupt or foreign files
+        raise ValueError(f"{path}: cannot read as a TIFF point map ({type(e).__name__}: {e})") from None
+    if grid.ndim != 3 or grid.shape[2] != 3:
+        raise ValueError(f"{path}: expected an H x W x 3 organised point cloud, got an array of shape {grid.shape}")
+    grid[~np.all(np.isfinite(grid), axis=2) | np.all(grid == 0, axis=2)] = np.nan
+    return grid
 
 
 def write_cloud(path, points, normals=None, colors=None):

@@ -104,14 +104,20 @@ def find_sources(root, exclude=None):
                                           defect, gt if gt.is_file() else None, all_good))
     if not sources:
         raise ValueError(f"{root}: no point-cloud files found (looked for {', '.join(CLOUD_SUFFIXES)} "
-                         f"in {'train/ validation/ test/' if split_dirs else 'the folder itself'}; MVTec-3D-AD .tiff point "
-                         f"maps must be converted to one of these first)")
+                         f"in {'train/ validation/ test/' if split_dirs else 'the folder itself'}; nor is it a class "
+                         f"folder of a known layout: {', '.join(_public_layouts())})")
     seen = {}
     for s in sources:
         if s.name in seen:
             raise ValueError(f"{s.path}: same scan name {s.name!r} as {seen[s.name]} (one cloud per file stem)")
         seen[s.name] = s.path
     return sources
+
+
+def _public_layouts():
+    from .layouts import LAYOUT_SIGNS
+
+    return [f"{name} ({sign})" for name, sign in LAYOUT_SIGNS.items()]
 
 
 # ---- per-file processing ---------------------------------------------------------------------------------------------
@@ -336,8 +342,12 @@ def load_source(src, voxel=None, n_points=None, seed=0):
 
 
 # ---- whole folders ---------------------------------------------------------------------------------------------------
-def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, progress=None, drop_strays=False):
+def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, progress=None, drop_strays=False,
+                layout="auto", **public_options):
     """Import a tree or flat folder of scanner files into a new collection at ``out``.
+
+    A class folder of a public benchmark (Real3D-AD, Anomaly-ShapeNet, MVTec 3D-AD) is recognised (``layout='auto'``)
+    or named (``layout``) and read by :mod:`datasets.layouts` as its own loaders read it; ``public_options`` go there.
 
     The frame is fitted to the bounding box of all training points (of all points when there is no train split)
     and applied to every scan; stray points (:func:`datasets.outliers.stray_points`, found per scan after
@@ -360,6 +370,8 @@ def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, p
         tqdm bar over files; None shows it only on a terminal.
     drop_strays : bool
         Remove the stray points from the scans (default: keep them; they are only counted).
+    layout : {'auto', 'tree', 'real3d-ad', 'anomaly-shapenet', 'mvtec3d'}
+        'tree': this module's own layout (above); 'auto': detected from the folder.
 
     Returns
     -------
@@ -369,7 +381,7 @@ def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, p
     """
     from tqdm import tqdm
 
-    from .collection import ScanCollection
+    from .layouts import import_public, resolve_layout
 
     root, out = Path(root), Path(out)
     if voxel is not None and n_points is not None:
@@ -382,34 +394,48 @@ def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, p
         raise FileExistsError(f"{out}: already exists (use --overwrite to replace it)")
     if not out.parent.is_dir():  # say so now, not after reading every file
         raise FileNotFoundError(f"{out.parent}: output folder does not exist")
+    layout = resolve_layout(root, layout)
+    if layout != "tree":
+        return import_public(root, out, layout, voxel=voxel, n_points=n_points, seed=seed, overwrite=overwrite,
+                             progress=progress, **public_options)
+    if public_options:
+        raise ValueError(f"{root}: options {sorted(public_options)} apply to the public layouts only, not 'tree'")
     sources = find_sources(root, exclude=out)
-    scans, strays, n_dropped = [], [], 0
+    scans, n_dropped = [], 0
     for src in tqdm(sources, desc="import", unit="file", disable=None if progress is None else not progress):
         scan, dropped = load_source(src, voxel=voxel, n_points=n_points, seed=seed)
-        stray = stray_points(scan.points)
-        if drop_strays and stray.any():
-            scan = _without(scan, stray)
         scans.append(scan)
-        strays.append(stray)
         n_dropped += dropped
-    fit_on = [i for i, s in enumerate(scans) if s.split == "train"] or range(len(scans))
-    # fitted on the points that survive stray detection: one return 10 cm off the part would otherwise set the box
-    frame = Frame.fit(np.concatenate([scans[i].points if drop_strays else scans[i].points[~strays[i]]
-                                      for i in fit_on]))
     provenance = {"source": "import", "root": str(root.resolve()), "files": len(sources), "voxel": voxel,
-                  "points": n_points, "seed": seed, "dropped_nonfinite": n_dropped,
-                  "frame_fitted_on": "train" if isinstance(fit_on, list) else "all (no train split)",
-                  "stray_points": _stray_report(scans, [int(m.sum()) for m in strays], drop_strays)}
-    ScanCollection.create(out, (frame.apply(s) for s in scans), frame=frame, provenance=provenance,
-                          overwrite=overwrite)
-    counts = np.array([len(s) for s in scans])
-    summary = {"out": str(out), "n_scans": len(scans), "n_dropped": n_dropped,
-               "n_stray": int(sum(m.sum() for m in strays)),
-               "strays_dropped": drop_strays, "frame": frame.as_dict(),
-               "points_min": int(counts.min()), "points_median": float(np.median(counts)),
-               "points_max": int(counts.max()), "groups": _group_counts((s.split, s.label, s.defect) for s in scans)}
+                  "points": n_points, "seed": seed, "dropped_nonfinite": n_dropped}
+    summary = write_scans(scans, out, provenance, overwrite, drop_strays=drop_strays)
+    summary["n_dropped"] = n_dropped
     log.info("imported %d scans from %s into %s", len(scans), root, out)
     return summary
+
+
+def write_scans(scans, out, provenance, overwrite=False, drop_strays=False):
+    """Count each scan's stray points (:func:`datasets.outliers.stray_points`; removed with ``drop_strays``), fit
+    the collection frame to the training points that are not stray (all scans' when there is no train split: one
+    return 10 cm off the part would otherwise set the box), move the scans (file units) into it and write the
+    collection atomically. Returns the summary dict of :func:`import_tree` (without ``n_dropped``)."""
+    from .collection import ScanCollection
+
+    strays = [stray_points(s.points) for s in scans]
+    if drop_strays:
+        scans = [_without(s, m) if m.any() else s for s, m in zip(scans, strays)]
+    fit_on = [i for i, s in enumerate(scans) if s.split == "train"] or list(range(len(scans)))
+    frame = Frame.fit(np.concatenate([scans[i].points if drop_strays else scans[i].points[~strays[i]]
+                                      for i in fit_on]))
+    counts = [int(m.sum()) for m in strays]
+    provenance = dict(provenance, frame_fitted_on="train" if any(s.split == "train" for s in scans)
+                      else "all (no train split)", stray_points=_stray_report(scans, counts, drop_strays))
+    ScanCollection.create(out, (frame.apply(s) for s in scans), frame=frame, provenance=provenance,
+                          overwrite=overwrite)
+    sizes = np.array([len(s) for s in scans])
+    return {"out": str(out), "n_scans": len(scans), "n_stray": int(sum(counts)), "strays_dropped": drop_strays,
+            "frame": frame.as_dict(), "points_min": int(sizes.min()), "points_median": float(np.median(sizes)),
+            "points_max": int(sizes.max()), "groups": _group_counts((s.split, s.label, s.defect) for s in scans)}
 
 
 def _without(scan, mask):
