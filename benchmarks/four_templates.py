@@ -34,6 +34,8 @@ sys.path.insert(0, str(REPO))
 
 import numpy as np
 
+from baselines import nn_baseline
+
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
 PARTS = {"builtin": "builtin", "fandisk": str(SHARED / "fandisk.obj")}
 
@@ -78,19 +80,6 @@ def run(cmd, log):
         f.flush()
         subprocess.run([str(c) for c in cmd], check=True, stdout=f, stderr=subprocess.STDOUT, cwd=REPO)
     return time.perf_counter() - t0
-
-
-def nn_baseline(train_points, scans, top=5.0):
-    """inspect_fandisk.py's baseline: per-point distance to the nearest training point; scan = mean of the top 5 %."""
-    from scipy.spatial import cKDTree
-
-    tree = cKDTree(train_points)
-    out = []
-    for s in scans:
-        d = tree.query(s.points, k=1, workers=2)[0]
-        k = max(1, int(np.ceil(top / 100 * len(d))))
-        out.append((float(np.sort(d)[-k:].mean()), d))
-    return out
 
 
 def per_defect(scans, scan_scores, point_scores):

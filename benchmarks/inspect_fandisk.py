@@ -27,6 +27,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np
 
+from baselines import nn_baseline
+
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
 AGGREGATES = ("mean", "top1", "top2", "top5", "top10", "q99", "max")
 POINT_KINDS = ("distance", "local", "residual", "nll", "absmean")
@@ -91,18 +93,6 @@ def _train(data, args, work, key):
                       epochs=args.epochs, quiet=False)
     print(f"trained {model} in {time.perf_counter() - t0:.0f} s ({'train_latent.py' if how == 'cli' else 'API'})")
     return model
-
-
-def _nn_baseline(train_points, scans, top=5.0):
-    from scipy.spatial import cKDTree
-
-    tree = cKDTree(train_points)
-    out = []
-    for s in scans:
-        d = tree.query(s.points, k=1, workers=2)[0]
-        k = max(1, int(np.ceil(top / 100 * len(d))))
-        out.append((float(np.sort(d)[-k:].mean()), d))
-    return out
 
 
 def _metrics(scores, labels, defects, cal_scores, alpha, good_test):
@@ -256,9 +246,9 @@ def main(argv=None):
             cs = np.array([aggregate(v, agg) for v in cal_pts])
             rows.append((f"{kind}/{agg}", _metrics(s, labels, defects, cs, args.alpha, good_test), point_auc))
     t0 = time.perf_counter()
-    nn_test = _nn_baseline(train_points, test_scans)
+    nn_test = nn_baseline(train_points, test_scans)
     nn_sec = (time.perf_counter() - t0) / len(test_scans)
-    nn_cal = _nn_baseline(train_points, cal_scans)
+    nn_cal = nn_baseline(train_points, cal_scans)
     nn_point_auc = roc_auc_score(pl, np.concatenate([d for _, d in nn_test]))
     nn = _metrics(np.array([s for s, _ in nn_test]), labels, defects, np.array([s for s, _ in nn_cal]), args.alpha,
                   good_test)

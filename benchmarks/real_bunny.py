@@ -350,7 +350,7 @@ def run(args):
 
     from datasets import ScanCollection
     from inspection.model_io import load_model
-    from inspect_fandisk import _nn_baseline
+    from baselines import nn_baseline
 
     work = Path(args.work)
     tree, data = work / "tree", work / "bunny.h5"
@@ -382,7 +382,7 @@ def run(args):
         train = [c[i] for i in c.select(split="train") if c.names[i] not in held]
         test = [c[c.index_of(n)] for n in names]
     t0 = time.perf_counter()
-    nn = np.array([s for s, _ in _nn_baseline(np.concatenate([s.points for s in train]), test)])
+    nn = np.array([s for s, _ in nn_baseline(np.concatenate([s.points for s in train]), test)])
     t_nn = (time.perf_counter() - t0) / len(test)
 
     def aurocs(s):

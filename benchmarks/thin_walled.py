@@ -43,6 +43,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np
 
+from baselines import nn_baseline
+
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
 PARTS = ("enclosure", "cup", "fandisk")
 KINDS = ("dent", "bump", "missing", "foreign")
@@ -147,18 +149,6 @@ class CachedProjections:
             self.dirty = False
 
 
-def _nn_baseline(train_points, scans, top=5.0):
-    from scipy.spatial import cKDTree
-
-    tree = cKDTree(train_points)
-    out = []
-    for s in scans:
-        d = tree.query(s.points, k=1)[0]
-        k = max(1, int(np.ceil(top / 100 * len(d))))
-        out.append(float(np.sort(d)[-k:].mean()))
-    return np.array(out)
-
-
 def _metrics(scores, cal, y, defects, alpha):
     from sklearn.metrics import roc_auc_score
 
@@ -250,7 +240,7 @@ def run_part(part, args, work):
     both_test = comb.score(test_m)
     rows.append(("points+rays (default)", both_test, comb.calibration_scores()))
     train_points = np.concatenate([s.points for s in ref_scans])
-    nn_test, nn_cal = _nn_baseline(train_points, test_scans), _nn_baseline(train_points, cal_scans)
+    nn_test, nn_cal = nn_baseline(train_points, test_scans), nn_baseline(train_points, cal_scans)
     rows.append(("NN baseline top5%", nn_test, nn_cal))
     # every scan's components, to try other combinations without scoring again
     dump = [{"name": s.name, "set": which, "label": s.label, "defect": s.defect, "points": r["points"],

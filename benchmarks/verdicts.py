@@ -31,6 +31,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np
 
+from baselines import nn_baseline
+
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
 PART_SOURCES = {"fandisk": str(SHARED / "fandisk.obj"), "bunny": str(SHARED / "stanford-bunny.obj")}
 
@@ -77,21 +79,6 @@ def train(data, args):
     if train_latent.main(argv) not in (0, None):
         raise SystemExit(f"training {data} failed")
     return model, time.perf_counter() - t0
-
-
-def nn_scores(train_points, scans, top=5.0):
-    """Nearest-neighbour baseline: per scan, the mean of the worst ``top`` % of its points' distances to the nearest
-    training point. Returns ((n,) scan scores, list of (m_i,) point distances)."""
-    from scipy.spatial import cKDTree
-
-    tree = cKDTree(train_points)
-    scores, maps = [], []
-    for s in scans:
-        d = tree.query(s.points, k=1, workers=2)[0]
-        k = max(1, int(np.ceil(top / 100 * len(d))))
-        scores.append(float(np.sort(d)[-k:].mean()))
-        maps.append(d)
-    return np.array(scores), maps
 
 
 def rates(scores, labels, defects, threshold):
@@ -143,10 +130,10 @@ def baseline(data, model, alpha):
         test = c.read_many(c.select(split="test"))
     train_points = np.concatenate([s.points for s in train])
     t0 = time.perf_counter()
-    test_scores, _ = nn_scores(train_points, test)
+    test_scores = np.array([v for v, _ in nn_baseline(train_points, test)])
     seconds = (time.perf_counter() - t0) / len(test)
-    cal_scores, _ = nn_scores(train_points, cal)
-    crossed = [nn_scores(np.concatenate([t.points for j, t in enumerate(train) if j != i]), [s])[0][0]
+    cal_scores = np.array([v for v, _ in nn_baseline(train_points, cal)])
+    crossed = [nn_baseline(np.concatenate([t.points for j, t in enumerate(train) if j != i]), [s])[0][0]
                for i, s in enumerate(train)]
     decision = fit_threshold(np.r_[cal_scores, crossed], alpha,
                              ["held-back"] * len(cal_scores) + ["cross-fitted"] * len(crossed))
