@@ -1,6 +1,6 @@
 """Command line of the inspection package: calibrate a model on good scans, score scans, run the demo.
 
-    python -m inspection calibrate --model model.pt --data good.h5 [--alpha 0.01] [--aggregate top1] [--rays]
+    python -m inspection calibrate --model model.pt --data good.h5 [--alpha 0.02] [--aggregate top1] [--rays]
     python -m inspection score --model model.pt --data tree.h5 --out results/ [--split test] [--align]
     python -m inspection demo --out demo_output
 
@@ -27,7 +27,7 @@ def _parser():
     c.add_argument("--split", default=None, help="use this split's good scans (default: the model's held-back "
                                                  "scans when DATA is its training collection, else every good scan "
                                                  "the model did not train on)")
-    c.add_argument("--alpha", type=float, default=0.01,
+    c.add_argument("--alpha", type=float, default=0.02,
                    help="false-alarm rate stored with it (default %(default)s; with fewer than 1/alpha - 1 good "
                         "scans the threshold is extrapolated from a log-normal fit of their scores, and says so)")
     c.add_argument("--aggregate", default=None, help="per-scan aggregate: top1 (default), mean, max, median, "

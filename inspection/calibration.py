@@ -5,7 +5,7 @@ The thresholds drawn from those scores are :mod:`inspection.threshold`'s.
 from dataclasses import asdict, dataclass, field
 from typing import List, Optional
 
-from .threshold import fit_threshold
+from .threshold import DEFAULT_ALPHA, fit_threshold
 
 CALIBRATION_KEY = "calibration"
 CALIBRATION_VERSION = 1
@@ -41,7 +41,7 @@ class Calibration:
     aggregate: str
     point_score: str
     noise: Optional[float] = None
-    alpha: float = 0.01
+    alpha: float = DEFAULT_ALPHA
     source: str = ""
     fingerprint: str = ""
     version: int = CALIBRATION_VERSION

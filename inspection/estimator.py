@@ -5,7 +5,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .calibration import Calibration
-from .threshold import check_alpha, fit_threshold
+from .threshold import DEFAULT_ALPHA, check_alpha, fit_threshold
 from .scores import (POINT_SCORES, REFERENCE_QUANTITY, LocalReference, aggregate as aggregate_scores, check_aggregate,
                      field_quantity, grazing_factor, point_scores)
 
@@ -162,7 +162,7 @@ class Inspector(BaseEstimator):
         The standardization of the components on the calibration scans (``rays=True`` only).
     """
 
-    def __init__(self, model, alpha=0.01, aggregate=DEFAULT_AGGREGATE, point_score=DEFAULT_POINT_SCORE, noise=None,
+    def __init__(self, model, alpha=DEFAULT_ALPHA, aggregate=DEFAULT_AGGREGATE, point_score=DEFAULT_POINT_SCORE, noise=None,
                  projection=None, rays=False, ray_options=None):
         self.model = model
         self.projection = projection

@@ -6,10 +6,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .threshold import DEFAULT_ALPHA
+
 log = logging.getLogger(__name__)
 
 COLLECTION_SUFFIXES = (".h5", ".hdf5")
-DEFAULT_ALPHA = 0.01  # the false-alarm rate calibrate stores unless told otherwise
 RESULT_FILES = ("scores.csv", "summary.json", "roc.png", "scores.png")
 
 

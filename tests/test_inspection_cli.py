@@ -126,11 +126,11 @@ def test_score_calibrates_an_uncalibrated_model_on_its_held_back_scans(workdir, 
     said = capsys.readouterr().out
     assert "is not calibrated: calibrating on its 3 held-back good scans" in said
     cal = read_calibration(model)  # stored, as `calibrate` would have
-    assert sorted(cal.names) == [f"train/good/{i:03d}" for i in range(6)] and cal.alpha == 0.01
+    assert sorted(cal.names) == [f"train/good/{i:03d}" for i in range(6)] and cal.alpha == 0.02
     summary = json.loads((out / "summary.json").read_text())
     decision = summary["decision"]
-    assert decision["n"] == 6 and decision["basis"] == "log-normal" and decision["alpha"] == 0.01
-    assert summary["threshold"] == pytest.approx(decision["value"]) and "99" in decision["note"]
+    assert decision["n"] == 6 and decision["basis"] == "log-normal" and decision["alpha"] == 0.02
+    assert summary["threshold"] == pytest.approx(decision["value"]) and "49" in decision["note"]
     assert "threshold basis: log-normal on 6 good scans" in said and "note: 3 held-back scans are fewer" in said
 
 
