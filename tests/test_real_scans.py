@@ -14,6 +14,11 @@ from datasets.importer import estimate_normals, import_tree
 from datasets.outliers import stray_points
 
 REALSCANS = Path(__file__).resolve().parents[2] / "shared" / "realscans" / "bunny"
+# these two checks need real scanner data, which the repository does not ship: the project's shared folder beside
+# the checkout has it (developers' machines and CI); the same properties are tested on synthetic range views above
+NEEDS_REAL_SCANS = pytest.mark.skipif(
+    not REALSCANS.is_dir(), reason=f"needs the real Stanford range scans (shared data, not in the repository) at "
+                                   f"{REALSCANS}; the synthetic-view tests in this file cover the same rules")
 RADIUS = 0.05  # metres
 SENSOR = np.array([0.0, 0.02, 0.3])
 
@@ -141,7 +146,7 @@ def test_normals_of_a_noisy_view_face_its_sensor():
 
 
 # ---- the real Stanford range scans (skipped without ../shared/realscans) -------------------------------------------
-@pytest.mark.skipif(not REALSCANS.is_dir(), reason=f"{REALSCANS} not present")
+@NEEDS_REAL_SCANS
 def test_real_view_normals_face_its_sensor_and_few_points_are_stray():
     from scipy.spatial import cKDTree
 
@@ -160,7 +165,7 @@ def test_real_view_normals_face_its_sensor_and_few_points_are_stray():
     assert stray_points(full[keep]).mean() < 0.005
 
 
-@pytest.mark.skipif(not REALSCANS.is_dir(), reason=f"{REALSCANS} not present")
+@NEEDS_REAL_SCANS
 def test_real_view_stray_return_is_found():
     from datasets import read_cloud
 
