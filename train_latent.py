@@ -153,7 +153,7 @@ def run(args):
     resume = None
     if out.exists():
         if args.resume:
-            from autodecoder.latent_model import read_checkpoint
+            from autodecoder.latent.model import read_checkpoint
 
             try:
                 resume = read_checkpoint(out)
@@ -174,7 +174,7 @@ def run(args):
         train, calibration = split_training_scans(collection, args.split, args.calibration_fraction, args.seed)
         seed = args.seed
     device, initialised = _setup_distributed(args.device)
-    from autodecoder.latent_train import train_latent
+    from autodecoder.latent.train import train_latent
 
     overrides = dict(latent_dim=args.latent_dim, width=args.width, depth=args.depth, epochs=args.epochs, lr=args.lr,
                      batch=args.batch, seed=seed, checkpoint_every=args.checkpoint_every)

@@ -26,8 +26,8 @@ def _parser():
 def main(argv=None):
     """Run the command line; returns the exit status (0 success, 2 bad input)."""
     args = _parser().parse_args(argv)
-    from .field import StochasticField
-    from .views import next_best_views
+    from autodecoder.field.stochastic_field import StochasticField
+    from autodecoder.scanning.views import next_best_views
 
     if args.n < 1 or args.starts < 1 or args.steps < 0:
         print("error: --n and --starts must be >= 1 and --steps >= 0", file=sys.stderr)

@@ -7,7 +7,7 @@ Run by hand (CPU; a few minutes with the defaults):
 
 One training step of the covariance Dirichlet loss (forward + backward to all parameters, and to the latent code
 when there is one) is timed for three methods on a batch of 512 points drawn in clusters (64 clusters of 8,
-:func:`autodecoder.sampling.sample_pair_clusters`):
+:func:`autodecoder.field.sampling.sample_pair_clusters`):
 
 (a) ``autograd``: the paper's pair network c(a, b) = (SoftPlus(h(a, b)) + SoftPlus(h(b, a))) / 2
     (:class:`PairCovarianceNet`, a SIREN on [x1, x2]); D c by plain autograd: grad of c w.r.t. a with
@@ -54,9 +54,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from autodecoder.losses import covariance_dirichlet_loss_features, covariance_dirichlet_loss_pairs  # noqa: E402
-from autodecoder.networks import FeatureCovarianceNet, PairCovarianceNet  # noqa: E402
-from autodecoder.sampling import Box, sample_pair_clusters  # noqa: E402
+from autodecoder.field.losses import covariance_dirichlet_loss_features, covariance_dirichlet_loss_pairs  # noqa: E402
+from autodecoder.field.networks import FeatureCovarianceNet, PairCovarianceNet  # noqa: E402
+from autodecoder.field.sampling import Box, sample_pair_clusters  # noqa: E402
 
 
 def int_list(text):

@@ -202,7 +202,7 @@ def main(argv=None):
                                 ("omega0", args.omega0),
                                 ("covariance_every", args.covariance_every)) if v is not None}
     if args.h_factor is not None:
-        from autodecoder.targets import point_spacing
+        from autodecoder.field.targets import point_spacing
 
         extra["lengthscale"] = args.h_factor * point_spacing(points)
     t0 = time.perf_counter()

@@ -29,7 +29,7 @@ def run_one(job):
     mesh = trimesh.load(job["mesh"], force="mesh")
     points, faces = trimesh.sample.sample_surface(mesh, job["points"], seed=0)
     t0 = time.perf_counter()
-    from autodecoder.targets import point_spacing
+    from autodecoder.field.targets import point_spacing
 
     lengthscale = job["h_factor"] * point_spacing(points)
     field = fit_cloud(points, mesh.face_normals[faces], seed=0, quiet=True, width=job["width"], depth=job["depth"],

@@ -65,8 +65,8 @@ def main(argv=None):
     import torch
     import trimesh
 
-    from autodecoder.fit import fit_cloud
-    from autodecoder.latent_train import train_latent
+    from autodecoder.field.fit import fit_cloud
+    from autodecoder.latent.train import train_latent
     from datasets.parts import load_part
     from datasets.synth import synthesise
 

@@ -25,9 +25,9 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
-from autodecoder import fit_cloud
-from autodecoder.targets import point_spacing
-from autodecoder.views import next_best_views
+from autodecoder import fit_cloud, update_field
+from autodecoder.field.targets import point_spacing
+from autodecoder.scanning.views import next_best_views
 from datasets.parts import load_part
 from datasets.scanner import VirtualScanner
 
@@ -177,7 +177,7 @@ def main(argv=None):
                 p, n = scan(pos, scanner.center, k)
             t = time.perf_counter()
             previous = field
-            field = field.update(p, n, steps=args.update_steps, seed=k)
+            field = update_field(field, p, n, steps=args.update_steps, seed=k)
             times.append(time.perf_counter() - t)
             errors.append(surface_error(field, mesh, args.mesh_res))
             print(f"  {strategy} view {k + 1}: chamfer {errors[-1]:.5f} (select {t_select:.1f}s, update {times[-1]:.1f}s)")
@@ -211,7 +211,7 @@ def main(argv=None):
     tune_records = []
     for steps in (10, 25, 50, 100, 150, 300):
         t = time.perf_counter()
-        tuned = prev_field.update(p_last, n_last, steps=steps, seed=args.views)
+        tuned = update_field(prev_field, p_last, n_last, steps=steps, seed=args.views)
         t_tune = time.perf_counter() - t
         tuned_samples = chamfer_samples(tuned.mesh(args.mesh_res), mesh)
         err = 0.5 * float(tuned_samples[0].mean() + tuned_samples[1].mean())

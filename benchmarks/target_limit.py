@@ -41,11 +41,11 @@ from scipy.sparse.linalg import LinearOperator, cg
 from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
-from autodecoder.fit import _cosine_lr
-from autodecoder.frame import Normalization
-from autodecoder.losses import SCREENING_WEIGHT
-from autodecoder.networks import MeanNet
-from autodecoder.targets import CloudTargets, point_spacing
+from autodecoder.field.fit import _cosine_lr
+from autodecoder.field.frame import Normalization
+from autodecoder.field.losses import SCREENING_WEIGHT
+from autodecoder.field.networks import MeanNet
+from autodecoder.field.targets import CloudTargets, point_spacing
 from fandisk import SHARED, chamfer, chamfer_by_edge_distance, open3d_poisson
 
 

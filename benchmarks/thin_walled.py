@@ -303,7 +303,7 @@ def _figure(path, scan, field, evidence, site, frame, mesh):
     import trimesh
     from scipy.special import ndtr
 
-    from autodecoder.free_space import _field_lengthscale
+    from autodecoder.scanning.free_space import _field_lengthscale
 
     center, radius = np.asarray(site["center"]), float(site["radius"])
     center_file = frame.to_file(center)

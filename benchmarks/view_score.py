@@ -26,8 +26,8 @@ from scipy.spatial import cKDTree
 from scipy.stats import spearmanr
 
 from autodecoder import fit_cloud
-from autodecoder.targets import point_spacing
-from autodecoder.views import camera_score, part_sphere
+from autodecoder.field.targets import point_spacing
+from autodecoder.scanning.views import camera_score, part_sphere
 from datasets.scanner import VirtualScanner
 from fandisk import spsr_grid
 from next_view import SHARED, WithoutVariance, fibonacci_sphere  # same folder: the sequential benchmark's camera

@@ -37,7 +37,7 @@ def _parser():
                         "training scans then give the per-location reference, else residual)")
     c.add_argument("--noise", type=float, default=None, help="noise floor (model frame units; default the model's)")
     c.add_argument("--projection", default="default", help="latent projection options as KEY=VALUE,... (fields of "
-                                                           "autodecoder.projection.ProjectionOptions), 'default' "
+                                                           "autodecoder.latent.projection.ProjectionOptions), 'default' "
                                                            "(inspection's: steps=60,starts=2,explore=20,"
                                                            "max_candidates=16) or 'model' (the projector's own)")
     rays = c.add_mutually_exclusive_group()

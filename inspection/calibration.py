@@ -68,7 +68,7 @@ class Calibration:
 
 def read_calibration(path):
     """The :class:`Calibration` stored in a model file, or None when it has none."""
-    from autodecoder.checkpoint_io import load_torch_file
+    from autodecoder.field.checkpoint_io import load_torch_file
 
     ckpt = load_torch_file(path, what="model checkpoint")
     if not isinstance(ckpt, dict):
@@ -83,7 +83,7 @@ def write_calibration(path, calibration):
     The checkpoint is loaded as a dict, gets (or replaces) its ``"calibration"`` entry of plain Python values, and is
     written back; every other entry is untouched, so the model loads as before.
     """
-    from autodecoder.checkpoint_io import atomic_torch_save, load_torch_file
+    from autodecoder.field.checkpoint_io import atomic_torch_save, load_torch_file
 
     ckpt = load_torch_file(path, what="model checkpoint")
     if not isinstance(ckpt, dict):

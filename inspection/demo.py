@@ -38,7 +38,7 @@ def run_demo(out="demo_output", seed=0, quick=False, progress=True, echo=print):
          f"scans are held back for calibration)")
     how = train_model(data, model, calibration_fraction=0.2, seed=seed, quiet=not progress, overwrite=True,
                       epochs=QUICK_EPOCHS if quick else DEMO_EPOCHS)
-    echo(f"      trained with {'train_latent.py' if how == 'cli' else 'autodecoder.latent_train'} -> {model}")
+    echo(f"      trained with {'train_latent.py' if how == 'cli' else 'autodecoder.latent.train'} -> {model}")
     t2 = time.perf_counter()
     echo("[3/4] calibrating with the defaults (the validation scans and the training scans, cross-fitted)")
     insp, info = calibrate(model, data, progress=progress)

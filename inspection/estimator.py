@@ -13,7 +13,7 @@ log = logging.getLogger(__name__)
 
 DEFAULT_AGGREGATE = "top1"
 DEFAULT_POINT_SCORE = "residual"
-# Projection settings for inspection (autodecoder.projection.ProjectionOptions fields): measured on fandisk, the
+# Projection settings for inspection (autodecoder.latent.projection.ProjectionOptions fields): measured on fandisk, the
 # projection loss after 60 steps from the 2 best of 16 candidate starts matches the trainer's defaults (150 steps,
 # 4 of 64 starts) to 3 digits at ~1/10 of the time (see benchmarks/inspect_fandisk.py).
 DEFAULT_PROJECTION = {"steps": 60, "starts": 2, "explore": 20, "max_candidates": 16}

@@ -82,7 +82,7 @@ def load_model(path):
     FileNotFoundError, ValueError
         Naming ``path``: missing, unreadable, or not a model.
     """
-    from autodecoder.checkpoint_io import load_torch_file
+    from autodecoder.field.checkpoint_io import load_torch_file
 
     from .calibration import CALIBRATION_KEY, Calibration
 
@@ -93,7 +93,7 @@ def load_model(path):
     calib = ckpt.get(CALIBRATION_KEY)
     calib = None if calib is None else Calibration.from_dict(calib, source=str(path))
     if ckpt.get("format") == "nsspr-field":
-        from autodecoder.field import StochasticField
+        from autodecoder.field.stochastic_field import StochasticField
 
         model = StochasticField.from_state(ckpt, source=str(path))
         info = ckpt.get(COLLECTION_KEY) or {}
@@ -105,7 +105,7 @@ def load_model(path):
     loader = getattr(autodecoder, "load_model", None)
     if loader is None:
         try:
-            from autodecoder.latent_model import load_model as loader
+            from autodecoder.latent.model import load_model as loader
         except ImportError:
             raise ValueError(f"{path}: not a field file, and this toolkit has no latent model loader") from None
     try:
@@ -136,7 +136,7 @@ def load_model(path):
 def save_reference_field(field_, path, frame=None, fingerprint="", train_names=(), heldback_names=()):
     """Save a fixed field (e.g. ``fit_cloud`` on the union of good training scans) with its collection's frame,
     fingerprint and scan names, so inspection can check data against it and calibrate on held-back scans."""
-    from autodecoder.checkpoint_io import atomic_torch_save
+    from autodecoder.field.checkpoint_io import atomic_torch_save
 
     state = field_.state()
     state[COLLECTION_KEY] = {"frame": None if frame is None else frame.as_dict(), "fingerprint": str(fingerprint),

@@ -2,11 +2,11 @@
 
 Per-point scores read the field at the points a scan returned, so they cannot see material that is missing where
 no point lies: a hole in a thin wall shows only as points on good surfaces seen through it, or as no points at all.
-The sensor's rays can (:mod:`autodecoder.free_space`). Two kinds of ray are tested under the scan's projected field:
+The sensor's rays can (:mod:`autodecoder.scanning.free_space`). Two kinds of ray are tested under the scan's projected field:
 
 * **returned rays**: from the sensor origin o to a subsample of the scan's points (``n_rays``, seeded). Each gets
   P(blocked): the probability that the field puts solid material on the ray, apart from the surface the point lies
-  on (:func:`autodecoder.free_space.blocked_probability`). A point seen through a hole scores ~1.
+  on (:func:`autodecoder.scanning.free_space.blocked_probability`). A point seen through a hole scores ~1.
 * **missing returns**: rays through holes in the scan's image, i.e. directions inside the image that returned
   nothing although returns surround them. Only the points and o are stored, not the sensor's pixel grid, so the
   image is rebuilt: directions from o are mapped to the plane z = 1 of a camera looking along their mean
@@ -15,7 +15,7 @@ The sensor's rays can (:mod:`autodecoder.free_space`). Two kinds of ray are test
   ``gap`` x s from every return are empty; empty regions that do not reach the outside of the convex hull of the
   returns are holes (background around the part's silhouette reaches it). Up to ``n_empty`` hole cells (seeded)
   get P(hit): the probability that the field puts solid material on the ray within its box
-  (:func:`autodecoder.free_space.missing_return_probability`). This assumes one pinhole-like view (all directions
+  (:func:`autodecoder.scanning.free_space.missing_return_probability`). This assumes one pinhole-like view (all directions
   within ~85 degrees of their mean; otherwise this kind is skipped) and a sensor without dropouts: a dark or
   specular patch that returns nothing is a hole to it (the calibration scans, taken with the same sensor, set how
   much of that is normal).
@@ -148,7 +148,7 @@ class RayReference:
         -------
         RayReference
         """
-        from autodecoder.free_space import OWN_DEPTH_FACTOR, _field_lengthscale
+        from autodecoder.scanning.free_space import OWN_DEPTH_FACTOR, _field_lengthscale
 
         evidences, scale = [], None
         for points, origin, field_ in scans_and_fields:
@@ -310,7 +310,7 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
 
     Parameters
     ----------
-    field : StochasticField (or any field :func:`autodecoder.free_space.blocked_probability` takes)
+    field : StochasticField (or any field :func:`autodecoder.scanning.free_space.blocked_probability` takes)
         The scan's field, in the scan's frame.
     points : (m, 3) array
         The scan's points.
@@ -328,17 +328,17 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
         Subsampling (and the Genz estimator's scrambling) seed.
     clearance : float, optional
         Ray samples this close to any of the scan's points are left out (world units; default the field's kernel
-        lengthscale; see :func:`autodecoder.free_space.blocked_probability`).
+        lengthscale; see :func:`autodecoder.scanning.free_space.blocked_probability`).
     own_depth : float, 'auto' or None
         How far before a point its own surface may lie (world units; None: no limit); material farther back on its
-        ray is tested (:func:`autodecoder.free_space.blocked_probability`). 'auto': 3 kernel lengthscales when a
+        ray is tested (:func:`autodecoder.scanning.free_space.blocked_probability`). 'auto': 3 kernel lengthscales when a
         ``reference`` is given, else no limit. Without a reference, the rays of good scans through an open part's
         openings enter the field's "solid" cavity as a hole's do, and testing deep material only adds their noise
         (benchmarks/thin_walled.py, enclosure).
     reference : RayReference, optional
         Rays entering the expected material near where good scans' rays do count as free (surprisal 0, P 0).
     **check_options
-        Passed to :func:`autodecoder.free_space.blocked_probability` (``outside_sigma``, ``step``, ...).
+        Passed to :func:`autodecoder.scanning.free_space.blocked_probability` (``outside_sigma``, ``step``, ...).
 
     Returns
     -------
@@ -346,7 +346,7 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
     """
     from scipy.spatial import cKDTree
 
-    from autodecoder.free_space import blocked_probability, missing_return_probability
+    from autodecoder.scanning.free_space import blocked_probability, missing_return_probability
 
     points = np.asarray(points, dtype=np.float64)
     origin = np.asarray(origin, dtype=np.float64).reshape(3)

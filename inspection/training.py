@@ -26,7 +26,7 @@ def train_model(collection, out, calibration_fraction=0.2, seed=0, quiet=True, e
     overwrite : bool
         Replace an existing ``out``.
     **options
-        ``autodecoder.latent_train.LatentOptions`` fields (Python API only; the command line gets --epochs/--seed).
+        ``autodecoder.latent.train.LatentOptions`` fields (Python API only; the command line gets --epochs/--seed).
 
     Returns
     -------
@@ -47,7 +47,7 @@ def train_model(collection, out, calibration_fraction=0.2, seed=0, quiet=True, e
         if rc not in (0, None):
             raise RuntimeError(f"train_latent.py exited with status {rc}")
         return "cli"
-    from autodecoder.latent_train import train_latent
+    from autodecoder.latent.train import train_latent
     from datasets import ScanCollection
 
     with ScanCollection(collection) as c:

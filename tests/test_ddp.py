@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from autodecoder.latent_model import load_model
+from autodecoder.latent.model import load_model
 from datasets.collection import ScanCollection
 from datasets.scan import Scan
 

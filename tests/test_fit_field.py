@@ -147,7 +147,7 @@ def test_bad_input_gives_one_clear_error(points, normals, message):
 
 
 def test_pair_subset_estimates_the_sum_over_all_ordered_pairs():
-    from autodecoder.fit import _pair_subset
+    from autodecoder.field.fit import _pair_subset
 
     m, cluster_size = 24, 4
     rng = np.random.default_rng(7)
@@ -193,7 +193,7 @@ def test_mean_gradient_matches_finite_differences(sphere_field):
 def test_even_pool_size_uses_every_pool_to_the_end(steps):
     """The mean-sample pools of a run are all served to the end: as few pools as the size cap allows, none with more
     minibatches than the run still needs (counted by serving a MeanPool for `steps` steps)."""
-    from autodecoder.fit import MeanPool, even_pool_size
+    from autodecoder.field.fit import MeanPool, even_pool_size
 
     size, passes = 32, 4
     refresh = even_pool_size(steps, size, passes)
@@ -263,7 +263,7 @@ def test_bad_fit_options_give_one_clear_error(override, message):
 def test_mean_averager_matches_a_hand_computed_moving_average():
     """MeanAverager against the closed form: from step `start`, a0 = w_start, a_k = d_k a_{k-1} + (1 - d_k) w,
     d_k = min(decay, (1 + k) / (10 + k)) when k steps have been averaged already; earlier steps ignored."""
-    from autodecoder.fit import MeanAverager
+    from autodecoder.field.fit import MeanAverager
 
     net = torch.nn.Linear(2, 1, bias=False)
     weights = [torch.tensor([[float(i), -2.0 * i]]) for i in range(12)]
@@ -282,7 +282,7 @@ def test_mean_averager_matches_a_hand_computed_moving_average():
 
 
 def test_average_decay_zero_keeps_the_last_iterate():
-    from autodecoder.fit import MeanAverager
+    from autodecoder.field.fit import MeanAverager
 
     net = torch.nn.Linear(2, 1)
     before = [p.clone() for p in net.parameters()]
@@ -297,7 +297,7 @@ def test_average_decay_zero_keeps_the_last_iterate():
 def test_fit_ends_on_the_averaged_mean_net(monkeypatch):
     """With averaging on, fit_cloud's mean net is MeanAverager's average (same seed, same run, decay 0 vs 0.9 give
     different nets; the averaged one equals the average recorded during the run)."""
-    from autodecoder import fit as fit_module
+    from autodecoder.field import fit as fit_module
 
     recorded = {}
     original_apply = fit_module.MeanAverager.apply
@@ -322,7 +322,7 @@ def test_outside_value_is_the_far_field_of_a_closed_surface(sphere_field):
     the value the paper's loss gives g outside a closed surface (box boundary) and -value inside (centre)."""
     from scipy.integrate import quad
 
-    from autodecoder.targets import CloudTargets
+    from autodecoder.field.targets import CloudTargets
 
     points, normals = sphere_cloud(1500)
     model_points = sphere_field.normalization.to_model(points)
@@ -343,8 +343,8 @@ def test_outside_value_is_the_far_field_of_a_closed_surface(sphere_field):
 
 
 def test_boundary_batch_lies_on_the_box_faces_in_proportion_to_their_area():
-    from autodecoder.sampling import Box
-    from autodecoder.targets import CloudTargets
+    from autodecoder.field.sampling import Box
+    from autodecoder.field.targets import CloudTargets
 
     points, normals = sphere_cloud(300)
     box = Box(np.array([-1.0, -1.0, -1.0]), np.array([3.0, 1.0, 0.0]))  # extents 4, 2, 1
@@ -362,7 +362,7 @@ def test_outside_term_closes_an_open_sheet():
     """A hemisphere (an open sheet, one scan's worth): with the paper's loss g on the box's boundary falls well
     short of the outside value w of a closed surface (measured: median 0.5 w, half the boundary below w / 2);
     with outside_weight the boundary is outside (g ~ w, measured: all of it within 0.8 w .. 1.05 w)."""
-    from autodecoder.targets import CloudTargets
+    from autodecoder.field.targets import CloudTargets
 
     points, normals = sphere_cloud(1500)
     keep = normals[:, 2] > 0

@@ -36,9 +36,9 @@ def workdir(tmp_path_factory):
     """A tiny collection (6 train, 3 good + 2 dented test scans) and an (untrained, tiny) field model file."""
     import torch
 
-    from autodecoder.field import StochasticField
-    from autodecoder.frame import Normalization
-    from autodecoder.networks import build_networks
+    from autodecoder.field.stochastic_field import StochasticField
+    from autodecoder.field.frame import Normalization
+    from autodecoder.field.networks import build_networks
     from inspection.model_io import save_reference_field
 
     root = tmp_path_factory.mktemp("insp")
@@ -76,7 +76,7 @@ def test_calibrate_then_score(workdir, tmp_path, capsys):
     assert held == [f"train/good/{i:03d}" for i in range(3, 6)]  # the held-back scans
     assert crossed == [f"train/good/{i:03d}" for i in range(3)]  # and the training scans, cross-fitted
     assert len(cal.scores) == 6 and cal.aggregate == "top1" and cal.alpha == 0.3
-    from autodecoder.field import StochasticField
+    from autodecoder.field.stochastic_field import StochasticField
 
     StochasticField.load(model)  # the model file still loads as before
 
@@ -196,7 +196,7 @@ def test_scanner_file_in_model_frame(workdir, tmp_path, capsys):
 def test_latent_model_end_to_end(tmp_path, capsys):
     """A tiny latent model trained on half-spheres: calibrated on its held-back scans, it scores a dented one worse
     than good ones, and the score command writes its outputs."""
-    pytest.importorskip("autodecoder.latent_train")
+    pytest.importorskip("autodecoder.latent.train")
     from inspection.training import train_model
 
     scans = [_scan(f"train/good/{i:03d}", "train", "good", seed=i, n=200) for i in range(6)]

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from autodecoder.latent_model import LATENT_FORMAT, load_model, read_checkpoint
-from autodecoder.latent_train import log_paths, train_latent
+from autodecoder.latent.model import LATENT_FORMAT, load_model, read_checkpoint
+from autodecoder.latent.train import log_paths, train_latent
 from datasets.scan import Scan
 
 # tiny nets and batches: the whole file runs in well under a minute on 2 cores
@@ -105,7 +105,7 @@ def test_projection_without_normals_and_batched_projection(trained):
 
 def test_projection_can_leave_a_training_code_out_of_its_starts(trained):
     """Cross-fitted calibration projects a training scan without its own code among the candidate starts."""
-    from autodecoder.projection import _candidates
+    from autodecoder.latent.projection import _candidates
 
     model, _ = trained
     _, index = _candidates(model, 64)
@@ -243,7 +243,7 @@ def test_cli_holds_back_a_calibration_fraction_without_validation_split(tmp_path
 
 
 def test_trimmed_mean_matches_numpy_and_trim_is_validated(trained):
-    from autodecoder.projection import _trimmed_mean
+    from autodecoder.latent.projection import _trimmed_mean
 
     values = torch.rand(3, 50, generator=torch.Generator().manual_seed(0))
     expected = np.sort(values.numpy(), axis=1)[:, :40].mean(1)
@@ -270,8 +270,8 @@ def test_trimmed_projection_is_not_pulled_by_a_defect(trained):
 
 
 def test_target_pools_are_a_function_of_scan_and_epoch_and_reuse_samples():
-    from autodecoder.scan_pools import ScanTargetPool
-    from autodecoder.targets import CloudTargets
+    from autodecoder.latent.pools import ScanTargetPool
+    from autodecoder.field.targets import CloudTargets
 
     scan = sphere_scan("a", 0.3, n=300)
     targets = CloudTargets(scan.points, scan.normals, 0.05)
@@ -293,7 +293,7 @@ def test_target_pools_are_a_function_of_scan_and_epoch_and_reuse_samples():
 
 
 def test_default_epochs_aim_at_a_step_budget():
-    from autodecoder.latent_train import DEFAULT_STEPS, MAX_DEFAULT_EPOCHS, MIN_DEFAULT_EPOCHS, default_epochs
+    from autodecoder.latent.train import DEFAULT_STEPS, MAX_DEFAULT_EPOCHS, MIN_DEFAULT_EPOCHS, default_epochs
 
     assert default_epochs(26, 8) == MAX_DEFAULT_EPOCHS  # 4 steps an epoch: 600 epochs (capped) = 2,400 steps
     assert default_epochs(100, 8) == math.ceil(DEFAULT_STEPS / 13)  # 13 steps an epoch

@@ -8,12 +8,12 @@ import pytest
 import torch
 from scipy import integrate
 
-from autodecoder.gp_targets import GPPosterior
-from autodecoder.kernel import bspline3, kernel, support_radius
-from autodecoder.losses import (SCREENING_WEIGHT, covariance_dirichlet_loss_features,
+from autodecoder.field.gp_targets import GPPosterior
+from autodecoder.field.kernel import bspline3, kernel, support_radius
+from autodecoder.field.losses import (SCREENING_WEIGHT, covariance_dirichlet_loss_features,
                                 covariance_dirichlet_loss_pairs, mean_dirichlet_loss, screening_loss)
-from autodecoder.networks import FeatureCovarianceNet
-from autodecoder.sampling import Box, sample_mean_targets, sample_pair_clusters
+from autodecoder.field.networks import FeatureCovarianceNet
+from autodecoder.field.sampling import Box, sample_mean_targets, sample_pair_clusters
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -54,7 +54,7 @@ def test_covariance_loss_features_sparse_route_matches_dense_gram():
     """With the pair sampler's weights (one constant weight for pairs beyond the support) and a compact Sigma, the
     loss takes its factored route (w0 ||sum_i J_i J_i^T||^2 plus the few near pairs): value and gradient must equal
     the dense Gram matrix of every pair's D c, in double precision."""
-    from autodecoder.losses import _covariance_loss_dense
+    from autodecoder.field.losses import _covariance_loss_dense
 
     rng = np.random.default_rng(3)
     box = Box(np.full(3, -0.5), np.full(3, 0.5))

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from autodecoder.free_space import blocked_probability, box_interval, missing_return_probability
-from autodecoder.rays import monte_carlo_survival
+from autodecoder.scanning.free_space import blocked_probability, box_interval, missing_return_probability
+from autodecoder.scanning.rays import monte_carlo_survival
 from inspection import Inspector, NotFittedError
 from inspection.calibration import Calibration
 from inspection.combine import GATE_MARGIN, Combination
@@ -329,9 +329,9 @@ def test_cli_calibrate_and_score_with_rays(tmp_path, capsys):
     """A field model file (a tiny untrained network: the plumbing, not the detection), scans with sensor origins:
     calibrate --rays stores the ray record, score writes the two components and the ray maps; scans without an
     origin are refused in one line."""
-    from autodecoder.field import StochasticField
-    from autodecoder.frame import Normalization
-    from autodecoder.networks import build_networks
+    from autodecoder.field.stochastic_field import StochasticField
+    from autodecoder.field.frame import Normalization
+    from autodecoder.field.networks import build_networks
     from datasets import Frame, ScanCollection, read_cloud
     from inspection.__main__ import main
     from inspection.calibration import read_calibration

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from autodecoder.sampling import Box
+from autodecoder.field.sampling import Box
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
@@ -54,7 +54,7 @@ def test_grid_minimiser_recovers_the_closed_form_potential(target_limit):
 
 
 def test_zero_level_mesh_is_the_sphere(target_limit):
-    from autodecoder.frame import Normalization
+    from autodecoder.field.frame import Normalization
 
     targets = _sphere_targets()
     g, lo, delta, _ = target_limit.grid_minimiser(targets, 25)

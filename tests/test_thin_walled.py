@@ -213,7 +213,7 @@ def _sheet_scan(hole, n_side=40):
 def test_rays_through_a_hole_in_a_sheet_pass_where_the_field_puts_material():
     from scipy.special import log_ndtr
 
-    from autodecoder.free_space import blocked_probability
+    from autodecoder.scanning.free_space import blocked_probability
 
     field = OneSidedSheetField()
     points, through = _sheet_scan(hole=0.15)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from autodecoder import StochasticField, fit_cloud
+from autodecoder import StochasticField, fit_cloud, update_field
 from autodecoder.__main__ import main
 
 TINY = dict(quiet=True, width=32, depth=2, features=16, mean_batch=512, screen_batch=256, pair_clusters=16)
@@ -25,7 +25,7 @@ def fields():
     field = fit_cloud(old_p, old_n, seed=0, steps=150, **TINY)
     field.training_points, field.training_normals = torch.tensor(old_p).float(), torch.tensor(old_n).float()
     new_p, new_n = half_sphere(400, -1, 1)
-    updated = field.update(new_p, new_n, steps=150, seed=0)
+    updated = update_field(field, new_p, new_n, steps=150, seed=0)
     return field, updated, (old_p, new_p)
 
 
@@ -68,14 +68,14 @@ def test_update_keeps_the_fields_covariance_schedule(fields, adam_steps, recorde
     existed (no such key) keeps its covariance step with every mean step."""
     field, _, (_, new_p) = fields
     field = with_recorded_option(field, "covariance_every", recorded)
-    field.update(new_p[:50], new_p[:50], steps=20, seed=0)
+    update_field(field, new_p[:50], new_p[:50], steps=20, seed=0)
     assert len(adam_steps) - adam_steps.count(adam_steps[0]) == expected_cov_steps
 
 
 @pytest.mark.parametrize("recorded, averaged", [(0.9, True), ("missing", False)])
 def test_update_keeps_the_fields_weight_averaging(fields, monkeypatch, recorded, averaged):
     """A field saved before average_decay existed (no such key) keeps its last iterate when fine-tuned."""
-    from autodecoder import fit as fit_module
+    from autodecoder.field import fit as fit_module
 
     decays = []
     original = fit_module.MeanAverager.__init__
@@ -87,7 +87,7 @@ def test_update_keeps_the_fields_weight_averaging(fields, monkeypatch, recorded,
     monkeypatch.setattr(fit_module.MeanAverager, "__init__", spy)
     field, _, (_, new_p) = fields
     field = with_recorded_option(field, "average_decay", recorded)
-    field.update(new_p[:50], new_p[:50], steps=4, seed=0)
+    update_field(field, new_p[:50], new_p[:50], steps=4, seed=0)
     assert decays == ([0.9] if averaged else [0.0])
 
 
@@ -97,7 +97,7 @@ def test_update_without_a_training_cloud_says_what_to_pass(fields):
     state["training_points"] = state["training_normals"] = None
     bare = StochasticField.from_state(state)
     with pytest.raises(ValueError, match="old_points"):
-        bare.update(*half_sphere(10, -1, 2), steps=1)
+        update_field(bare, *half_sphere(10, -1, 2), steps=1)
 
 
 def test_next_view_cli(fields, tmp_path, capsys):

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from autodecoder.views import camera_rays, camera_score, next_best_views
+from autodecoder.scanning.views import camera_rays, camera_score, next_best_views
 from tests.test_rays import Sphere
 
 
@@ -67,7 +67,7 @@ def test_gradient_ascent_improves_on_its_starting_cameras():
 
 
 def test_cone_projection_keeps_the_axis_near_the_centre():
-    from autodecoder.views import _project_to_cone
+    from autodecoder.scanning.views import _project_to_cone
 
     q = torch.tensor([[2.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
     a = torch.tensor([[0.0, 1.0, 0.0], [-1.0, 0.01, 0.0]])
@@ -119,8 +119,8 @@ def test_next_best_view_looks_at_the_unmeasured_side_by_default():
 def test_distribution_summary_is_the_hit_weighted_variance_along_the_rays():
     """hit_summary='distribution' against a hand computation from the rays' first-hit bins and the field's own
     variance (torch_variance, not the covariance diagonal the score reads), with and without novelty."""
-    from autodecoder.rays import cast_rays
-    from autodecoder.views import _novelty
+    from autodecoder.scanning.rays import cast_rays
+    from autodecoder.scanning.views import _novelty
 
     field = SeenSphere(torch.float64)
     p = torch.tensor([[3.0, 0.5, 0.0], [-2.0, 2.0, 1.0]], dtype=torch.float64)
@@ -170,7 +170,7 @@ class TwoSheets:
 def test_distribution_summary_scores_the_surfaces_a_ray_can_meet_not_the_space_between():
     """Where a ray may hit either of two surfaces, the expected hit point lies between them, in empty space whose
     (large) variance belongs to no surface: the paper's summary reports it, the distribution does not."""
-    from autodecoder.rays import cast_rays
+    from autodecoder.scanning.rays import cast_rays
 
     field = TwoSheets()
     p = torch.tensor([[0.0, 0.0, 3.0]], dtype=torch.float64)
@@ -200,7 +200,7 @@ def open_sheet_fields():
 
 
 def test_far_field_check_tells_an_open_sheet_from_a_closed_one(open_sheet_fields):
-    from autodecoder.views import HALF_SOLID_FRACTION, far_field_inside_fraction
+    from autodecoder.scanning.views import HALF_SOLID_FRACTION, far_field_inside_fraction
 
     assert far_field_inside_fraction(open_sheet_fields[0.0]) > 2 * HALF_SOLID_FRACTION
     assert far_field_inside_fraction(open_sheet_fields[100.0]) == 0.0

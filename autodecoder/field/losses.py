@@ -1,6 +1,6 @@
 """The NSSPR losses: Dirichlet terms for the mean and the covariance, and the screening terms.
 
-Batched over S scans (S = 1 for a single cloud); see :mod:`autodecoder.sampling` for the estimators and weights.
+Batched over S scans (S = 1 for a single cloud); see :mod:`autodecoder.field.sampling` for the estimators and weights.
 """
 import torch
 

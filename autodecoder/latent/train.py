@@ -2,7 +2,7 @@
 
 One step takes a batch of S scans and, for each, samples of its GP posterior targets (the targets themselves,
 a KD-tree and the lumped diagonal per scan, are built once and cached; the samples come from per-scan pools that
-serve ``target_passes`` epochs, see :mod:`autodecoder.scan_pools`); the NSSPR losses are computed for the S
+serve ``target_passes`` epochs, see :mod:`autodecoder.latent.pools`); the NSSPR losses are computed for the S
 scans in one forward pass with a code per sample (z: (S * n, L)). The covariance net sees the codes detached: the
 codes are shaped by the mean (geometry) loss only, and the covariance net learns the uncertainty given the code.
 
@@ -23,12 +23,12 @@ import numpy as np
 import torch
 from torch import nn
 
-from .latent_model import LATENT_FORMAT, LATENT_VERSION, LatentModel, code_statistics, save_checkpoint
-from .losses import SCREENING_WEIGHT, covariance_dirichlet_loss_features, mean_dirichlet_loss, screening_loss
-from .networks import build_networks
-from .sampling import Box
-from .scan_pools import ScanTargetPool, stack_inputs
-from .targets import DEFAULT_LENGTHSCALE_FACTOR, MIN_LENGTHSCALE, CloudTargets, point_spacing
+from autodecoder.latent.model import LATENT_FORMAT, LATENT_VERSION, LatentModel, code_statistics, save_checkpoint
+from autodecoder.field.losses import SCREENING_WEIGHT, covariance_dirichlet_loss_features, mean_dirichlet_loss, screening_loss
+from autodecoder.field.networks import build_networks
+from autodecoder.field.sampling import Box
+from autodecoder.latent.pools import ScanTargetPool, stack_inputs
+from autodecoder.field.targets import DEFAULT_LENGTHSCALE_FACTOR, MIN_LENGTHSCALE, CloudTargets, point_spacing
 
 # Optimisation steps the default epoch count aims at: on fandisk (26 partial scans, batch 8, 4 steps an epoch) the
 # inspection AUROC rose from 0.89 (400 steps) over 0.96 (1,200) to 0.977 (2,400; benchmarks/inspect_fandisk.py,
@@ -207,7 +207,7 @@ def train_latent(scans, out=None, options=None, *, names=None, frame=None, finge
     calibration_names : list of str
         Good scans held back for calibration (stored only).
     resume : dict, optional
-        A checkpoint (see :func:`autodecoder.latent_model.read_checkpoint`) to continue from; its configuration wins
+        A checkpoint (see :func:`autodecoder.latent.model.read_checkpoint`) to continue from; its configuration wins
         over ``options`` except ``epochs`` and ``checkpoint_every``.
     device : str or torch.device
     quiet : bool

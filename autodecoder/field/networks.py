@@ -13,7 +13,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from .siren import Siren
+from autodecoder.field.siren import Siren
 
 
 class MeanNet(nn.Module):

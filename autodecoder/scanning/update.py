@@ -10,8 +10,8 @@ Choices (documented here once):
   old box and the default box around the union cloud, so new points outside the old box are covered (the nets then
   see inputs a little beyond the unit cube, where a SIREN extrapolates smoothly; a part that grows far beyond its
   first scan should be refitted).
-- The GP target pools (see :class:`autodecoder.fit.FitOptions`) are sized to what ``steps`` uses (by
-  :func:`autodecoder.fit.train_single`, as for every run).
+- The GP target pools (see :class:`autodecoder.field.fit.FitOptions`) are sized to what ``steps`` uses (by
+  :func:`autodecoder.field.fit.train_single`, as for every run).
 - One "epoch" is one pass of the screening batch over the union cloud: steps = epochs * ceil(n / screen_batch),
   unless ``steps`` is given. The learning rate starts at ``lr_fraction`` x the fit's (cosine decay), since the
   weights are already near a solution.
@@ -24,10 +24,11 @@ from dataclasses import asdict
 import numpy as np
 import torch
 
-from .fit import FitOptions, train_single
-from .sampling import Box
-from .targets import CloudTargets, default_box
-from .validation import check_oriented_cloud
+from autodecoder.field.fit import FitOptions, train_single
+from autodecoder.field.sampling import Box
+from autodecoder.field.stochastic_field import StochasticField
+from autodecoder.field.targets import CloudTargets, default_box
+from autodecoder.field.validation import check_oriented_cloud
 
 
 def update_field(field, points, normals, epochs=50, steps=None, lr_fraction=0.3, old_points=None, old_normals=None,
@@ -59,8 +60,6 @@ def update_field(field, points, normals, epochs=50, steps=None, lr_fraction=0.3,
     -------
     StochasticField, with ``training_points``/``training_normals`` the union and ``info['updates']`` extended.
     """
-    from .field import StochasticField
-
     if field.code is not None:
         raise ValueError("update_field fine-tunes single-cloud fields; this field has a latent code")
     points, normals = check_oriented_cloud(points, normals)

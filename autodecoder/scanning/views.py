@@ -1,7 +1,7 @@
 """Next-best-view: score depth-camera placements by the field's variance where their rays are expected to hit.
 
 Score of a camera at position p looking along d: over a bundle of n x n rays of a pinhole camera with field of view
-``fov_deg``, cast with :func:`autodecoder.rays.cast_rays` (correlated first hits),
+``fov_deg``, cast with :func:`autodecoder.scanning.rays.cast_rays` (correlated first hits),
 
     score(p, d) = sum_rays P(hit) Var f(x_hat) / n^2,     x_hat = p + E[T | hit] d_ray,
 
@@ -24,7 +24,7 @@ of surface already measured within a kernel support adds nothing the fit can use
 and leaves the variance to rank the cameras that do look at new surface.
 
 Fit the fields of partial scans with ``fit_cloud(..., outside_weight=100, lengthscale=2 * point_spacing(points))``
-(:class:`autodecoder.fit.FitOptions`, :func:`autodecoder.targets.point_spacing`; the figures here use a kernel of 2
+(:class:`autodecoder.field.fit.FitOptions`, :func:`autodecoder.field.targets.point_spacing`; the figures here use a kernel of 2
 point spacings: with ``fit_cloud``'s default 1.5 next-best-view chose worse views, mean Chamfer over views 2-6 on
 seeds 0 / 1 0.070 / 0.054 against 0.041 / 0.045, ``benchmarks/next_view.py --h-factor 1.5``). The boundary term:
 the paper's loss leaves an open sheet unclosed, so far from one scan the mean sits at the surface's own level, every
@@ -52,8 +52,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .rays import cast_rays
-from .sampling import Box
+from autodecoder.scanning.rays import cast_rays
+from autodecoder.field.sampling import Box
 
 # next_best_views warns when more of the box's boundary than this is likely inside (see far_field_inside_fraction)
 HALF_SOLID_FRACTION = 0.1
@@ -139,7 +139,7 @@ def camera_score(field, positions, directions, center, radius, fov_deg=30.0, n_s
     fov_deg, n_side : see :func:`camera_rays`.
     n_samples : int
         Samples per ray (K).
-    method, qmc_samples, seed : see :func:`autodecoder.rays.cast_rays`.
+    method, qmc_samples, seed : see :func:`autodecoder.scanning.rays.cast_rays`.
     observed : (m, 3) tensor or array, optional
         Points already measured (world frame). When given, each ray's term is multiplied by the novelty of its
         expected hit point (see the module docstring); None scores the variance alone.
@@ -267,7 +267,7 @@ def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), 
         aim_weight * max(0, dist(centre, axis) / radius - aim_tolerance)^2 on the normalised score during it.
     min_separation_deg : float
         Returned views are at least this far apart in angle around the centre (greedy by score).
-    method, qmc_samples : see :func:`autodecoder.rays.cast_rays`.
+    method, qmc_samples : see :func:`autodecoder.scanning.rays.cast_rays`.
     seed : int
     observed : (m, 3) array, 'auto' or None
         Points already measured, for the novelty factor of :func:`camera_score`. 'auto' (default): the field's

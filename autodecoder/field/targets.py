@@ -2,8 +2,8 @@
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .gp_targets import GPPosterior
-from .sampling import Box, sample_mean_targets, sample_pair_clusters
+from autodecoder.field.gp_targets import GPPosterior
+from autodecoder.field.sampling import Box, sample_mean_targets, sample_pair_clusters
 
 DEFAULT_LENGTHSCALE_FACTOR = 2.0
 # fit_cloud's own default (one dense cloud): a sharper posterior mean that its 4000 Adam steps can still follow.

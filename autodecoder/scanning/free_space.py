@@ -3,7 +3,7 @@
 A depth sensor at o that returned a point p saw free space from o up to p: had there been material on the way, the
 ray would have stopped there. A ray that returned nothing saw free space all the way through. Under a stochastic
 field f (f < 0 inside) the probability that a segment of the ray x(t) = o + t d is free is a correlated survival
-(an orthant probability, see :mod:`autodecoder.rays`)::
+(an orthant probability, see :mod:`autodecoder.scanning.rays`)::
 
     P(free) = P(f(x(t)) > 0 for every tested t),      P(blocked) = 1 - P(free),
 
@@ -43,8 +43,8 @@ How the probability is computed
 1. **Marginals on a dense grid.** E f and Var f at samples spaced at most ``step`` apart (default half the kernel
    lengthscale: the field represents nothing thinner) give q_j = P(f_j <= 0).
 2. **Correlated survival on the samples that matter.** The ``n_select`` tested samples with the largest q_j (in ray
-   order) get their full covariance (:func:`autodecoder.rays.ray_gaussian`) and the Genz orthant probability
-   (:func:`autodecoder.rays.orthant_survival`). Leaving samples out can only raise the survival, so the value is a
+   order) get their full covariance (:func:`autodecoder.scanning.rays.ray_gaussian`) and the Genz orthant probability
+   (:func:`autodecoder.scanning.rays.orthant_survival`). Leaving samples out can only raise the survival, so the value is a
    lower bound of the blocked probability of the whole tested segment, and at least max_j q_j (one sample alone).
    Rays with max_j q_j below ``q_floor`` skip this step and report max_j q_j. log P(free) is kept apart from
    P(blocked) (1 - P(blocked) cancels to 0 for rays through material many sd deep), floored at log(1e-300).
@@ -58,8 +58,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .rays import orthant_survival, ray_gaussian
-from .validation import check_points
+from autodecoder.scanning.rays import orthant_survival, ray_gaussian
+from autodecoder.field.validation import check_points
 
 DEFAULT_OUTSIDE_SIGMA = 2.0
 DEFAULT_MAX_SAMPLES = 128

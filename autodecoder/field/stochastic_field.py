@@ -1,7 +1,7 @@
 """StochasticField: the fitted stochastic implicit surface f(x) ~ N(g(x), c(x, x)) and its queries.
 
 All public queries take and return coordinates and values in the cloud's own ("world") frame; internally the
-networks work in the unit-cube model frame (see :class:`autodecoder.frame.Normalization`). Convention: f < 0
+networks work in the unit-cube model frame (see :class:`autodecoder.field.frame.Normalization`). Convention: f < 0
 inside, f > 0 outside; f is a length (its gradient is the unit outward normal on the surface).
 """
 import math
@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .checkpoint_io import atomic_torch_save, load_torch_file
-from .frame import Normalization
-from .networks import build_networks
-from .validation import check_points
+from autodecoder.field.checkpoint_io import atomic_torch_save, load_torch_file
+from autodecoder.field.frame import Normalization
+from autodecoder.field.networks import build_networks
+from autodecoder.field.validation import check_points
 
 FIELD_FORMAT = "nsspr-field"
 FIELD_VERSION = 1
@@ -32,7 +32,7 @@ class StochasticField:
     normalization : Normalization
         World -> model frame.
     config : dict
-        Network configuration (see :func:`autodecoder.networks.build_networks`) plus ``lengthscale`` and the
+        Network configuration (see :func:`autodecoder.field.networks.build_networks`) plus ``lengthscale`` and the
         box ``box_lo``/``box_hi`` (model frame).
     code : (L,) tensor, optional
         Latent code the nets are conditioned on (None for a single-cloud field).
@@ -56,15 +56,6 @@ class StochasticField:
         self.info = dict(info or {})
         as_t = lambda a: None if a is None else torch.as_tensor(np.asarray(a), dtype=torch.float32).reshape(-1, 3)
         self.training_points, self.training_normals = as_t(training_points), as_t(training_normals)
-
-    def update(self, points, normals, epochs=50, **kwargs):
-        """Fine-tune on old + new points; returns a new field (this one is unchanged).
-
-        See :func:`autodecoder.update.update_field` for the parameters and the choices made (frame, box).
-        """
-        from .update import update_field
-
-        return update_field(self, points, normals, epochs=epochs, **kwargs)
 
     # ----------------------------------------------------------------------------------- torch, differentiable
     def _model_x(self, x):

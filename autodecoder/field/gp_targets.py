@@ -1,7 +1,7 @@
 """Gaussian-process posterior of the normal field (the training targets of the two Poisson problems).
 
 The oriented points are noisy observations of a vector field v with independent components, each a GP with the
-compact kernel k of :mod:`autodecoder.kernel`. Given points P (n, 3) and normals N (n, 3),
+compact kernel k of :mod:`autodecoder.field.kernel`. Given points P (n, 3) and normals N (n, 3),
 
     mu(x)        = K2(x) K3^-1 N                         (posterior mean of v, (3,))
     Sigma(x, y)  = k(x, y) - K2(x) K3^-1 K2(y)^T         (posterior covariance, the same scalar for each component)
@@ -22,7 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from .kernel import kernel, support_radius
+from autodecoder.field.kernel import kernel, support_radius
 
 
 class GPPosterior:

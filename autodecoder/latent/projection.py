@@ -20,7 +20,10 @@ from typing import Optional
 import numpy as np
 import torch
 
-from .validation import check_points
+from autodecoder.field.fit import FitOptions, train_single
+from autodecoder.field.sampling import Box
+from autodecoder.field.targets import CloudTargets
+from autodecoder.field.validation import check_points
 
 
 @dataclass
@@ -312,10 +315,6 @@ def _full_loss(net, pts, nrm, oriented, z, lam_s, trim=0.0, chunk=8192):
 def _finetune(model, projection, prepared, opts, seed, quiet):
     """Adapt copies of both nets to the scan's GP targets with the projected code fixed (the paper's fine-tuning)."""
     import copy
-
-    from .fit import FitOptions, train_single
-    from .sampling import Box
-    from .targets import CloudTargets
 
     t0 = time.perf_counter()
     points, normals, oriented = prepared

@@ -6,7 +6,7 @@ A checkpoint is a plain dict of tensors and Python values, readable with ``torch
 key                    content
 =====================  ==============================================================================================
 format, version        ``"nsspr-latent-model"``, 1
-config                 network and training configuration (see :func:`autodecoder.latent_train.train_latent`)
+config                 network and training configuration (see :func:`autodecoder.latent.train.train_latent`)
 mean_state, cov_state  network weights
 codes                  (T, L) float32: one code per training scan, in ``train_names`` order
 code_mean, code_std    (L,) float32: statistics of the codes
@@ -30,8 +30,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .checkpoint_io import atomic_torch_save, load_torch_file
-from .networks import build_networks
+from autodecoder.field.checkpoint_io import atomic_torch_save, load_torch_file
+from autodecoder.field.networks import build_networks
+from autodecoder.field.frame import Normalization
+from autodecoder.field.stochastic_field import StochasticField
+from autodecoder.latent.projection import project, project_many
+from datasets.frame import Frame
 
 LATENT_FORMAT = "nsspr-latent-model"
 LATENT_VERSION = 1
@@ -105,8 +109,6 @@ class LatentModel:
     @property
     def frame(self):
         """The training collection's :class:`datasets.frame.Frame` (x_collection = scale * (x_file - center))."""
-        from datasets.frame import Frame
-
         return Frame.from_dict(self.frame_dict)
 
     @property
@@ -120,9 +122,6 @@ class LatentModel:
 
     def field(self, code, mean_net=None, cov_net=None, info=None):
         """The :class:`StochasticField` of a code (L,), in the collection frame (identity normalization)."""
-        from .field import StochasticField
-        from .frame import Normalization
-
         code = torch.as_tensor(code, dtype=torch.float32).reshape(-1)
         if code.shape != (self.latent_dim,):
             raise ValueError(f"code must have {self.latent_dim} entries, got {tuple(code.shape)}")
@@ -141,15 +140,11 @@ class LatentModel:
         return self.field(self.codes[i], info={"training_scan": name})
 
     def project(self, points, normals=None, **options):
-        """Fit a code to one scan with the nets frozen; see :func:`autodecoder.projection.project`."""
-        from .projection import project
-
+        """Fit a code to one scan with the nets frozen; see :func:`autodecoder.latent.projection.project`."""
         return project(self, points, normals, **options)
 
     def project_many(self, scans, **options):
-        """Fit codes to many scans at once; see :func:`autodecoder.projection.project_many`."""
-        from .projection import project_many
-
+        """Fit codes to many scans at once; see :func:`autodecoder.latent.projection.project_many`."""
         return project_many(self, scans, **options)
 
 
@@ -175,7 +170,7 @@ def load_model(path):
 
 
 def save_checkpoint(state, path):
-    """Write a checkpoint dict atomically (see :func:`autodecoder.checkpoint_io.atomic_torch_save`)."""
+    """Write a checkpoint dict atomically (see :func:`autodecoder.field.checkpoint_io.atomic_torch_save`)."""
     check_checkpoint(state, os.fspath(path))
     atomic_torch_save(state, path)
 

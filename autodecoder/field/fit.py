@@ -8,13 +8,13 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from .field import StochasticField
-from .frame import Normalization
-from .losses import (covariance_dirichlet_loss_features, covariance_dirichlet_loss_pairs, mean_dirichlet_loss,
+from autodecoder.field.stochastic_field import StochasticField
+from autodecoder.field.frame import Normalization
+from autodecoder.field.losses import (covariance_dirichlet_loss_features, covariance_dirichlet_loss_pairs, mean_dirichlet_loss,
                      screening_loss, SCREENING_WEIGHT)
-from .networks import build_networks
-from .targets import FIT_LENGTHSCALE_FACTOR, CloudTargets, default_lengthscale
-from .validation import check_oriented_cloud
+from autodecoder.field.networks import build_networks
+from autodecoder.field.targets import FIT_LENGTHSCALE_FACTOR, CloudTargets, default_lengthscale
+from autodecoder.field.validation import check_oriented_cloud
 
 
 @dataclass
@@ -344,7 +344,7 @@ def fit_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, width=64
         Seeds every random draw and the network initialisation.
     lengthscale : float, optional
         Kernel lengthscale in the cloud's units (default: 1.5 x the point spacing, ``FIT_LENGTHSCALE_FACTOR`` of
-        ``autodecoder.targets``, where it is measured; see also ``default_lengthscale``).
+        ``autodecoder.field.targets``, where it is measured; see also ``default_lengthscale``).
     noise : float, optional
         Default measurement noise (cloud units) of :meth:`StochasticField.nll`; default: the RMS of the fitted
         mean at the cloud's points (how far the surface misses them).
@@ -391,7 +391,7 @@ def fit_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, width=64
     info = {"fit_seconds": time.perf_counter() - t0, "steps": options.steps, "n_points": len(points),
             "final_losses": history[-1] if history else {}, "options": asdict(options),
             "history": history}
-    # the field keeps its cloud (world frame) so that field.update() can fine-tune on old + new scans
+    # the field keeps its cloud (world frame) so that autodecoder.scanning.update_field can fine-tune on old + new scans
     return StochasticField(mean_net, cov_net, normalization, config, noise=noise, info=info,
                            training_points=points, training_normals=normals)
 

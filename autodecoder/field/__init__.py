@@ -1,0 +1,10 @@
+"""The single-cloud stochastic field: NSSPR for one oriented point cloud.
+
+The compact kernel and the Gaussian-process posterior it gives (``kernel``, ``gp_targets``), the sample boxes and
+target draws (``sampling``, ``targets``), the SIREN layers and the mean / covariance networks (``siren``,
+``networks``), the paper's losses (``losses``), the fitted field and its statistical queries (``stochastic_field``)
+and the fit itself (``fit``). Everything here works on one cloud; the latent code is only an extra network input.
+
+May import: numpy, scipy, torch, ``datasets``. Never ``autodecoder.latent``, ``autodecoder.scanning`` or
+``inspection``.
+"""
