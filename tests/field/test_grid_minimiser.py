@@ -1,34 +1,17 @@
-"""benchmarks/target_limit.py's grid minimiser of the mean loss, against a closed form.
+"""autodecoder.field.grid_minimiser, the exact grid minimiser of the mean loss, against a closed form.
 
-The benchmark's figures (the exact minimiser of fit_cloud's mean loss is within 1.5x open3d's Chamfer) rest on this
-solver, so it is checked here: for a target field that is exactly the gradient of phi(x) = (|x|^2 - R^2) / 2, a
+benchmarks/target_limit.py's figures (the exact minimiser of fit_cloud's mean loss against open3d's Chamfer) rest on
+this solver, so it is checked here: for a target field that is exactly the gradient of phi(x) = (|x|^2 - R^2) / 2, a
 function that vanishes on the sphere where the screened points lie, phi itself makes both terms of the loss zero, so
 it is the minimiser; the grid solution must reproduce it up to the grid's interpolation error.
 """
-import importlib.util
-import sys
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
-import pytest
 from scipy.spatial import cKDTree
 
+from autodecoder.field.grid_minimiser import grid_minimiser, zero_level_mesh
 from autodecoder.field.sampling import Box
-
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
-
-
-@pytest.fixture(scope="module")
-def target_limit():
-    sys.path.insert(0, str(BENCHMARKS))  # target_limit imports its sibling fandisk.py
-    try:
-        spec = importlib.util.spec_from_file_location("target_limit", BENCHMARKS / "target_limit.py")
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(BENCHMARKS))
-    return module
 
 
 def _sphere_targets(radius=0.3, n=400, seed=0):
@@ -40,9 +23,9 @@ def _sphere_targets(radius=0.3, n=400, seed=0):
     return SimpleNamespace(box=Box(np.full(3, -0.5), np.full(3, 0.5)), posterior=posterior, lengthscale=0.05)
 
 
-def test_grid_minimiser_recovers_the_closed_form_potential(target_limit):
+def test_grid_minimiser_recovers_the_closed_form_potential():
     targets = _sphere_targets()
-    g, lo, delta, info = target_limit.grid_minimiser(targets, 25)
+    g, lo, delta, info = grid_minimiser(targets, 25)
     assert info["converged"] and info["residual"] < 1e-6
     axes = [lo[a] + delta * np.arange(25) for a in range(3)]
     x = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
@@ -53,12 +36,12 @@ def test_grid_minimiser_recovers_the_closed_form_potential(target_limit):
     assert np.abs(g - phi).max() < 0.01 * np.abs(phi).max()
 
 
-def test_zero_level_mesh_is_the_sphere(target_limit):
+def test_zero_level_mesh_is_the_sphere():
     from autodecoder.field.frame import Normalization
 
     targets = _sphere_targets()
-    g, lo, delta, _ = target_limit.grid_minimiser(targets, 25)
-    mesh = target_limit.zero_level_mesh(g, lo, delta, Normalization.identity())
+    g, lo, delta, _ = grid_minimiser(targets, 25)
+    mesh = zero_level_mesh(g, lo, delta, Normalization.identity())
     r = np.linalg.norm(mesh.vertices, axis=1)
     assert np.abs(r - 0.3).max() < delta / 4
     assert mesh.volume > 0  # outward faces: g > 0 is outside
