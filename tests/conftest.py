@@ -1,4 +1,11 @@
-"""Shared pytest fixtures."""
+"""Shared pytest fixtures.
+
+The tests follow the packages' seams: ``tests/datasets/``, ``tests/field/``, ``tests/latent/``, ``tests/scanning/``,
+``tests/inspection/`` (``autodecoder``'s three sub-packages and the two other packages), and cross-cutting checks at
+the top (the console entry points). Every folder is a package (``tests.field.test_fit``...), so test files in
+different folders may share a name, and helpers that several test files use live in plain modules beside them
+(``tests/scanning/toy_fields.py``) or here as fixtures; no test imports another test module.
+"""
 import os
 from pathlib import Path
 

@@ -1,12 +1,12 @@
-"""Worker of tests/test_ddp.py, started by torchrun: trains through train_latent.run and saves this rank's state."""
+"""Worker of tests/latent/test_ddp.py, started by torchrun as ``-m tests.latent.ddp_worker`` from the repository
+root (so that it imports the checkout's ``train_latent``): trains through train_latent.run and saves this rank's
+state."""
 import sys
 from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-import train_latent  # noqa: E402
+import train_latent
 
 
 def main(data, out_dir):

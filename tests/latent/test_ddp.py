@@ -11,6 +11,8 @@ from autodecoder.latent.model import load_model
 from datasets.collection import ScanCollection
 from datasets.scan import Scan
 
+ROOT = Path(__file__).resolve().parents[2]
+
 
 def _sphere(name, radius, seed, n=300):
     d = np.random.default_rng(seed).normal(size=(n, 3))
@@ -21,11 +23,11 @@ def _sphere(name, radius, seed, n=300):
 def test_two_gloo_processes_hold_identical_weights(tmp_path):
     data = tmp_path / "spheres.h5"
     ScanCollection.create(data, [_sphere(f"train/{i}", r, i) for i, r in enumerate((0.15, 0.2, 0.25, 0.3, 0.35))])
-    worker = Path(__file__).with_name("ddp_worker.py")
     env = {**os.environ, "OMP_NUM_THREADS": "1", "OMP_WAIT_POLICY": "PASSIVE"}
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", str(worker),
-           str(data), str(tmp_path)]
-    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=120)
+    # the worker runs as a module from the repository root (python -m semantics: the root leads sys.path)
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m",
+           "tests.latent.ddp_worker", str(data), str(tmp_path)]
+    proc = subprocess.run(cmd, env=env, cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-3000:]
     r0, r1 = (torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in (0, 1))
     assert r0["world"] == r1["world"] == 2

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from autodecoder.scanning.views import camera_rays, camera_score, next_best_views
-from tests.test_rays import Sphere
+from tests.scanning.toy_fields import Sphere
 
 
 def test_camera_rays_are_unit_and_inside_the_field_of_view():

@@ -6,6 +6,7 @@ import torch
 from scipy.stats import multivariate_normal
 
 from autodecoder.scanning.rays import cast_rays, first_hit, monte_carlo_survival, orthant_probability, orthant_survival
+from tests.scanning.toy_fields import Sphere
 
 
 def random_cases(K, n, kind, seed):
@@ -104,26 +105,6 @@ def test_singular_and_slightly_indefinite_covariances_are_repaired():
     assert np.allclose(s[:, -1].numpy(), exact, atol=0.02), s[:, -1]
     with pytest.raises(ValueError, match="not finite"):
         orthant_survival(mean, cov * float("nan"))
-
-
-class Sphere:
-    """Toy field: f = |x| - 1, std 0.1 (1 + x_0) / 2 + 0.02, squared-exponential correlation (lengthscale 0.3)."""
-
-    def __init__(self, dtype=torch.float64):
-        self.dtype = dtype
-        self.bounds = np.array([[-1.2] * 3, [1.2] * 3])
-
-    def torch_mean(self, x):
-        return x.norm(dim=1) - 1.0
-
-    def _sd(self, x):
-        return 0.1 * torch.sigmoid(4 * x[:, 0]) + 0.02
-
-    def torch_variance(self, x):
-        return self._sd(x) ** 2
-
-    def torch_covariance(self, a, b):
-        return self._sd(a) * self._sd(b) * torch.exp(-((a - b) ** 2).sum(1) / (2 * 0.3**2))
 
 
 def test_cast_rays_hits_the_sphere_where_the_mean_does():

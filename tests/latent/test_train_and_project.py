@@ -1,4 +1,4 @@
-"""Latent training over scan collections and test-time projection (autodecoder.latent_*, projection, train_latent)."""
+"""Latent training over scan collections and test-time projection (autodecoder.latent, train_latent)."""
 import math
 
 import numpy as np
@@ -41,18 +41,12 @@ def zero_crossing_radius(field, n_rays=64, seed=0):
     return float(np.median(t[first[ok]])) if ok.any() else float("nan")
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """One torch thread: on a shared 2-core machine, OpenMP threads spinning against other processes' work make
-    these tiny problems 50x slower (see the README's performance notes)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+# one torch thread for the whole module (conftest.py): these tiny problems only pay for intra-op threads
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
-def trained(tmp_path_factory, one_thread):
+def trained(tmp_path_factory, one_torch_thread):
     out = tmp_path_factory.mktemp("latent") / "model.pt"
     model = train_latent(sphere_scans(), out, epochs=100, seed=0, quiet=True, **TINY)
     return model, out

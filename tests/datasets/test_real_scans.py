@@ -13,7 +13,7 @@ from datasets.__main__ import main
 from datasets.importer import estimate_normals, import_tree
 from datasets.outliers import stray_points
 
-REALSCANS = Path(__file__).resolve().parents[2] / "shared" / "realscans" / "bunny"
+REALSCANS = Path(__file__).resolve().parents[3] / "shared" / "realscans" / "bunny"
 # these two checks need real scanner data, which the repository does not ship: the project's shared folder beside
 # the checkout has it (developers' machines and CI); the same properties are tested on synthetic range views above
 NEEDS_REAL_SCANS = pytest.mark.skipif(
