@@ -42,7 +42,7 @@ from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
 from autodecoder.field.fit import _cosine_lr
-from autodecoder.field.frame import Normalization
+from datasets.frame import Frame
 from autodecoder.field.losses import SCREENING_WEIGHT
 from autodecoder.field.networks import MeanNet
 from autodecoder.field.targets import CloudTargets, point_spacing
@@ -161,11 +161,11 @@ def grid_minimiser(targets, resolution, screening_weight=SCREENING_WEIGHT, tol=1
     return g.reshape(shape), lo, delta, info
 
 
-def zero_level_mesh(g, lo, delta, normalization):
+def zero_level_mesh(g, lo, delta, frame):
     """Marching cubes of g = 0 on the grid, in the cloud's own (world) coordinates."""
     verts, faces, _, _ = marching_cubes(g, level=0.0, spacing=(delta,) * 3)
     # marching cubes orients faces toward increasing values; g > 0 is outside, so this is already outward
-    return trimesh.Trimesh(normalization.to_world(verts + lo), faces, process=False)
+    return trimesh.Trimesh(frame.to_file(verts + lo), faces, process=False)
 
 
 def regress_siren(g, lo, delta, targets, steps, seed=0, batch=256, near_fraction=0.9, lr=1e-3, width=64, depth=3,
@@ -236,15 +236,15 @@ def main(argv=None):
     cd_o3d = chamfer(o3d_mesh, mesh)
     print(f"open3d Poisson d8: Chamfer {cd_o3d:.5f} ({time.perf_counter() - t0:.1f} s)")
 
-    normalization = Normalization.fit(points)
-    model_points = normalization.to_model(points)
+    frame = Frame.fit(points)
+    model_points = frame.to_collection(points)
     spacing = point_spacing(model_points)
     for factor in (float(f) for f in args.h_factors.split(",")):
         targets = CloudTargets(model_points, normals, factor * spacing)
-        h_world = targets.lengthscale / normalization.scale
+        h_world = targets.lengthscale / frame.scale
         for resolution in (int(r) for r in args.resolutions.split(",")):
             g, lo, delta, info = grid_minimiser(targets, resolution, args.screening_weight)
-            surface = zero_level_mesh(g, lo, delta, normalization)
+            surface = zero_level_mesh(g, lo, delta, frame)
             cd = chamfer(surface, mesh)
             print(f"h = {factor:g} spacings ({h_world:.4g}), grid {resolution}^3 (h / cell {targets.lengthscale / delta:.1f}):"
                   f" Chamfer {cd:.5f} = {cd / cd_o3d:.2f} x open3d;  CG {info['iterations']} it, residual "
@@ -257,7 +257,7 @@ def main(argv=None):
             t0 = time.perf_counter()
             net = regress_siren(g, lo, delta, targets, steps, seed=args.seed)
             seconds = time.perf_counter() - t0
-            surface = zero_level_mesh(net_on_grid(net, g.shape, lo, delta), lo, delta, normalization)
+            surface = zero_level_mesh(net_on_grid(net, g.shape, lo, delta), lo, delta, frame)
             cd = chamfer(surface, mesh)
             print(f"    SIREN (fit_cloud's mean net) regressed on that minimiser, {steps} steps ({seconds:.0f} s):"
                   f" Chamfer {cd:.5f} = {cd / cd_o3d:.2f} x open3d")

@@ -28,6 +28,7 @@ from autodecoder.field.losses import SCREENING_WEIGHT, covariance_dirichlet_loss
 from autodecoder.field.networks import build_networks
 from autodecoder.field.sampling import Box
 from autodecoder.latent.pools import ScanTargetPool, stack_inputs
+from datasets.frame import Frame
 from autodecoder.field.targets import DEFAULT_LENGTHSCALE_FACTOR, MIN_LENGTHSCALE, CloudTargets, point_spacing
 
 # Optimisation steps the default epoch count aims at: on fandisk (26 partial scans, batch 8, 4 steps an epoch) the
@@ -400,11 +401,12 @@ def train_latent(scans, out=None, options=None, *, names=None, frame=None, finge
 
 
 def _frame_dict(frame):
+    """The training frame as the checkpoint stores it (:meth:`datasets.frame.Frame.as_dict`); None is the identity."""
     if frame is None:
-        return {"center": [0.0, 0.0, 0.0], "scale": 1.0}
-    if isinstance(frame, dict):
-        return {"center": [float(c) for c in frame["center"]], "scale": float(frame["scale"])}
-    return {"center": [float(c) for c in frame.center], "scale": float(frame.scale)}
+        frame = Frame.identity()
+    elif isinstance(frame, dict):
+        frame = Frame.from_dict(frame)
+    return frame.as_dict()
 
 
 def _part_ids(local_ids, n_scans, world):

@@ -108,7 +108,7 @@ def _field_lengthscale(field):
     config = getattr(field, "config", None) or {}
     if "lengthscale" not in config:
         return None
-    scale = float(getattr(getattr(field, "normalization", None), "scale", 1.0))
+    scale = float(getattr(getattr(field, "frame", None), "scale", 1.0))
     return float(config["lengthscale"]) / scale
 
 
