@@ -14,7 +14,7 @@ from autodecoder.field.losses import (covariance_dirichlet_loss_features, covari
                      screening_loss, SCREENING_WEIGHT)
 from autodecoder.field.networks import build_networks
 from autodecoder.field.targets import FIT_LENGTHSCALE_FACTOR, CloudTargets, default_lengthscale
-from autodecoder.field.validation import check_oriented_cloud
+from datasets.validation import check_oriented_cloud
 
 
 @dataclass

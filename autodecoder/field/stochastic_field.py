@@ -14,7 +14,7 @@ import torch
 from autodecoder.field.checkpoint_io import atomic_torch_save, load_torch_file
 from datasets.frame import Frame
 from autodecoder.field.networks import build_networks
-from autodecoder.field.validation import check_points
+from datasets.validation import check_points
 
 FIELD_FORMAT = "nsspr-field"
 FIELD_VERSION = 1
@@ -59,7 +59,7 @@ class StochasticField:
 
     # ----------------------------------------------------------------------------------- torch, differentiable
     def _model_x(self, x):
-        c = torch.as_tensor(self.frame.center, dtype=x.dtype, device=x.device)
+        c = torch.tensor(self.frame.center, dtype=x.dtype, device=x.device)  # the frame's array is read-only
         return (x - c) * self.frame.scale
 
     def _code_for(self, x):

@@ -28,6 +28,7 @@ from autodecoder.field.losses import SCREENING_WEIGHT, covariance_dirichlet_loss
 from autodecoder.field.networks import build_networks
 from autodecoder.field.sampling import Box
 from autodecoder.latent.pools import ScanTargetPool, stack_inputs
+from datasets.atomic import atomic_path
 from datasets.frame import Frame
 from autodecoder.field.targets import DEFAULT_LENGTHSCALE_FACTOR, MIN_LENGTHSCALE, CloudTargets, point_spacing
 
@@ -490,13 +491,10 @@ def log_paths(out):
 
 def _write_log(out, history):
     csv_path, _ = log_paths(out)
-    csv_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = csv_path.with_name("." + csv_path.name + ".tmp")
-    with open(tmp, "w") as fh:
+    with atomic_path(csv_path) as tmp, open(tmp, "w") as fh:
         fh.write(",".join(LOG_COLUMNS) + "\n")
         for r in history:
             fh.write(",".join(f"{r[c]:.6g}" if isinstance(r[c], float) else str(r[c]) for c in LOG_COLUMNS) + "\n")
-    os.replace(tmp, csv_path)
 
 
 def _plot_losses(out, history):
@@ -517,7 +515,6 @@ def _plot_losses(out, history):
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    tmp = png.with_name("." + png.name + ".tmp.png")
-    fig.savefig(tmp, dpi=100)
+    with atomic_path(png, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=100)
     plt.close(fig)
-    os.replace(tmp, png)

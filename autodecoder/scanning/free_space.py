@@ -59,7 +59,7 @@ import numpy as np
 import torch
 
 from autodecoder.scanning.rays import orthant_survival, ray_gaussian
-from autodecoder.field.validation import check_points
+from datasets.validation import check_points
 
 DEFAULT_OUTSIDE_SIGMA = 2.0
 DEFAULT_MAX_SAMPLES = 128

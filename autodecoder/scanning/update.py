@@ -28,7 +28,7 @@ from autodecoder.field.fit import FitOptions, train_single
 from autodecoder.field.sampling import Box
 from autodecoder.field.stochastic_field import StochasticField
 from autodecoder.field.targets import CloudTargets, default_box
-from autodecoder.field.validation import check_oriented_cloud
+from datasets.validation import check_oriented_cloud
 
 
 def update_field(field, points, normals, epochs=50, steps=None, lr_fraction=0.3, old_points=None, old_normals=None,
