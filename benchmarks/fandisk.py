@@ -224,7 +224,7 @@ def main(argv=None):
           f"Chamfer {cd_ours:.5f} ({cd_ours / diag:.2e} of the diagonal)")
     print(f"open3d Poisson d8: {o3d_seconds:7.1f} s, Chamfer {cd_o3d:.5f} ({cd_o3d / diag:.2e} of the diagonal)")
     print(f"Chamfer ratio NSSPR / open3d: {cd_ours / cd_o3d:.2f}  (target <= 1.5)")
-    h_world = field.config["lengthscale"] / field.normalization.scale
+    h_world = field.config["lengthscale"] / field.frame.scale
     print(f"where the error is (true -> ours, kernel lengthscale h = {h_world:.4g}; distance to the nearest sharp edge):")
     bands_o3d = {row[0]: row for row in chamfer_by_edge_distance(o3d_mesh, mesh, h_world)}
     for label, area, mean_dist, share in chamfer_by_edge_distance(ours, mesh, h_world):

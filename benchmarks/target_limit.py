@@ -24,8 +24,8 @@ import trimesh
 from scipy.ndimage import map_coordinates
 
 from autodecoder.field.fit import _cosine_lr
-from autodecoder.field.frame import Normalization
 from autodecoder.field.grid_minimiser import grid_minimiser, zero_level_mesh
+from datasets.frame import Frame
 from autodecoder.field.losses import SCREENING_WEIGHT
 from autodecoder.field.networks import MeanNet
 from autodecoder.field.targets import CloudTargets, point_spacing
@@ -100,15 +100,15 @@ def main(argv=None):
     cd_o3d = chamfer(o3d_mesh, mesh)
     print(f"open3d Poisson d8: Chamfer {cd_o3d:.5f} ({time.perf_counter() - t0:.1f} s)")
 
-    normalization = Normalization.fit(points)
-    model_points = normalization.to_model(points)
+    frame = Frame.fit(points)
+    model_points = frame.to_collection(points)
     spacing = point_spacing(model_points)
     for factor in (float(f) for f in args.h_factors.split(",")):
         targets = CloudTargets(model_points, normals, factor * spacing)
-        h_world = targets.lengthscale / normalization.scale
+        h_world = targets.lengthscale / frame.scale
         for resolution in (int(r) for r in args.resolutions.split(",")):
             g, lo, delta, info = grid_minimiser(targets, resolution, args.screening_weight)
-            surface = zero_level_mesh(g, lo, delta, normalization)
+            surface = zero_level_mesh(g, lo, delta, frame)
             cd = chamfer(surface, mesh)
             print(f"h = {factor:g} spacings ({h_world:.4g}), grid {resolution}^3 (h / cell {targets.lengthscale / delta:.1f}):"
                   f" Chamfer {cd:.5f} = {cd / cd_o3d:.2f} x open3d;  CG {info['iterations']} it, residual "
@@ -121,7 +121,7 @@ def main(argv=None):
             t0 = time.perf_counter()
             net = regress_siren(g, lo, delta, targets, steps, seed=args.seed)
             seconds = time.perf_counter() - t0
-            surface = zero_level_mesh(net_on_grid(net, g.shape, lo, delta), lo, delta, normalization)
+            surface = zero_level_mesh(net_on_grid(net, g.shape, lo, delta), lo, delta, frame)
             cd = chamfer(surface, mesh)
             print(f"    SIREN (fit_cloud's mean net) regressed on that minimiser, {steps} steps ({seconds:.0f} s):"
                   f" Chamfer {cd:.5f} = {cd / cd_o3d:.2f} x open3d")

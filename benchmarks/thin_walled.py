@@ -44,6 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np
 
 from baselines import nn_baseline
+from datasets.atomic import atomic_path
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
 PARTS = ("enclosure", "cup", "fandisk")
@@ -87,9 +88,8 @@ def _save_sites(path, scans, frame):
     sites = {s.name: {"center": frame.to_collection(s.extra["defect_center"]).tolist(),
                       "radius": float(s.extra["defect_radius"]) * frame.scale}
              for s in scans if "defect_center" in s.extra}
-    tmp = _sites_path(path).with_suffix(".tmp")
-    tmp.write_text(json.dumps(sites))
-    os.replace(tmp, _sites_path(path))
+    with atomic_path(_sites_path(path)) as tmp:
+        tmp.write_text(json.dumps(sites))
 
 
 def _sites(part, path, args):
@@ -143,9 +143,8 @@ class CachedProjections:
         import torch
 
         if self.dirty:
-            tmp = self.path.with_suffix(".tmp")
-            torch.save(self.codes, tmp)
-            os.replace(tmp, self.path)
+            with atomic_path(self.path) as tmp:
+                torch.save(self.codes, tmp)
             self.dirty = False
 
 

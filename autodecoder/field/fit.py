@@ -9,12 +9,12 @@ import torch
 from tqdm.auto import tqdm
 
 from autodecoder.field.stochastic_field import StochasticField
-from autodecoder.field.frame import Normalization
+from datasets.frame import Frame
 from autodecoder.field.losses import (covariance_dirichlet_loss_features, covariance_dirichlet_loss_pairs, mean_dirichlet_loss,
                      screening_loss, SCREENING_WEIGHT)
 from autodecoder.field.networks import build_networks
 from autodecoder.field.targets import FIT_LENGTHSCALE_FACTOR, CloudTargets, default_lengthscale
-from autodecoder.field.validation import check_oriented_cloud
+from datasets.validation import check_oriented_cloud
 
 
 @dataclass
@@ -371,10 +371,10 @@ def fit_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, width=64
     points, normals = check_oriented_cloud(points, normals)
     options = FitOptions(**{**asdict(options or FitOptions()), **option_overrides})
     t0 = time.perf_counter()
-    normalization = Normalization.fit(points)
-    model_points = normalization.to_model(points)
+    frame = Frame.fit(points)
+    model_points = frame.to_collection(points)
     h = (default_lengthscale(model_points, FIT_LENGTHSCALE_FACTOR) if lengthscale is None
-         else float(lengthscale) * normalization.scale)
+         else float(lengthscale) * frame.scale)
     targets = CloudTargets(model_points, normals, h)
     config = {"width": width, "depth": depth, "latent_dim": 0, "covariance": covariance, "features": features,
               "omega0": omega0, "lengthscale": h, "box_lo": targets.box.lo.tolist(), "box_hi": targets.box.hi.tolist()}
@@ -385,14 +385,14 @@ def fit_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, width=64
     history = train_single(mean_net, cov_net, targets, options, rng, quiet=quiet)
 
     with torch.no_grad():
-        residual = mean_net(torch.from_numpy(targets.points32)).double().numpy() / normalization.scale
+        residual = mean_net(torch.from_numpy(targets.points32)).double().numpy() / frame.scale
     if noise is None:
         noise = float(np.sqrt(np.mean(residual**2)))
     info = {"fit_seconds": time.perf_counter() - t0, "steps": options.steps, "n_points": len(points),
             "final_losses": history[-1] if history else {}, "options": asdict(options),
             "history": history}
     # the field keeps its cloud (world frame) so that autodecoder.scanning.update_field can fine-tune on old + new scans
-    return StochasticField(mean_net, cov_net, normalization, config, noise=noise, info=info,
+    return StochasticField(mean_net, cov_net, frame, config, noise=noise, info=info,
                            training_points=points, training_normals=normals)
 
 

@@ -143,8 +143,8 @@ def grid_minimiser(targets, resolution, screening_weight=SCREENING_WEIGHT, tol=1
     return g.reshape(shape), lo, delta, info
 
 
-def zero_level_mesh(g, lo, delta, normalization):
+def zero_level_mesh(g, lo, delta, frame):
     """Marching cubes of g = 0 on the grid, in the cloud's own (world) coordinates."""
     verts, faces, _, _ = marching_cubes(g, level=0.0, spacing=(delta,) * 3)
     # marching cubes orients faces toward increasing values; g > 0 is outside, so this is already outward
-    return trimesh.Trimesh(normalization.to_world(verts + lo), faces, process=False)
+    return trimesh.Trimesh(frame.to_file(verts + lo), faces, process=False)

@@ -28,6 +28,8 @@ from autodecoder.field.losses import SCREENING_WEIGHT, covariance_dirichlet_loss
 from autodecoder.field.networks import build_networks
 from autodecoder.field.sampling import Box
 from autodecoder.latent.pools import ScanTargetPool, stack_inputs
+from datasets.atomic import atomic_path
+from datasets.frame import Frame
 from autodecoder.field.targets import DEFAULT_LENGTHSCALE_FACTOR, MIN_LENGTHSCALE, CloudTargets, point_spacing
 
 # Optimisation steps the default epoch count aims at: on fandisk (26 partial scans, batch 8, 4 steps an epoch) the
@@ -400,11 +402,12 @@ def train_latent(scans, out=None, options=None, *, names=None, frame=None, finge
 
 
 def _frame_dict(frame):
+    """The training frame as the checkpoint stores it (:meth:`datasets.frame.Frame.as_dict`); None is the identity."""
     if frame is None:
-        return {"center": [0.0, 0.0, 0.0], "scale": 1.0}
-    if isinstance(frame, dict):
-        return {"center": [float(c) for c in frame["center"]], "scale": float(frame["scale"])}
-    return {"center": [float(c) for c in frame.center], "scale": float(frame.scale)}
+        frame = Frame.identity()
+    elif isinstance(frame, dict):
+        frame = Frame.from_dict(frame)
+    return frame.as_dict()
 
 
 def _part_ids(local_ids, n_scans, world):
@@ -488,13 +491,10 @@ def log_paths(out):
 
 def _write_log(out, history):
     csv_path, _ = log_paths(out)
-    csv_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = csv_path.with_name("." + csv_path.name + ".tmp")
-    with open(tmp, "w") as fh:
+    with atomic_path(csv_path) as tmp, open(tmp, "w") as fh:
         fh.write(",".join(LOG_COLUMNS) + "\n")
         for r in history:
             fh.write(",".join(f"{r[c]:.6g}" if isinstance(r[c], float) else str(r[c]) for c in LOG_COLUMNS) + "\n")
-    os.replace(tmp, csv_path)
 
 
 def _plot_losses(out, history):
@@ -515,7 +515,6 @@ def _plot_losses(out, history):
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    tmp = png.with_name("." + png.name + ".tmp.png")
-    fig.savefig(tmp, dpi=100)
+    with atomic_path(png, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=100)
     plt.close(fig)
-    os.replace(tmp, png)

@@ -59,7 +59,7 @@ import numpy as np
 import torch
 
 from autodecoder.scanning.rays import orthant_survival, ray_gaussian
-from autodecoder.field.validation import check_points
+from datasets.validation import check_points
 
 DEFAULT_OUTSIDE_SIGMA = 2.0
 DEFAULT_MAX_SAMPLES = 128
@@ -108,7 +108,7 @@ def _field_lengthscale(field):
     config = getattr(field, "config", None) or {}
     if "lengthscale" not in config:
         return None
-    scale = float(getattr(getattr(field, "normalization", None), "scale", 1.0))
+    scale = float(getattr(getattr(field, "frame", None), "scale", 1.0))
     return float(config["lengthscale"]) / scale
 
 

@@ -312,7 +312,7 @@ def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), 
         if not torch.isfinite(observed).all():
             raise ValueError("observed points contain NaN or infinite coordinates")
         if observed_scale is None:
-            config, norm = getattr(field, "config", None), getattr(field, "normalization", None)
+            config, norm = getattr(field, "config", None), getattr(field, "frame", None)
             if config is None or "lengthscale" not in config or norm is None:
                 raise ValueError("observed_scale is needed for a field without a kernel lengthscale")
             observed_scale = 2.0 * float(config["lengthscale"]) / float(norm.scale)

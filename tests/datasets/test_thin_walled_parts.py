@@ -159,7 +159,7 @@ def test_fitted_mean_changes_sign_across_a_sheet_seen_from_one_side_only():
     to it). Seen from both sides, a sheet thinner than the kernel has no sign change left: the two faces' normals
     cancel in the posterior mean (to O(t^2 / h^2)), so the field of a closed thin sheet is ~0 across it."""
     one = _fit(*_sheet_cloud(None))
-    h = one.config["lengthscale"] / one.normalization.scale
+    h = one.config["lengthscale"] / one.frame.scale
     mean, sd = _profile(one, np.array([h, -h, -3 * h]))
     assert mean[0] > sd[0] and mean[1] < -sd[1] and mean[2] < -sd[2]  # negative behind the face, far behind too
     both = _fit(*_sheet_cloud(0.4 * h))

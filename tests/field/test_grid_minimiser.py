@@ -37,11 +37,11 @@ def test_grid_minimiser_recovers_the_closed_form_potential():
 
 
 def test_zero_level_mesh_is_the_sphere():
-    from autodecoder.field.frame import Normalization
+    from datasets.frame import Frame
 
     targets = _sphere_targets()
     g, lo, delta, _ = grid_minimiser(targets, 25)
-    mesh = zero_level_mesh(g, lo, delta, Normalization.identity())
+    mesh = zero_level_mesh(g, lo, delta, Frame.identity())
     r = np.linalg.norm(mesh.vertices, axis=1)
     assert np.abs(r - 0.3).max() < delta / 4
     assert mesh.volume > 0  # outward faces: g > 0 is outside

@@ -330,7 +330,7 @@ def test_cli_calibrate_and_score_with_rays(tmp_path, capsys):
     calibrate --rays stores the ray record, score writes the two components and the ray maps; scans without an
     origin are refused in one line."""
     from autodecoder.field.stochastic_field import StochasticField
-    from autodecoder.field.frame import Normalization
+    from datasets.frame import Frame
     from autodecoder.field.networks import build_networks
     from datasets import Frame, ScanCollection, read_cloud
     from inspection.__main__ import main
@@ -357,7 +357,7 @@ def test_cli_calibrate_and_score_with_rays(tmp_path, capsys):
     config = {"width": 16, "depth": 1, "latent_dim": 0, "covariance": "feature", "features": 8, "omega0": 5.0,
               "lengthscale": 0.05, "box_lo": [-0.6] * 3, "box_hi": [0.6] * 3}
     torch.manual_seed(0)
-    field = StochasticField(*build_networks(config), Normalization.identity(), config, noise=0.01)
+    field = StochasticField(*build_networks(config), Frame.identity(), config, noise=0.01)
     model = tmp_path / "model.pt"
     save_reference_field(field, model, frame=frame, fingerprint=fp, train_names=names[:2],
                          heldback_names=names[2:6])
