@@ -13,6 +13,7 @@ from datasets.frame import Frame
 from autodecoder.field.losses import (covariance_dirichlet_loss_features, covariance_dirichlet_loss_pairs, mean_dirichlet_loss,
                      screening_loss, SCREENING_WEIGHT)
 from autodecoder.field.networks import build_networks
+from autodecoder.field.schedule import cosine_decay
 from autodecoder.field.targets import FIT_LENGTHSCALE_FACTOR, CloudTargets, default_lengthscale
 from datasets.validation import check_oriented_cloud
 
@@ -145,10 +146,6 @@ def even_pool_size(steps, size, passes):
     steps, size, passes = max(1, int(steps)), max(1, int(size)), max(1, int(passes))
     pools = math.ceil(steps / (size * passes))
     return max(1, min(size, math.ceil(steps / (pools * passes))))
-
-
-def _cosine_lr(step, total, fraction):
-    return fraction + (1 - fraction) * 0.5 * (1 + np.cos(np.pi * min(step / max(total, 1), 1.0)))
 
 
 class MeanPool:
@@ -418,7 +415,7 @@ def train_single(mean_net, cov_net, targets, options, rng, quiet=False, steps=No
     averaging = MeanAverager(mean_net, options.average_decay, start=steps // 2)
     bar = tqdm(range(steps), desc="fitting", disable=quiet, leave=False)
     for step in bar:
-        lr = options.lr * _cosine_lr(step, steps, options.final_lr_fraction)
+        lr = options.lr * cosine_decay(step, steps, options.final_lr_fraction)
         for opt in (opt_mean, opt_cov):
             for group in opt.param_groups:
                 group["lr"] = lr

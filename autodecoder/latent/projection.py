@@ -22,6 +22,7 @@ import torch
 
 from autodecoder.field.fit import FitOptions, train_single
 from autodecoder.field.sampling import Box
+from autodecoder.field.schedule import cosine_decay
 from autodecoder.field.targets import CloudTargets
 from datasets.normals import estimate_normals
 from datasets.validation import check_oriented_cloud, check_points, points_and_normals
@@ -245,7 +246,7 @@ def _project_batch(model, prepared, opts, seed):
     explore = min(opts.explore, opts.steps) if starts > 1 else 0
     for step in range(opts.steps):
         for grp in opt.param_groups:
-            grp["lr"] = opts.lr * (0.1 + 0.9 * 0.5 * (1 + np.cos(np.pi * step / max(opts.steps, 1))))
+            grp["lr"] = opts.lr * cosine_decay(step, opts.steps, 0.1)
         k = z.shape[1]
         xs, ns = subset(opts.sample)
         x = xs[:, None].expand(b, k, *xs.shape[1:]).reshape(b * k, -1, 3)

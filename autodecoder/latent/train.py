@@ -27,6 +27,7 @@ from autodecoder.latent.model import LATENT_FORMAT, LATENT_VERSION, LatentModel,
 from autodecoder.field.losses import SCREENING_WEIGHT, covariance_dirichlet_loss_features, mean_dirichlet_loss, screening_loss
 from autodecoder.field.networks import build_networks
 from autodecoder.field.sampling import Box
+from autodecoder.field.schedule import cosine_decay
 from autodecoder.latent.pools import ScanTargetPool, stack_inputs
 from datasets.atomic import atomic_path
 from datasets.frame import Frame
@@ -146,10 +147,6 @@ class _NetPair(nn.Module):
         cov_dir = covariance_dirichlet_loss_features(jac.view(s, m, 3, -1), sigma, weights)
         cov_scr = screening_loss(self.cov_net.variance(screen, z_screen.detach()), self.screening_weight)
         return torch.stack([mean_dir, mean_scr, cov_dir, cov_scr])
-
-
-def _cosine(step, total, fraction):
-    return fraction + (1 - fraction) * 0.5 * (1 + math.cos(math.pi * min(step / max(total, 1), 1.0)))
 
 
 def _dist():
@@ -349,7 +346,7 @@ def train_latent(scans, out=None, options=None, *, names=None, frame=None, finge
         sums = torch.zeros(6, dtype=torch.float64)
         for k in range(steps_per_epoch):
             step = epoch * steps_per_epoch + k
-            f = _cosine(step, total_steps, options.final_lr_fraction)
+            f = cosine_decay(step, total_steps, options.final_lr_fraction)
             for g in opt_nets.param_groups:
                 g["lr"] = options.lr * f
             for g in opt_codes.param_groups:

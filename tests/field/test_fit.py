@@ -380,3 +380,17 @@ def test_outside_term_closes_an_open_sheet():
     assert (boundary[0.0] < 0.5 * w).mean() > 0.3
     assert (boundary[100.0] < 0.5 * w).mean() < 0.01
     assert abs(np.median(boundary[100.0]) - w) < 0.15 * w
+
+
+def test_cosine_decay_closed_form():
+    """The one learning-rate schedule: 1 at the start, the floor at the end and after, (1 + floor) / 2 half-way,
+    never increasing."""
+    from autodecoder.field.schedule import cosine_decay
+
+    assert cosine_decay(0, 100, 0.1) == pytest.approx(1.0)
+    assert cosine_decay(50, 100, 0.1) == pytest.approx(0.55)
+    assert cosine_decay(100, 100, 0.1) == pytest.approx(0.1)
+    assert cosine_decay(250, 100, 0.1) == pytest.approx(0.1)
+    assert cosine_decay(0, 0, 0.3) == pytest.approx(1.0)
+    values = [cosine_decay(s, 37, 0.05) for s in range(40)]
+    assert all(a >= b for a, b in zip(values, values[1:]))
