@@ -197,8 +197,9 @@ def run(args):
 
 def main(argv=None):
     """Command-line entry point; returns the exit status (0 ok, 2 bad arguments or input files)."""
-    # OpenMP threads that spin while waiting make small torch problems ~50x slower on a shared machine; passive
-    # waiting costs nothing when the machine is idle. Only effective before torch is first imported.
+    # OpenMP threads that spin while waiting make small torch problems many times slower on a shared machine
+    # (docs/results.md#threads); passive waiting costs nothing when the machine is idle. Only effective before
+    # torch is first imported.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     try:
         args = _parse(argv)

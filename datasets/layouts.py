@@ -261,7 +261,8 @@ def remove_table_plane(grid, seed=0):
     border (where the table shows), every point within 5 mm of it removed, then the largest DBSCAN cluster (eps 6 mm,
     30 points) of what is left kept. On more than 5000 points DBSCAN runs on a seeded subset of 5000 (min_points scaled
     by its share) and the other points take their nearest subset point's cluster (within eps): at 6 mm, a full-size
-    map gives each point thousands of neighbours (20k points of 0.5 mm spacing: ~2 s a scan).
+    map gives each point thousands of neighbours, which makes DBSCAN on the full map slow (timing:
+    docs/results.md#import-timings).
 
     Parameters
     ----------

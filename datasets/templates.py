@@ -11,9 +11,9 @@ import numpy as np
 from .scan import Scan
 
 # Radius of hidden-point removal's spherical flip, in template diameters. open3d's tutorial uses 100, which is exact
-# on noise-free points but on a template with scanner noise (0.2 % of its diagonal) keeps about a third of what a
-# ray caster sees; 1000 keeps most of it, and the few points beyond the silhouette that a larger radius lets through
-# are removed by the back-face test in render_views (measured: docs/results.md).
+# on noise-free points but on a template with scanner noise keeps far less than a ray caster sees; 1000 keeps most
+# of it, and the few points beyond the silhouette that a larger radius lets through are removed by the back-face
+# test in render_views (docs/results.md#rendered-template-views-against-ray-casting).
 HPR_RADIUS_FACTOR = 1000.0
 MIN_VIEW_POINTS = 3
 

@@ -11,8 +11,8 @@ import logging
 import os
 import sys
 
-# Before torch loads: OpenMP threads that spin while waiting make torch 10-50x slower on a shared, oversubscribed CPU
-# (measured: a projection step 70 ms -> 4 ms on this 2-core machine under load 5). An explicit setting wins.
+# Before torch loads: OpenMP threads that spin while waiting make torch many times slower on a shared, oversubscribed
+# CPU (docs/results.md#threads). An explicit setting wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 

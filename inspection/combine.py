@@ -19,7 +19,7 @@ z_j = (s_j - mean_j) / sd_j. Two rules make one score of them:
   pulled down by ray noise of the good scans it is ranked against (unless a good scan's rays beat every
   calibration scan's by ``GATE_MARGIN`` (2) of their standard deviations: the largest of a few dozen good scans is
   a noisy estimate of how far good scans go, and on benchmarks/thin_walled.py's enclosure good test scans went
-  1-2 sd beyond it).
+  beyond it: docs/results.md#thin-walled-and-open-parts-issue-18-2026-11-23).
 * ``'max'``: c(s) = max_j z_j, a scan as anomalous as its most anomalous component: the union of the components'
   detections, like a Bonferroni combination of p-values, but continuous (conformal p-values stop at 1 / (n + 1)
   beyond the largest calibration score, so with a few dozen calibration scans a min-p (or Fisher) combination ties

@@ -7,7 +7,7 @@ summary.json, roc.png, scores.png, maps/).
 import time
 from pathlib import Path
 
-# Sizes measured to keep the whole demo under 5 minutes on a 2-core CPU (see the module docstring of run_demo).
+# Sizes chosen to keep the whole demo under 5 minutes on a 2-core CPU.
 DEMO_SIZES = dict(n_train=24, n_validation=10, n_test_good=8, n_test_defective=6, n_points=2500)
 QUICK_SIZES = dict(n_train=8, n_validation=4, n_test_good=4, n_test_defective=2, n_points=800)
 DEMO_EPOCHS = 120

@@ -15,9 +15,9 @@ log = logging.getLogger(__name__)
 
 DEFAULT_AGGREGATE = "top1"
 DEFAULT_POINT_SCORE = "residual"
-# Projection settings for inspection (autodecoder.latent.projection.ProjectionOptions fields): measured on fandisk, the
-# projection loss after 60 steps from the 2 best of 16 candidate starts matches the trainer's defaults (150 steps,
-# 4 of 64 starts) to 3 digits at ~1/10 of the time (see benchmarks/inspect_fandisk.py).
+# Projection settings for inspection (autodecoder.latent.projection.ProjectionOptions fields): a shorter run from fewer
+# starts than the trainer's defaults that reaches the same projection loss at a fraction of the time
+# (docs/results.md#latent-training-and-projection-cost).
 DEFAULT_PROJECTION = {"steps": 60, "starts": 2, "explore": 20, "max_candidates": 16}
 # rays per good scan of the ray reference (denser than a scan's inspection, which tests RAY_DEFAULTS["n_rays"])
 REFERENCE_RAYS = 1536
@@ -112,7 +112,7 @@ class Inspector(BaseEstimator):
     aggregate : str
         Per-scan aggregate of the point scores (:func:`inspection.scores.aggregate`): ``'top1'`` (default: mean of
         the worst 1 % of the points; chosen on benchmarks/inspect_fandisk.py, where it separated best: defects
-        cover 1.5-5 % of a scan's points, so the paper's ``'mean'`` dilutes them), ``'mean'`` (the paper's),
+        cover a few per cent of a scan's points, so the paper's ``'mean'`` dilutes them), ``'mean'`` (the paper's),
         ``'max'``, ``'median'``, ``'top<P>'``, ``'q<P>'``.
     point_score : {'residual', 'distance', 'local', 'nll'}
         Per-point score (:func:`inspection.scores.point_scores`): the standardized residual (default here, as it

@@ -93,10 +93,10 @@ class RayReference:
 
     A latent field of a partial scan is a one-sided Poisson field: negative everywhere behind the surface it saw.
     On an open or thin-walled part the cavity behind a sheet is "solid" to it, so the rays of GOOD scans that look
-    through the part's openings enter expected material too (benchmarks/thin_walled.py: every good scan of the
-    sheet-metal enclosure seen from above scored ~50 nats through its vent). Those rays enter where good rays
-    always do (the openings); a ray through a hole in the sheet enters at the sheet, where good rays end at the
-    surface instead. A tested ray whose entry point lies within ``radius`` of a good ray's entry point is
+    through the part's openings enter expected material too (benchmarks/thin_walled.py: good scans of the
+    sheet-metal enclosure seen from above score high through its vent; docs/results.md). Those rays enter where
+    good rays always do (the openings); a ray through a hole in the sheet enters at the sheet, where good rays end
+    at the surface instead. A tested ray whose entry point lies within ``radius`` of a good ray's entry point is
     explained by the reference, and its surprisal does not count.
 
     Parameters

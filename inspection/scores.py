@@ -44,8 +44,7 @@ def point_scores(field, points, kind="residual", noise=None, reference=None, nor
       ``'residual'`` or ``'nll'``, and no higher than the model's own error on good parts at a hard feature. d
       follows the depth while |grad m| >= the floor and then stays at |m| / floor: points off the field's shell
       are lifted by up to 1 / floor = 5 x relative to points near the mean surface (where |grad m| ~ 1), which is
-      where the defects are and good scans are not. (Measured on fandisk with ``benchmarks/inspect_fandisk.py``:
-      object AUROC 0.977 -> 0.994, missing material 0.938 -> 1.000.)
+      where the defects are and good scans are not (figures: docs/results.md#the-per-point-score).
 
     Parameters
     ----------
@@ -127,8 +126,8 @@ def grazing_factor(points, normals, origin):
     A range sensor's error grows where its ray grazes the surface: near silhouettes and sharp edges a depth error
     moves a point off the part's edge, and real sensors' spots smear there. The reference scores model it as noise
     that grows with this factor (:class:`LocalReference`). The scan's own normals are used (exact for synthetic
-    scans, estimated on import for scanner files): measured on the built-in part, the projected field's gradient,
-    which rounds sharp edges, found far fewer of the grazing points that set good scans' scores.
+    scans, estimated on import for scanner files): the projected field's gradient, which rounds sharp edges, finds
+    far fewer of the grazing points that set good scans' scores (docs/results.md#how-each-step-contributed).
     cos^2 is floored at ``GRAZING_COS2_FLOOR``.
 
     Parameters

@@ -20,22 +20,16 @@ from datasets.validation import check_oriented_cloud
 
 @dataclass
 class FitOptions:
-    """Optimisation settings of :func:`fit_cloud` (defaults measured on this 2-core CPU, see the README).
+    """Optimisation settings of :func:`fit_cloud` (defaults chosen for time and accuracy on a 2-core CPU).
 
-    Why many small steps: on fandisk (20k points, Chamfer of the mean surface / diagonal, 256^3 marching cubes,
-    ``benchmarks/fit_defaults.py`` and the README) the error falls with the number of Adam steps far more than with
-    the batch: 1000 steps of 4096 samples 0.90e-3, 2000 of 512 0.81e-3, 4000 of 512 0.72e-3, and width 64 does as
-    well as 128 at equal steps (4000 x 512: 0.74e-3 vs 0.72e-3). A step of width 64 on 256 samples is mostly
-    per-operation overhead (~12 ms on 2 cores, ~1/10 of a 4096-sample width-128 step), so 3000 such steps
-    (0.80e-3) fit in about a minute where 1000 large ones took 220 s. With the kernel lengthscale at 1.5 point
-    spacings (``fit_cloud``'s default) and a covariance step every 8: 3000 steps 0.71e-3, 3500 0.66e-3 in 49-53 s.
-    A covariance step costs ~44 ms against ~9 ms for a mean step (profiled on fandisk), so a covariance step every
-    16 buys 500 more mean steps in the same time: 4000 steps 0.62e-3 in 49-55 s (seed 1: 0.69e-3 against 0.77e-3
-    for 3500 steps with every 8), and the variance's Spearman with gpytoolbox's went 0.770 -> 0.781.
-
-    What limits the accuracy is this training, not the loss: the loss's exact minimiser on a grid
-    (``benchmarks/target_limit.py``) is within 1.31x open3d's Chamfer on fandisk, the 4000-step fit 2.25x, and
-    15000 steps (183 s) still 1.87x (README, "What limits the mean surface's accuracy").
+    Why many small steps: the error of the mean surface falls with the number of Adam steps far more than with the
+    batch, and width 64 does as well as 128 at equal steps; a step of width 64 on 256 samples is mostly
+    per-operation overhead, so many such steps fit in the time of a few large ones. A covariance step costs several
+    mean steps, so one every 16 buys more mean steps in the same time without a worse variance. What limits the
+    accuracy is this training, not the loss: the loss's exact minimiser on a grid
+    (:func:`autodecoder.field.grid_minimiser.grid_minimiser`) is much closer to open3d's reconstruction than the fit.
+    Figures: docs/results.md#single-cloud-fit-defaults-fandisk and #what-limits-the-mean-surface
+    (``benchmarks/fit_defaults.py``, ``benchmarks/target_limit.py``).
 
     Attributes
     ----------
@@ -43,11 +37,9 @@ class FitOptions:
         Adam steps of the mean net.
     covariance_every : int
         One covariance step every this many mean steps (``ceil(steps / covariance_every)`` in all). The mean's
-        surface needs many steps; a covariance step costs ~5 mean steps, and more of them do not bring the
+        surface needs many steps; a covariance step costs several mean steps, and more of them do not bring the
         variance closer to the GP's: the Dirichlet term fixes only c's mixed derivatives, so with long training the
-        variance drifts down everywhere (fandisk, 3000 mean steps, kernel at 2 spacings: Spearman with
-        gpytoolbox's SPSR variance 0.72 / 0.76 / 0.67 / 0.24 for a covariance step every 16 / 8 / 4 / 1 steps; at
-        1.5 spacings, 4000 steps every 16: 0.781).
+        variance drifts down everywhere (docs/results.md#single-cloud-fit-defaults-fandisk).
     lr : float
         Peak learning rate (cosine decay to ``lr * final_lr_fraction``).
     weight_decay : float
@@ -67,23 +59,22 @@ class FitOptions:
     refresh : int
         Minibatches in the mean-sample pool (the pool holds ``mean_batch * refresh`` samples).
     pool_passes : int
-        Shuffled passes over the mean-sample pool before it is redrawn. GP targets cost ~20 us a sample on this
-        CPU (a 256-sample minibatch ~40 % of a step); a pool served several times keeps that cost to a few per cent
-        while every pass is still an unbiased Monte-Carlo estimate of the loss (fandisk: 8 passes instead of 4,
-        51 s instead of 59 s, Chamfer/diagonal 0.79e-3 vs 0.80e-3).
+        Shuffled passes over the mean-sample pool before it is redrawn. GP targets are a large share of a small
+        step's cost; a pool served several times keeps that cost to a few per cent while every pass is still an
+        unbiased Monte-Carlo estimate of the loss (docs/results.md#single-cloud-fit-defaults-fandisk).
     pair_pool, pair_reuse : int
         Covariance batches kept in a pool, and how many steps each serves before it is redrawn (same reason).
     average_decay : float
         The mean net ends as an exponential moving average of its weights over the second half of the run
-        (:class:`MeanAverager`); 0 keeps the last iterate. Fandisk, Chamfer of the mean surface: 0.00613 -> 0.00577
-        (seed 0) and 0.00692 -> 0.00643 (seed 1) with 0.99; 0.995 gave the same as 0.99.
+        (:class:`MeanAverager`); 0 keeps the last iterate. 0.99 lowered fandisk's surface error on every seed
+        tried; 0.995 did no better (docs/results.md#single-cloud-fit-defaults-fandisk).
     outside_weight : float
         lambda_O of an optional boundary term lambda_O mean_{x on the box's surface} (g(x) - w)^2, w the value g
         takes outside a closed surface (:meth:`CloudTargets.outside_value`): Poisson reconstruction's Dirichlet
         condition, "the box's boundary is outside". 0 (default) is the paper's loss. Why: a partial scan is an open
         sheet that the paper's loss does not close, so far from the sheet g decays to the average of its inside and
-        outside values, 0, and the far field is the surface's own level, half solid (measured on a one-scan
-        fandisk field: the median of g on the box's surface 0.000, against +-0.06 one lengthscale off the sheet).
+        outside values, 0, and the far field is the surface's own level, half solid (on a one-scan fandisk field
+        the median of g on the box's surface is 0: docs/results.md#scanning-partial-scan-fields-and-next-best-view).
         The term closes the sheet the way Poisson reconstruction does, which next-best-view needs to cast rays
         through empty space.
     """
@@ -341,12 +332,12 @@ def fit_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, width=64
         Seeds every random draw and the network initialisation.
     lengthscale : float, optional
         Kernel lengthscale in the cloud's units (default: 1.5 x the point spacing, ``FIT_LENGTHSCALE_FACTOR`` of
-        ``autodecoder.field.targets``, where it is measured; see also ``default_lengthscale``).
+        ``autodecoder.field.targets``, where the choice is explained; see also ``default_lengthscale``).
     noise : float, optional
         Default measurement noise (cloud units) of :meth:`StochasticField.nll`; default: the RMS of the fitted
         mean at the cloud's points (how far the surface misses them).
     width, depth : int
-        SIREN size of both nets (the paper's is 512 x 5; 64 x 3 measured best for time on 2 cores, see
+        SIREN size of both nets (the paper's is 512 x 5; 64 x 3 is the best for time on 2 cores, see
         :class:`FitOptions`).
     covariance : {'feature', 'pair'}
         Covariance architecture: a feature map phi(a).phi(b) (default, far cheaper) or the paper's symmetrised
@@ -394,7 +385,8 @@ def fit_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, width=64
 
 
 def _adam(parameters, options):
-    # the fused kernel updates all tensors in one call: ~10 % of a small step's time goes to the per-tensor loop
+    # the fused kernel updates all tensors in one call: the per-tensor loop is a visible share of a small step's time
+    # (docs/results.md#single-cloud-fit-defaults-fandisk)
     return torch.optim.Adam(parameters, lr=options.lr, weight_decay=options.weight_decay, fused=True)
 
 

@@ -6,10 +6,9 @@ from autodecoder.field.gp_targets import GPPosterior
 from autodecoder.field.sampling import Box, sample_mean_targets, sample_pair_clusters
 
 DEFAULT_LENGTHSCALE_FACTOR = 2.0
-# fit_cloud's own default (one dense cloud): a sharper posterior mean that its 4000 Adam steps can still follow.
-# Fandisk, 20k points, Chamfer of the mean surface / diagonal at 3000 steps (seed 0): factor 1 8.4e-4, 1.25 7.3e-4,
-# 1.5 7.1e-4, 2 7.6e-4; at 3500 steps, seed 1: 1.5 7.7e-4, 2 8.1e-4 (benchmarks/fit_defaults.py, fandisk.py). Latent
-# training over many partial scans keeps DEFAULT_LENGTHSCALE_FACTOR (its inspection figures were measured with it).
+# fit_cloud's own default (one dense cloud): a sharper posterior mean that its 4000 Adam steps can still follow; the
+# lowest surface error of the factors tried (docs/results.md#single-cloud-fit-defaults-fandisk). Latent training over
+# many partial scans keeps DEFAULT_LENGTHSCALE_FACTOR (its inspection figures were measured with it).
 FIT_LENGTHSCALE_FACTOR = 1.5
 MIN_LENGTHSCALE = 0.004  # in the unit-cube frame: finer than a SIREN of the default size can resolve anyway
 

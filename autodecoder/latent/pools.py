@@ -1,7 +1,8 @@
 """Per-scan pools of GP posterior targets for latent training, drawn once and served for several epochs.
 
 Drawing fresh GP targets (KD-tree queries, sparse kernel rows, the pair covariance matrices) cost about as much as the
-network's forward and backward pass in a latent training step on a 2-core CPU (measured: 45 % of a step). A scan's
+network's forward and backward pass in a latent training step on a 2-core CPU
+(docs/results.md#latent-training-and-projection-cost). A scan's
 targets are the same distribution at every epoch, so a pool of them is drawn once and each sample serves
 ``passes`` epochs (in a fresh shuffled order each pass), which takes target sampling to a small fraction of a step.
 

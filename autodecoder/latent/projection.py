@@ -30,7 +30,8 @@ from datasets.validation import check_oriented_cloud, check_points, points_and_n
 
 @dataclass
 class ProjectionOptions:
-    """Settings of :func:`project` (defaults measured on a 2-core CPU, see the README).
+    """Settings of :func:`project` (defaults chosen for inspection on a 2-core CPU; see inspection.estimator's
+    DEFAULT_PROJECTION and docs/results.md#latent-training-and-projection-cost).
 
     Attributes
     ----------

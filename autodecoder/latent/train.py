@@ -33,9 +33,8 @@ from datasets.atomic import atomic_path
 from datasets.frame import Frame
 from autodecoder.field.targets import DEFAULT_LENGTHSCALE_FACTOR, MIN_LENGTHSCALE, CloudTargets, point_spacing
 
-# Optimisation steps the default epoch count aims at: on fandisk (26 partial scans, batch 8, 4 steps an epoch) the
-# inspection AUROC rose from 0.89 (400 steps) over 0.96 (1,200) to 0.977 (2,400; benchmarks/inspect_fandisk.py,
-# 'local' score); the loss was still falling slowly there.
+# Optimisation steps the default epoch count aims at: on fandisk the inspection AUROC still rose up to this budget,
+# with the loss falling slowly (docs/results.md#latent-training-and-projection-cost).
 DEFAULT_STEPS = 2400
 MIN_DEFAULT_EPOCHS, MAX_DEFAULT_EPOCHS = 150, 600
 
@@ -45,7 +44,8 @@ LOG_COLUMNS = ("epoch", "loss", "mean_dirichlet", "mean_screening", "cov_dirichl
 
 @dataclass
 class LatentOptions:
-    """Architecture and optimisation settings of :func:`train_latent` (defaults measured, see the README).
+    """Architecture and optimisation settings of :func:`train_latent` (defaults chosen on the benchmarks; see
+    docs/results.md).
 
     Attributes
     ----------
@@ -71,7 +71,8 @@ class LatentOptions:
     target_refresh, target_passes : int
         Each scan's mean-loss samples are drawn ``target_refresh`` epochs' worth at a time and each serves
         ``target_passes`` epochs; each covariance batch serves ``target_passes`` epochs (1, 1: fresh targets every
-        epoch). Drawing GP targets cost ~45 % of a step on a 2-core CPU; reuse takes that to a few per cent.
+        epoch). Drawing GP targets is a large share of a step; reuse takes that to a few per cent
+        (docs/results.md#latent-training-and-projection-cost).
     code_reg : float
         lambda of the code prior lambda * |z|^2 (per scan, averaged over the batch).
     code_init_std : float

@@ -20,9 +20,9 @@ Which samples of a ray are tested
 * **End, for a returned point p** (:func:`blocked_probability`): the last *clearly outside* sample before p, where
   E f >= ``outside_sigma`` sd f (default 2), or ``own_depth`` before p, whichever comes later. Between that end and
   p lies the point's own surface, left out however far the field's mean surface sits from p up to ``own_depth``:
-  the latent fields are not distances (E f saturates at ~1-2 % of the part's size a short way off the surface) and
-  their mean surface sits up to a few lengthscales off good points at features the projection cannot follow
-  (fandisk, 1 % of the points), as deep as a pit. Without the depth limit (``own_depth=None``) the test is only for
+  the latent fields are not distances (E f saturates a short way off the surface) and their mean surface sits up
+  to a few lengthscales off good points at features the projection cannot follow, as deep as a pit
+  (docs/results.md#free-space-along-the-sensors-rays). Without the depth limit (``own_depth=None``) the test is only for
   material *separated from the point by free space*; that misses the case the rays exist for on thin-walled parts
   (benchmarks/thin_walled.py): seen through a hole in a sheet, a point on the far side of a cavity lies deep inside
   what a one-sided view's field calls solid (a partial scan's Poisson field is negative everywhere behind the
@@ -34,9 +34,8 @@ Which samples of a ray are tested
 * **End, for a ray with no return** (:func:`missing_return_probability`): where the ray leaves the box.
 * **Observed surfaces.** Given the scan's points (``observed``), samples within ``clearance`` (default the kernel
   lengthscale) of any of them are left out: material next to a surface the scan saw is that surface, blurred by the
-  field's resolution. Measured on a thin-walled box: rays that graze the rim of a wall on their way to the far
-  wall pass through the field's rounded rim, 5 sd deep, on every good scan; a hole's middle is more than a
-  lengthscale from its rim.
+  field's resolution. Rays that graze the rim of a wall on their way to the far wall pass through the field's
+  rounded rim, many sd deep, on good scans; a hole's middle is more than a lengthscale from its rim.
 
 How the probability is computed
 -------------------------------
@@ -50,7 +49,7 @@ How the probability is computed
    P(blocked) (1 - P(blocked) cancels to 0 for rays through material many sd deep), floored at log(1e-300).
 
 Cost: one mean and one variance evaluation per dense sample, plus n_select (n_select + 1) / 2 covariance pairs per
-ray above the floor; 384 rays of a latent model take ~0.2 s on one CPU core.
+ray above the floor (timings: docs/results.md#free-space-along-the-sensors-rays).
 """
 import math
 from dataclasses import dataclass

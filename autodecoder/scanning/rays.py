@@ -29,21 +29,13 @@ Cholesky factor, so autograd gives low-variance pathwise gradients (gradcheck pa
 O(B N K^2). Deterministic alternatives kept for comparison: ``"bivariate"`` (sequential Mendell-Elston
 conditioning with the step f_{k-1} -> f_k done with the exact bivariate normal CDF, exact for K = 2, for rho = 1
 and for independent samples), ``"me"`` (plain Mendell-Elston) and ``"independent"`` (stochastic PSR's product of
-marginals). Measured max |S_K - scipy.stats.multivariate_normal.cdf| (mean in brackets), 100 cases per K, means
-~ N(0.5, 1) sd, "random": covariances A A^T + 0.1 I; "ray": squared-exponential kernels on K evenly spaced samples
-with lengthscale 0.1..2 x the segment (near singular, correlations -> 1, the ray case)::
-
-    K  kind     genz N=512         genz N=2048        bivariate          me                 independent
-    4  random   8.2e-4 (6.5e-5)    1.3e-4 (1.2e-5)    2.4e-2 (1.7e-3)    2.4e-2 (2.2e-3)    1.3e-1 (3.4e-2)
-    8  random   2.7e-3 (1.6e-4)    7.8e-4 (6.6e-5)    6.4e-3 (6.4e-4)    6.4e-3 (6.6e-4)    1.1e-1 (1.3e-2)
-    4  ray      4.7e-3 (6.3e-4)    1.8e-3 (2.6e-4)    3.9e-2 (3.3e-3)    4.5e-2 (9.1e-3)    3.1e-1 (1.3e-1)
-    8  ray      1.2e-2 (2.2e-3)    5.7e-3 (1.1e-3)    4.8e-2 (8.9e-3)    4.4e-2 (1.1e-2)    4.2e-1 (1.2e-1)
-
-(scipy itself agreed with 4e5-sample Monte Carlo within 1.7e-3 on the K = 6 ray cases.) The deterministic
-conditioning approximations err by up to ~5e-2 on the near-singular ray covariances, which is why they are not
-the default; the marginal product is wrong by up to 0.4 there (the paper's point). The paper's didactic segment
-(K = 32 samples, mean 0.1, sd 1, correlation 0.9999; S_K should stay near P(f > 0) = 0.540): genz 0.532,
-bivariate 0.534, me 0.429 (moment matching the hard truncation at every step leaks), independent 1e-9.
+marginals). Genz is the default because it stays accurate on the near-singular covariances of samples along a
+ray (correlations -> 1), where the deterministic conditioning approximations err by a few per cent and the
+marginal product is wrong outright (the paper's point); on the paper's didactic segment (K = 32 samples, mean 0.1,
+sd 1, correlation 0.9999, where S_K should stay near P(f > 0)) Genz and the bivariate conditioning stay close, plain
+Mendell-Elston leaks (moment matching the hard truncation at every step) and the product collapses to ~0. Errors
+against scipy's MVN CDF, method by method: docs/results.md#orthant-probabilities-accuracy-of-the-methods
+(the tests' tolerances are set from them).
 """
 from dataclasses import dataclass
 

@@ -15,30 +15,26 @@ weighted by how new its expected hit point is,
     novelty(x_hat) = 1 - exp(-d(x_hat)^2 / (2 s^2)),     d = distance to the nearest measured point,
 
 with s one kernel support (2 lengthscales, the unit the integration box's margin is counted in). Why: the learned
-covariance of a field fitted to one scan keeps a large floor on the surface it has seen (measured on fandisk: the
-variance there is only ~1.4x below the variance on the unseen side, with the spreads overlapping), so the variance
-alone ranks a camera that re-measures the seen side barely below one that looks at the unseen side. (The floor is
-the covariance net's: its loss fixes only the mixed derivatives of c, and the screening term that pins c(p, p) to 0
+covariance of a field fitted to one scan keeps a large floor on the surface it has seen (on fandisk the variance
+there is barely below the variance on the unseen side, with the spreads overlapping), so the variance alone ranks
+a camera that re-measures the seen side barely below one that looks at the unseen side. (The floor is the
+covariance net's: its loss fixes only the mixed derivatives of c, and the screening term that pins c(p, p) to 0
 is small at the covariance's scale; ``FitOptions.covariance_screening_weight`` strengthens it.) A new scan
 of surface already measured within a kernel support adds nothing the fit can use; the factor says so explicitly,
 and leaves the variance to rank the cameras that do look at new surface.
 
 Fit the fields of partial scans with ``fit_cloud(..., outside_weight=100, lengthscale=2 * point_spacing(points))``
-(:class:`autodecoder.field.fit.FitOptions`, :func:`autodecoder.field.targets.point_spacing`; the figures here use a kernel of 2
-point spacings: with ``fit_cloud``'s default 1.5 next-best-view chose worse views, mean Chamfer over views 2-6 on
-seeds 0 / 1 0.070 / 0.054 against 0.041 / 0.045, ``benchmarks/next_view.py --h-factor 1.5``). The boundary term:
-the paper's loss leaves an open sheet unclosed, so far from one scan the mean sits at the surface's own level, every
-ray "hits" empty space at once, and the score ranks cameras by the variance of that empty space (fandisk, one-scan
-fields of ``benchmarks/view_score.py``, Spearman of score and oracle coverage gain, seeds 0-3: 0.49, 0.45, -0.25,
-0.28 with the paper's loss; 0.44, 0.17, 0.51, 0.54 with the boundary term; in ``benchmarks/next_view.py`` it
-halved next-best-view's mean Chamfer over views 2-6, averaged over seeds 0-3: 0.090 -> 0.045).
+(:class:`autodecoder.field.fit.FitOptions`, :func:`autodecoder.field.targets.point_spacing`): with ``fit_cloud``'s
+default kernel of 1.5 point spacings next-best-view chose worse views. The boundary term: the paper's loss leaves an
+open sheet unclosed, so far from one scan the mean sits at the surface's own level, every ray "hits" empty space at
+once, and the score ranks cameras by the variance of that empty space; with the term the score ranks cameras by
+the surface they would add.
 
-What limits the ranking is the score, not the learned variance (``benchmarks/view_score.py --spsr``, same fields):
-the learned variance agrees with gpytoolbox's stochastic Poisson variance of the same scan (Spearman 0.71-0.76 on
-its grid), and with that exact variance in its place the score ranks cameras about as well (Spearman with the gain,
-seeds 0-3: 0.44, 0.29, 0.60, 0.53 against 0.44, 0.17, 0.51, 0.54), while P(hit) x novelty with no variance at all
-ranks them better (0.58, 0.44, 0.70, 0.67). The default score's best cameras lay 83-112 degrees from the first
-view (P(hit) x novelty's: 112-168), while the most new surface lies opposite it (oracle gain 0.78-0.92 at 135-180).
+What limits the ranking is the score, not the learned variance: the learned variance agrees with gpytoolbox's
+stochastic Poisson variance of the same scan, and with that exact variance in its place the score ranks cameras
+about as well, while P(hit) x novelty with no variance at all ranks them better; the score's best cameras lie at a
+right angle to the first view, while the most new surface lies opposite it. Figures (``benchmarks/next_view.py``,
+``benchmarks/view_score.py``): docs/results.md#scanning-partial-scan-fields-and-next-best-view.
 
 The optimiser (:func:`next_best_views`) maximises the score by Adam from many starts on a sphere around the part
 (the global multi-start the paper recommends; optionally the starts are the best of a larger set of random
@@ -200,8 +196,8 @@ def far_field_inside_fraction(field, n=512, threshold=0.25, seed=0):
 
     The box's boundary should be outside the part. A field fitted to a partial scan with the paper's loss
     (``FitOptions.outside_weight=0``) leaves the scanned sheet open, so far from it the mean sits at the surface's
-    own level and about half of the boundary is likely "inside" (one-scan fandisk: median mean on the boundary 0.000);
-    rays through such a field hit empty space. A closed cloud, or one fitted with the boundary term, gives ~0.
+    own level and about half of the boundary is likely "inside" (the median of the mean there is 0); rays through
+    such a field hit empty space. A closed cloud, or one fitted with the boundary term, gives ~0.
 
     Parameters
     ----------
@@ -279,15 +275,13 @@ def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), 
         Random cameras scored (one pass, no gradient, a fraction of an ascent step each) to choose the starts
         from; default ``starts`` (plain random starts). A local ascent moves a camera a few tens of degrees at
         most, so on a toy field the screened starts find the high-variance side without any ascent step. On
-        fandisk's one-scan fields it did not help (``benchmarks/next_view.py --candidates 48``, four seeds): cameras
-        on quite different sides score within ~15 % of each other (seed 2: 7.4e-4 at 23 degrees from the first
-        view, 6.9e-4 at 85), the maximiser is sometimes a near repeat of the first view, and a wider search then
-        picks worse views; the score, not the search, is the weak part.
+        fandisk's one-scan fields it did not help: cameras on quite different sides score nearly alike, the
+        maximiser is sometimes a near repeat of the first view, and a wider search then picks worse views; the
+        score, not the search, is the weak part (docs/results.md#scanning-partial-scan-fields-and-next-best-view).
     hit_summary : {'expected-point', 'distribution'}
         See :func:`camera_score`. The paper's 'expected-point' stays the default: on fandisk the distribution
-        chose worse views (``benchmarks/next_view.py --hit-summary distribution``, fields fitted with the paper's
-        loss, mean Chamfer over views 2-6: seed 0 0.154 vs 0.081, seed 1 0.085 vs 0.067) and ranked cameras no
-        better (``benchmarks/view_score.py``).
+        chose worse views and ranked cameras no better
+        (docs/results.md#scanning-partial-scan-fields-and-next-best-view).
 
     Returns
     -------

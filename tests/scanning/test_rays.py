@@ -33,7 +33,7 @@ def scipy_orthant(mean, cov):
                      for m, C in zip(mean, cov)])
 
 
-# Tolerances: ~2x the largest error measured over 100 cases per K (see the table in autodecoder/scanning/rays.py);
+# Tolerances: ~2x the largest error measured over 100 cases per K (docs/results.md, "Orthant probabilities");
 # scipy's own error (abseps 1e-4, for speed) is far below them.
 @pytest.mark.parametrize("kind,tol", [("random", 5e-3), ("ray", 2.5e-2)])
 def test_genz_matches_scipy_mvn_cdf(kind, tol):
