@@ -302,14 +302,12 @@ def _figure(path, scan, field, evidence, site, frame, mesh):
     import trimesh
     from scipy.special import ndtr
 
-    from autodecoder.scanning.free_space import _field_lengthscale
-
     center, radius = np.asarray(site["center"]), float(site["radius"])
     center_file = frame.to_file(center)
     _, _, face = trimesh.proximity.closest_point(mesh, center_file[None])
     normal = np.asarray(mesh.face_normals[face[0]], dtype=np.float64)
     origin = np.asarray(scan.sensor_origin, dtype=np.float64)
-    h = _field_lengthscale(field)
+    h = field.lengthscale
     # the plane through the hole's centre spanned by the sheet's normal and the direction to the sensor
     towards = origin - center
     e2 = towards - (towards @ normal) * normal

@@ -6,6 +6,7 @@ from typing import Optional
 
 import numpy as np
 import torch
+from torch.optim.swa_utils import AveragedModel
 from tqdm.auto import tqdm
 
 from autodecoder.field.stochastic_field import StochasticField
@@ -211,7 +212,8 @@ class MeanAverager:
 
     The last iterate of a stochastic run carries the noise of its last minibatches: on fandisk the mean surface's
     offset from the true surface is smooth over about one kernel lengthscale, the signature of that noise. An
-    average of the late iterates removes part of it at the cost of one in-place lerp per step.
+    average of the late iterates removes part of it at the cost of one in-place lerp per step
+    (``torch.optim.swa_utils.AveragedModel`` with this schedule as its ``avg_fn``).
 
     Averaging starts at ``start`` (earlier iterates are far from the final one) with the warm-up decay
     ``min(decay, (1 + k) / (10 + k))`` after k averaged steps, so that a short run (a fine-tune of a few steps)
@@ -227,28 +229,32 @@ class MeanAverager:
     """
 
     def __init__(self, net, decay, start):
-        self.params, self.decay, self.start = list(net.parameters()), float(decay), int(start)
-        self.average = None
-        self.count = 0
+        self.net, self.decay, self.start = net, float(decay), int(start)
+        self._averaged = None  # torch.optim.swa_utils.AveragedModel, made at the first averaged step
+
+    def _ema(self, average, current, n_averaged):
+        # n_averaged: steps averaged before this one (>= 1); the warm-up decay of the class docstring
+        decay = min(self.decay, (1 + float(n_averaged)) / (10 + float(n_averaged)))
+        return average.lerp_(current, 1 - decay)
 
     def update(self, step):
         if self.decay <= 0 or step < self.start:
             return
-        with torch.no_grad():
-            if self.average is None:
-                self.average = [p.detach().clone() for p in self.params]
-            else:
-                decay = min(self.decay, (1 + self.count) / (10 + self.count))
-                for avg, p in zip(self.average, self.params):
-                    avg.lerp_(p, 1 - decay)
-        self.count += 1
+        if self._averaged is None:  # copies the net: the first averaged step is the average
+            self._averaged = AveragedModel(self.net, avg_fn=self._ema, use_buffers=False)
+        self._averaged.update_parameters(self.net)
+
+    @property
+    def average(self):
+        """The averaged parameters (list of tensors, the net's order), or None before the first averaged step."""
+        return None if self._averaged is None else list(self._averaged.module.parameters())
 
     def apply(self):
         """Copy the average into the net (no-op when nothing was averaged)."""
-        if self.average is None:
+        if self._averaged is None:
             return
         with torch.no_grad():
-            for p, avg in zip(self.params, self.average):
+            for p, avg in zip(self.net.parameters(), self._averaged.module.parameters()):
                 p.copy_(avg)
 
 

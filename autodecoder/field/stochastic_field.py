@@ -14,6 +14,7 @@ import torch
 from autodecoder.field.checkpoint_io import atomic_torch_save, load_torch_file
 from datasets.frame import Frame
 from autodecoder.field.networks import build_networks
+from autodecoder.field.protocol import Field
 from datasets.validation import check_points
 
 FIELD_FORMAT = "nsspr-field"
@@ -22,7 +23,7 @@ _CHUNK = 65536
 _MIN_VARIANCE = 1e-20
 
 
-class StochasticField:
+class StochasticField(Field):
     """A Gaussian process f over space given by a mean net g and a covariance net c (optionally with a code z).
 
     Parameters
@@ -85,6 +86,12 @@ class StochasticField:
     def torch_variance(self, x):
         """Var f(x) for world points (m, 3) -> (m,)."""
         return self.cov_net.variance(self._model_x(x), self._code_for(x)) / self.frame.scale**2
+
+    @property
+    def lengthscale(self):
+        """The GP kernel lengthscale of the fit, world units (None for a config without one)."""
+        h = self.config.get("lengthscale")
+        return None if h is None else float(h) / self.frame.scale
 
     @property
     def bounds(self):

@@ -270,7 +270,7 @@ def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), 
         ``training_points`` when it carries them (else no factor); None: the variance alone.
     observed_scale : float, optional
         s of the novelty factor, world units; default one kernel support, 2 x the field's kernel lengthscale
-        (``field.config['lengthscale']`` in the model frame, divided by the normalisation's scale).
+        (``field.lengthscale``, world units).
     candidates : int, optional
         Random cameras scored (one pass, no gradient, a fraction of an ascent step each) to choose the starts
         from; default ``starts`` (plain random starts). A local ascent moves a camera a few tens of degrees at
@@ -298,7 +298,7 @@ def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), 
     if isinstance(observed, str):
         if observed != "auto":
             raise ValueError(f"observed must be points, 'auto' or None, got {observed!r}")
-        observed = getattr(field, "training_points", None)
+        observed = field.training_points
     if observed is not None:
         observed = torch.as_tensor(np.asarray(observed, dtype=np.float32))
         if observed.ndim != 2 or observed.shape[1] != 3 or len(observed) == 0:
@@ -306,11 +306,10 @@ def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), 
         if not torch.isfinite(observed).all():
             raise ValueError("observed points contain NaN or infinite coordinates")
         if observed_scale is None:
-            config, norm = getattr(field, "config", None), getattr(field, "frame", None)
-            if config is None or "lengthscale" not in config or norm is None:
+            if field.lengthscale is None:
                 raise ValueError("observed_scale is needed for a field without a kernel lengthscale")
-            observed_scale = 2.0 * float(config["lengthscale"]) / float(norm.scale)
-    if hasattr(field, "prob_inside") and hasattr(field, "bounds"):
+            observed_scale = 2.0 * field.lengthscale
+    if field.bounds is not None:
         inside = far_field_inside_fraction(field)
         if inside > HALF_SOLID_FRACTION:
             warnings.warn(f"{inside:.0%} of the field's box boundary is likely inside the part (P(f <= 0) > 0.25): "

@@ -6,6 +6,7 @@ import trimesh
 from datasets.defects import make_defect
 from datasets.parts import BUILTIN_PARTS, load_part, open_cup, sheet_enclosure
 from datasets.scanner import VirtualScanner
+from autodecoder.field.protocol import Field
 
 WALL = 1.5  # both parts' default sheet thickness, mm
 
@@ -170,13 +171,13 @@ def test_fitted_mean_changes_sign_across_a_sheet_seen_from_one_side_only():
 
 
 # ---------------------------------------------------------------------------------------------- rays through a sheet
-class OneSidedSheetField:
+class OneSidedSheetField(Field):
     """The field of a flat sheet z = 0 seen from above, as a partial scan's latent field is: E f = clip(z, -a, a)
     (solid everywhere below the sheet), sd constant; box [-1, 1]^3; kernel lengthscale 0.02."""
 
     def __init__(self, a=0.02, sd=0.004, ell=0.05):
         self.a, self.sd, self.ell = a, sd, ell
-        self.config = {"lengthscale": 0.02}
+        self.lengthscale = 0.02
         self.bounds = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 
     def torch_mean(self, x):

@@ -394,3 +394,29 @@ def test_cosine_decay_closed_form():
     assert cosine_decay(0, 0, 0.3) == pytest.approx(1.0)
     values = [cosine_decay(s, 37, 0.05) for s in range(40)]
     assert all(a >= b for a, b in zip(values, values[1:]))
+
+
+def test_mean_averager_is_the_warmed_up_exponential_average_of_the_late_iterates():
+    """MeanAverager against the recursion written out by hand: nothing before ``start``, the first averaged iterate
+    copied, then a <- d_k a + (1 - d_k) p with d_k = min(decay, (1 + k) / (10 + k)) after k averaged steps."""
+    from autodecoder.field.fit import MeanAverager
+
+    net = torch.nn.Linear(2, 1)
+    averager = MeanAverager(net, decay=0.5, start=3)
+    values = np.random.default_rng(0).normal(size=(12, 3))
+    expected, k = None, 0
+    for step, v in enumerate(values):
+        with torch.no_grad():
+            net.weight.copy_(torch.tensor(v[:2]).reshape(1, 2))
+            net.bias.copy_(torch.tensor(v[2:]))
+        averager.update(step)
+        if step >= 3:
+            if expected is None:
+                expected = v.copy()
+            else:
+                d = min(0.5, (1 + k) / (10 + k))
+                expected = d * expected + (1 - d) * v
+            k += 1
+    averager.apply()
+    np.testing.assert_allclose(np.concatenate([net.weight.detach().numpy().ravel(), net.bias.detach().numpy()]),
+                               expected, rtol=1e-6)

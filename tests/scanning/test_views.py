@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from autodecoder.scanning.views import camera_rays, camera_score, next_best_views
+from autodecoder.field.protocol import Field
 from tests.scanning.toy_fields import Sphere
 
 
@@ -146,7 +147,7 @@ def test_distribution_summary_is_the_hit_weighted_variance_along_the_rays():
         camera_score(field, p, -p, center, radius, hit_summary="mode", **kw)
 
 
-class TwoSheets:
+class TwoSheets(Field):
     """Toy field in z only, seen from +z: a sheet at z = 1 that the ray hits with probability ~1/2 (mean 0 there,
     small sd) and a sure surface at z = -1; the empty space between them (z ~ 0) has a large variance.
 

@@ -2,8 +2,10 @@
 import numpy as np
 import torch
 
+from autodecoder.field.protocol import Field
 
-class Sphere:
+
+class Sphere(Field):
     """Toy field: f = |x| - 1, std 0.1 (1 + x_0) / 2 + 0.02, squared-exponential correlation (lengthscale 0.3)."""
 
     def __init__(self, dtype=torch.float64):
