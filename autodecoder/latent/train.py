@@ -23,7 +23,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from autodecoder.latent.model import LATENT_FORMAT, LATENT_VERSION, LatentModel, code_statistics, save_checkpoint
+from autodecoder.latent.model import (LATENT_FORMAT, LATENT_VERSION, LatentModel, code_statistics, read_checkpoint,
+                                      save_checkpoint)
 from autodecoder.field.losses import SCREENING_WEIGHT, covariance_dirichlet_loss_features, mean_dirichlet_loss, screening_loss
 from autodecoder.field.networks import build_networks
 from autodecoder.field.sampling import Box
@@ -397,6 +398,193 @@ def train_latent(scans, out=None, options=None, *, names=None, frame=None, finge
     if state is None:  # nothing left to train (resumed a finished run)
         state = checkpoint_state(start_epoch)
     return LatentModel(state, os.fspath(out) if out is not None else "<trained>")
+
+
+# ---- training over a collection file: what ``train_latent.py`` runs ---------------------------------------------
+class TrainingInputError(ValueError):
+    """A problem with what a training run was given (the collection, the checkpoint to write or resume, the device);
+    the message names the file. ``train_latent.py`` prints it as one line and exits with status 2."""
+
+
+def split_training_scans(collection, split="train", calibration_fraction=0.2, seed=0):
+    """(training indices, calibration names) of a collection: the one rule for holding scans back.
+
+    The good (or unlabelled) scans of ``split`` are trained on. Calibration scans: the good scans of the
+    'validation' split when there are any; otherwise ``calibration_fraction`` of the training scans, drawn with
+    ``seed``, held back from training. Every way of training (``train_latent.py``, :func:`train_collection`,
+    ``inspection.training.train_model``) uses this rule, and the checkpoint records its choice
+    (``calibration_names``), which is what inspection calibrates on.
+
+    Parameters
+    ----------
+    collection : datasets.ScanCollection
+        An open collection.
+    split : str
+    calibration_fraction : float in [0, 1)
+    seed : int
+
+    Returns
+    -------
+    train : list of int
+        Collection indices, ascending.
+    calibration : list of str
+        Collection names.
+
+    Raises
+    ------
+    TrainingInputError
+        No good scans in ``split``, or none left to train on.
+    """
+    candidates = collection.select(split=split, label=("good", "unknown"))
+    if not candidates:
+        raise TrainingInputError(f"{collection.path}: no good scans in split {split!r}")
+    names = collection.names
+    validation = collection.select(split="validation", label="good") if split != "validation" else []
+    if validation:
+        return candidates, [names[i] for i in validation]
+    n_hold = int(round(calibration_fraction * len(candidates)))
+    if len(candidates) - n_hold < 1:
+        raise TrainingInputError(f"{collection.path}: {len(candidates)} good scans in split {split!r} leave none to "
+                                 f"train on after holding back {n_hold} for calibration (lower the calibration "
+                                 f"fraction)")
+    order = np.random.default_rng(seed).permutation(len(candidates))
+    held = sorted(candidates[i] for i in order[:n_hold])
+    train = sorted(candidates[i] for i in order[n_hold:])
+    return train, [names[i] for i in held]
+
+
+class _CollectionScans:
+    """A lazy sequence of some scans of an open collection (reads a scan when indexed)."""
+
+    def __init__(self, collection, indices):
+        self.collection, self.indices = collection, list(indices)
+        all_names = collection.names
+        self.names = [all_names[i] for i in self.indices]
+
+    def __len__(self):
+        return len(self.indices)
+
+    def __getitem__(self, k):
+        return self.collection[self.indices[k]]
+
+
+def setup_distributed(device="auto"):
+    """Initialise torch.distributed from torchrun's environment (``WORLD_SIZE`` > 1; gloo on CPU, nccl on CUDA).
+
+    Returns (torch.device, initialised here?): the caller destroys the process group it initialised.
+    ``device``: 'auto' (cuda when available), 'cpu' or 'cuda'.
+    """
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "cuda" and not torch.cuda.is_available():
+        raise TrainingInputError("device cuda: no CUDA device is available")
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return torch.device(device), False
+    import torch.distributed as dist
+
+    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+    if device == "cuda":
+        torch.cuda.set_device(local_rank)
+        device = torch.device("cuda", local_rank)
+    else:
+        device = torch.device("cpu")
+    if not dist.is_initialized():
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+        return device, True
+    return device, False
+
+
+def train_collection(data, out, *, split="train", calibration_fraction=0.2, resume=False, overwrite=False,
+                     device="auto", quiet=False, **options):
+    """Train a latent model over the good scans of a collection file and write its checkpoint (``train_latent.py``).
+
+    The scans to hold back for calibration are chosen by :func:`split_training_scans`; the checkpoint records them.
+    Under torchrun (``WORLD_SIZE`` > 1) each process trains its share (:func:`train_latent`).
+
+    Parameters
+    ----------
+    data : str or Path
+        The scan collection (``datasets`` HDF5 format).
+    out : str or Path
+        The checkpoint to write; the log and loss plot go beside it (:func:`log_paths`).
+    split : str
+        The split whose good scans are trained on.
+    calibration_fraction : float in [0, 1)
+        Held back when the collection has no 'validation' split (see :func:`split_training_scans`).
+    resume : bool
+        Continue the run whose checkpoint is ``out`` (same data, same number of processes; its own settings are
+        kept except ``epochs`` and ``checkpoint_every``); starts afresh when ``out`` does not exist yet.
+    overwrite : bool
+        Replace an existing ``out`` (otherwise refused unless ``resume``).
+    device : {'auto', 'cpu', 'cuda'}
+    quiet : bool
+    **options
+        :class:`LatentOptions` fields (``seed`` also seeds the hold-out).
+
+    Returns
+    -------
+    LatentModel
+
+    Raises
+    ------
+    TrainingInputError
+        Naming the file: no such or unreadable collection, ``out`` exists, a checkpoint of other data, no scans.
+    """
+    from datasets.collection import ScanCollection
+
+    data, out = Path(data), Path(out)
+    if not data.is_file():
+        raise TrainingInputError(f"{data}: no such scan collection")
+    try:
+        collection = ScanCollection(data)
+    except (ValueError, OSError) as exc:
+        raise TrainingInputError(f"{data}: not a readable scan collection ({str(exc).splitlines()[0]})") from None
+    initialised = False
+    try:
+        checkpoint = _checkpoint_to_resume(out, collection, data, resume, overwrite)
+        if checkpoint is not None:
+            index = {n: i for i, n in enumerate(collection.names)}
+            train = [index[n] for n in checkpoint["train_names"]]
+            calibration = list(checkpoint["calibration_names"])
+            options["seed"] = int(checkpoint["config"]["seed"])
+        else:
+            train, calibration = split_training_scans(collection, split, calibration_fraction,
+                                                      options.get("seed", LatentOptions.seed))
+        device, initialised = setup_distributed(device)
+        try:
+            return train_latent(_CollectionScans(collection, train), out, frame=collection.frame,
+                                fingerprint=collection.fingerprint(), calibration_names=calibration,
+                                resume=checkpoint, device=device, quiet=quiet, **options)
+        except TrainingInputError:
+            raise
+        except ValueError as exc:
+            raise TrainingInputError(f"{data}: {exc}") from None
+    finally:
+        collection.close()
+        if initialised:
+            import torch.distributed as dist
+
+            dist.destroy_process_group()
+
+
+def _checkpoint_to_resume(out, collection, data, resume, overwrite):
+    """The checkpoint at ``out`` to continue (``resume``), None to start afresh; refuses to replace ``out`` unless
+    ``overwrite``, and to resume a checkpoint of other data."""
+    if not out.exists():
+        return None
+    if not resume:
+        if overwrite:
+            return None
+        raise TrainingInputError(f"{out}: already exists (pass --resume to continue it or --overwrite to replace it)")
+    try:
+        checkpoint = read_checkpoint(out)
+    except (ValueError, FileNotFoundError) as exc:
+        raise TrainingInputError(str(exc)) from None
+    if checkpoint.get("fingerprint", "") != collection.fingerprint():
+        raise TrainingInputError(f"{out}: this checkpoint was trained on another collection than {data} "
+                                 f"(fingerprints differ); use a new --out or the original data")
+    return checkpoint
 
 
 def _frame_dict(frame):
