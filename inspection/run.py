@@ -120,11 +120,7 @@ def make_aligner(handle, data_info, reference=None, seed=0):
             has_train = bool(c.select(split="train", label="good"))
         if has_train:
             return Aligner(*from_collection(data_info["source"]), seed=seed)
-    surf = handle.reference_points(seed=seed)
-    if surf is None:
-        raise InspectionError(f"{handle.path}: --align needs a reference: pass --reference (a collection or cloud "
-                              f"file in the model's frame); this model cannot give its mean surface")
-    return Aligner(*surf, seed=seed)
+    return Aligner(*handle.reference_points(seed=seed), seed=seed)
 
 
 def prepare_out(out, overwrite=False):
@@ -149,27 +145,27 @@ def prepare_out(out, overwrite=False):
 
 # ------------------------------------------------------------------------------------------------------ jobs
 def calibration_scans(handle, data, split=None, frame_check=True):
-    """The good scans of ``data`` that the model did not train on. Returns (scans, info, how)."""
+    """The good scans of ``data`` that the model did not train on. Returns (scans, info, how).
+
+    On the model's own training collection (same fingerprint) these are the scans the trainer held back: the
+    checkpoint records them, chosen by the trainer's one rule (:func:`autodecoder.latent.train.split_training_scans`:
+    the validation split's good scans, else a seeded fraction of the training scans). A model that records none is
+    calibrated on the good scans outside the training split; with ``split``, on that split's good scans, training
+    scans only when held back. On any other data: its good scans (of ``split``) the model did not train on.
+    """
     scans, info = load_scans(data, handle.frame if frame_check else None, split=split, label="good",
                              model_fingerprint=handle.fingerprint)
     how = f"good scans of {data}" + (f" (split {split})" if split else "")
-    train = set(handle.train_names)
+    train, held = set(handle.train_names), set(handle.heldback_names)
     if info.get("same_as_training"):
-        held = set(handle.heldback_names)
-        if split is None:
-            if held:
-                val = [s for s in scans if s.split == "validation" and s.name not in held]
-                scans = [s for s in scans if s.name in held] + val
-                how = f"the model's {len(held)} held-back good scans" + (f" and {len(val)} more validation scans"
-                                                                         if val else "")
-            else:
-                val = [s for s in scans if s.split == "validation"]
-                scans = val if val else [s for s in scans if s.split != "train"]
-                how = "validation scans" if val else "good test scans (the model trained on the train split)"
+        if split is None and held:
+            scans = [s for s in scans if s.name in held]
+            how = f"the model's {len(held)} held-back good scans"
         else:
             scans = [s for s in scans if s.split != "train" or s.name in held]
-    if train:
-        scans = [s for s in scans if s.name not in train or s.name in set(handle.heldback_names)]
+            if split is None:
+                how = "good scans outside the training split (the model records no held-back scans)"
+    scans = [s for s in scans if s.name not in train or s.name in held]
     if not scans:
         raise InspectionError(f"{data}: no good scans the model did not train on (give a collection of good parts, "
                               f"a validation split, or a model with held-back calibration scans)")
