@@ -3,6 +3,8 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+from sklearn.base import BaseEstimator
+from sklearn.exceptions import NotFittedError
 
 from .calibration import Calibration
 from .threshold import DEFAULT_ALPHA, check_alpha, fit_threshold
@@ -19,10 +21,6 @@ DEFAULT_POINT_SCORE = "residual"
 DEFAULT_PROJECTION = {"steps": 60, "starts": 2, "explore": 20, "max_candidates": 16}
 # rays per good scan of the ray reference (denser than a scan's inspection, which tests RAY_DEFAULTS["n_rays"])
 REFERENCE_RAYS = 1536
-
-
-from sklearn.base import BaseEstimator
-from sklearn.exceptions import NotFittedError
 
 
 @dataclass
