@@ -11,6 +11,10 @@ the ranks (rank r owns scans r, r + N, ...); each rank holds and optimises only 
 the two nets are wrapped in one :class:`torch.nn.parallel.DistributedDataParallel` module, so their gradients are
 averaged over the ranks and the weights stay identical. At checkpoint time the codes, their optimiser moments and the
 per-rank random states are gathered and rank 0 writes the file.
+
+:func:`train_latent` trains over scans in memory (or any lazy sequence of them); :func:`train_collection` over a
+collection file, holding scans back for calibration by the one rule :func:`split_training_scans` (what
+``train_latent.py`` runs).
 """
 import math
 import os
