@@ -17,18 +17,9 @@ import trimesh
 from scipy.stats import spearmanr
 
 from autodecoder import StochasticField, fit_cloud
+from surface_metrics import mean_surface_distance  # same folder
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
-
-
-def chamfer(mesh_a, mesh_b, n=30_000, seed=0):
-    """Symmetric Chamfer distance between two surfaces: the mean of the two one-sided mean distances from n
-    area-uniform samples of one mesh to the other mesh's surface (exact point-to-triangle distances, so there is no
-    sampling floor: two samplings of the same mesh score 0)."""
-    a = trimesh.sample.sample_surface(mesh_a, n, seed=seed)[0]
-    b = trimesh.sample.sample_surface(mesh_b, n, seed=seed + 1)[0]
-    return 0.5 * (trimesh.proximity.closest_point(mesh_b, a)[1].mean()
-                  + trimesh.proximity.closest_point(mesh_a, b)[1].mean())
 
 
 def chamfer_by_edge_distance(mesh_ours, mesh_true, lengthscale, n=30_000, seed=0, dihedral_deg=30.0):
@@ -213,18 +204,18 @@ def main(argv=None):
         field.save(out / "field.pt")
     fit_seconds = field.info["fit_seconds"]
     ours = field.mesh(args.resolution)
-    cd_ours = chamfer(ours, mesh)
+    cd_ours = mean_surface_distance(ours, mesh)
 
     t0 = time.perf_counter()
     o3d_mesh = open3d_poisson(points, normals)
     o3d_seconds = time.perf_counter() - t0
-    cd_o3d = chamfer(o3d_mesh, mesh)
+    cd_o3d = mean_surface_distance(o3d_mesh, mesh)
 
     print(f"NSSPR fit        : {fit_seconds:7.1f} s ({field.info['steps']} steps, width {field.config['width']}, depth {field.config['depth']}), "
           f"Chamfer {cd_ours:.5f} ({cd_ours / diag:.2e} of the diagonal)")
     print(f"open3d Poisson d8: {o3d_seconds:7.1f} s, Chamfer {cd_o3d:.5f} ({cd_o3d / diag:.2e} of the diagonal)")
     print(f"Chamfer ratio NSSPR / open3d: {cd_ours / cd_o3d:.2f}  (target <= 1.5)")
-    h_world = field.config["lengthscale"] / field.normalization.scale
+    h_world = field.config["lengthscale"] / field.frame.scale
     print(f"where the error is (true -> ours, kernel lengthscale h = {h_world:.4g}; distance to the nearest sharp edge):")
     bands_o3d = {row[0]: row for row in chamfer_by_edge_distance(o3d_mesh, mesh, h_world)}
     for label, area, mean_dist, share in chamfer_by_edge_distance(ours, mesh, h_world):

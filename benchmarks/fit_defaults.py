@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from fandisk import SHARED, chamfer  # same folder: the Chamfer distance is defined once, in fandisk.py
+from fandisk import SHARED  # same folder
+from surface_metrics import mean_surface_distance
 
 
 def run_one(job):
@@ -36,7 +37,7 @@ def run_one(job):
                       steps=job["steps"], lengthscale=lengthscale, **job["extra"])
     seconds = time.perf_counter() - t0
     diag = float(np.linalg.norm(mesh.extents))
-    return {**job, "seconds": seconds, "chamfer": chamfer(field.mesh(job["resolution"]), mesh) / diag}
+    return {**job, "seconds": seconds, "chamfer": mean_surface_distance(field.mesh(job["resolution"]), mesh) / diag}
 
 
 def main(argv=None):

@@ -4,8 +4,8 @@
 
 Synthesises 32 training and 16 held-out good partial scans of /work/shared/meshes/fandisk.obj (4,000 points each,
 datasets.synth), trains the latent model, projects the held-out scans, and prints: training wall time, projection
-seconds per scan (median), the projected mean surface's symmetric Chamfer distance to the true mesh (collection frame,
-sampled points), and the same for fit_cloud from scratch on held-out scans, as ratios. Saves a PNG of one held-out
+seconds per scan (median), the projected mean surface's symmetric mean point-to-surface distance to the true mesh (the benchmarks' Chamfer,
+``surface_metrics.py``; collection frame), and the same for fit_cloud from scratch on held-out scans, as ratios. Saves a PNG of one held-out
 scan, its projected mean surface and its variance on a slice. Prints ``uptime`` (the CPU is shared).
 """
 import argparse
@@ -20,21 +20,6 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch: see train_l
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 MESH = ROOT.parent / "shared" / "meshes" / "fandisk.obj"
-
-
-def chamfer(a, b):
-    """Symmetric Chamfer distance: the mean of the two mean nearest-neighbour distances between point sets."""
-    from scipy.spatial import cKDTree
-
-    return 0.5 * (cKDTree(b).query(a)[0].mean() + cKDTree(a).query(b)[0].mean())
-
-
-def surface_samples(field, n, seed, resolution):
-    import trimesh
-
-    mesh = field.mesh(resolution)
-    pts, _ = trimesh.sample.sample_surface(mesh, n, seed=seed)
-    return pts
 
 
 def uptime():
@@ -66,6 +51,7 @@ def main(argv=None):
     import trimesh
 
     from autodecoder.field.fit import fit_cloud
+    from surface_metrics import mean_surface_distance  # same folder
     from autodecoder.latent.train import train_latent
     from datasets.parts import load_part
     from datasets.synth import synthesise
@@ -83,7 +69,6 @@ def main(argv=None):
     print(f"synthesised {len(train)} training + {len(held)} held-out partial scans of {MESH.name} "
           f"(4000 points each) in {time.perf_counter() - t0:.1f} s")
     true_mesh = trimesh.Trimesh(frame.to_collection(mesh.vertices), mesh.faces, process=False)
-    truth, _ = trimesh.sample.sample_surface(true_mesh, args.samples, seed=args.seed)
 
     overrides = {k: v for k, v in dict(epochs=args.epochs, latent_dim=args.latent_dim, width=args.width,
                                        depth=args.depth, batch=args.batch).items() if v is not None}
@@ -111,7 +96,7 @@ def main(argv=None):
 
     chamfer_proj = []
     for k, (s, pr) in enumerate(zip(held, projections)):
-        chamfer_proj.append(chamfer(surface_samples(pr.field, args.samples, k, args.resolution), truth))
+        chamfer_proj.append(mean_surface_distance(pr.field.mesh(args.resolution), true_mesh, args.samples, k))
     print(f"projected mean surface vs true mesh: Chamfer median {np.median(chamfer_proj):.5f}, mean "
           f"{np.mean(chamfer_proj):.5f} (collection units; {args.samples} samples per side; {len(held)} scans)")
     # a scan's own points against the true mesh: the floor set by sensor noise
@@ -124,7 +109,7 @@ def main(argv=None):
         t0 = time.perf_counter()
         f = fit_cloud(s.points, s.normals, seed=args.seed, quiet=True, **fit_opts)
         fit_s.append(time.perf_counter() - t0)
-        chamfer_fit.append(chamfer(surface_samples(f, args.samples, k, args.resolution), truth))
+        chamfer_fit.append(mean_surface_distance(f.mesh(args.resolution), true_mesh, args.samples, k))
         chamfer_same.append(chamfer_proj[k])
         print(f"  fit_cloud scan {k}: {fit_s[-1]:.1f} s, Chamfer {chamfer_fit[-1]:.5f} "
               f"(projection: {chamfer_proj[k]:.5f})")

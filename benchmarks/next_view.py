@@ -23,46 +23,22 @@ from pathlib import Path
 import numpy as np
 import torch
 import trimesh
-from scipy.spatial import cKDTree
 
 from autodecoder import fit_cloud, update_field
 from autodecoder.field.targets import point_spacing
 from autodecoder.scanning.views import next_best_views
+from surface_metrics import mean_surface_distance, mean_surface_distance_difference, surface_distance_samples
 from datasets.parts import load_part
 from datasets.scanner import VirtualScanner
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
 
 
-def chamfer_samples(mesh_a, mesh_b, n=30_000, seed=0):
-    """Per-sample distances of the sample-based Chamfer distance: (from a's samples to b's, from b's samples to a's).
-    The Chamfer distance is the mean of the two means; b's samples depend only on b and the seed, so two meshes
-    compared with the same b share them (a paired comparison)."""
-    a = trimesh.sample.sample_surface(mesh_a, n, seed=seed)[0]
-    b = trimesh.sample.sample_surface(mesh_b, n, seed=seed + 1)[0]
-    return cKDTree(b).query(a)[0], cKDTree(a).query(b)[0]
-
-
-def chamfer(mesh_a, mesh_b, n=30_000, seed=0):
-    a_to_b, b_to_a = chamfer_samples(mesh_a, mesh_b, n, seed)
-    return 0.5 * (a_to_b.mean() + b_to_a.mean())
-
-
 def surface_error(field, mesh, res):
     try:
-        return float(chamfer(field.mesh(res), mesh))
+        return mean_surface_distance(field.mesh(res), mesh)
     except ValueError:
         return float("nan")
-
-
-def chamfer_difference(samples_1, samples_2):
-    """Chamfer(1) - Chamfer(2) to the true mesh from two :func:`chamfer_samples` results, and the standard error of
-    that difference estimate (the true mesh's samples are shared, so that half is a paired difference; the other
-    half's are independent)."""
-    (own_1, true_1), (own_2, true_2) = samples_1, samples_2
-    diff = 0.5 * (own_1.mean() - own_2.mean() + (true_1 - true_2).mean())
-    var = 0.25 * (own_1.var() / len(own_1) + own_2.var() / len(own_2) + (true_1 - true_2).var() / len(true_1))
-    return float(diff), float(np.sqrt(var))
 
 
 def fibonacci_sphere(n):
@@ -198,7 +174,7 @@ def main(argv=None):
     t = time.perf_counter()
     refit = fit_cloud(pts, nrm, seed=args.seed, steps=args.fit_steps, lengthscale=h_of(pts), **fit_kw)
     t_refit = time.perf_counter() - t
-    refit_samples = chamfer_samples(refit.mesh(args.mesh_res), mesh)
+    refit_samples = surface_distance_samples(refit.mesh(args.mesh_res), mesh)
     err_refit = 0.5 * float(refit_samples[0].mean() + refit_samples[1].mean())
     last_ft = results["nbv"]["update_seconds"][-1] if results["nbv"]["update_seconds"] else float("nan")
     print(f"refit from scratch on the final nbv union ({len(pts)} points): {t_refit:.1f}s, chamfer {err_refit:.5f}; "
@@ -213,9 +189,9 @@ def main(argv=None):
         t = time.perf_counter()
         tuned = update_field(prev_field, p_last, n_last, steps=steps, seed=args.views)
         t_tune = time.perf_counter() - t
-        tuned_samples = chamfer_samples(tuned.mesh(args.mesh_res), mesh)
+        tuned_samples = surface_distance_samples(tuned.mesh(args.mesh_res), mesh)
         err = 0.5 * float(tuned_samples[0].mean() + tuned_samples[1].mean())
-        diff, se = chamfer_difference(tuned_samples, refit_samples)
+        diff, se = mean_surface_distance_difference(tuned_samples, refit_samples)
         print(f"  fine-tune of the last view, {steps} steps: {t_tune:.1f}s, chamfer {err:.5f} "
               f"(minus the refit's: {diff:+.5f} +- {se:.5f})")
         record = {"steps": steps, "seconds": t_tune, "chamfer": err, "difference": diff, "standard_error": se}

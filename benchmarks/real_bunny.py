@@ -278,7 +278,7 @@ def random_rotation(max_deg, rng):
 # ---- the tree --------------------------------------------------------------------------------------------------------
 def build(args):
     from datasets.cloud_io import write_cloud
-    from datasets.importer import estimate_normals
+    from datasets.normals import estimate_normals
     from inspection.report import atomic_write_text
 
     tree = Path(args.work) / "tree"

@@ -41,12 +41,13 @@ from scipy.sparse.linalg import LinearOperator, cg
 from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
-from autodecoder.field.fit import _cosine_lr
-from autodecoder.field.frame import Normalization
+from autodecoder.field.schedule import cosine_decay
+from datasets.frame import Frame
 from autodecoder.field.losses import SCREENING_WEIGHT
 from autodecoder.field.networks import MeanNet
 from autodecoder.field.targets import CloudTargets, point_spacing
-from fandisk import SHARED, chamfer, chamfer_by_edge_distance, open3d_poisson
+from fandisk import SHARED, chamfer_by_edge_distance, open3d_poisson
+from surface_metrics import mean_surface_distance
 
 
 def _difference_adjoint(v, axis):
@@ -161,11 +162,11 @@ def grid_minimiser(targets, resolution, screening_weight=SCREENING_WEIGHT, tol=1
     return g.reshape(shape), lo, delta, info
 
 
-def zero_level_mesh(g, lo, delta, normalization):
+def zero_level_mesh(g, lo, delta, frame):
     """Marching cubes of g = 0 on the grid, in the cloud's own (world) coordinates."""
     verts, faces, _, _ = marching_cubes(g, level=0.0, spacing=(delta,) * 3)
     # marching cubes orients faces toward increasing values; g > 0 is outside, so this is already outward
-    return trimesh.Trimesh(normalization.to_world(verts + lo), faces, process=False)
+    return trimesh.Trimesh(frame.to_file(verts + lo), faces, process=False)
 
 
 def regress_siren(g, lo, delta, targets, steps, seed=0, batch=256, near_fraction=0.9, lr=1e-3, width=64, depth=3,
@@ -189,7 +190,7 @@ def regress_siren(g, lo, delta, targets, steps, seed=0, batch=256, near_fraction
     eps = 0.5 * delta
     for step in range(steps):
         for group in opt.param_groups:
-            group["lr"] = lr * _cosine_lr(step, steps, 0.05)
+            group["lr"] = lr * cosine_decay(step, steps, 0.05)
         n_near = int(batch * near_fraction)
         x = np.concatenate([points[rng.integers(0, len(points), n_near)] + rng.uniform(-reach, reach, (n_near, 3)),
                             box.uniform(batch - n_near, rng)])
@@ -233,19 +234,19 @@ def main(argv=None):
           f"lambda_S {args.screening_weight:g}")
     t0 = time.perf_counter()
     o3d_mesh = open3d_poisson(points, normals)
-    cd_o3d = chamfer(o3d_mesh, mesh)
+    cd_o3d = mean_surface_distance(o3d_mesh, mesh)
     print(f"open3d Poisson d8: Chamfer {cd_o3d:.5f} ({time.perf_counter() - t0:.1f} s)")
 
-    normalization = Normalization.fit(points)
-    model_points = normalization.to_model(points)
+    frame = Frame.fit(points)
+    model_points = frame.to_collection(points)
     spacing = point_spacing(model_points)
     for factor in (float(f) for f in args.h_factors.split(",")):
         targets = CloudTargets(model_points, normals, factor * spacing)
-        h_world = targets.lengthscale / normalization.scale
+        h_world = targets.lengthscale / frame.scale
         for resolution in (int(r) for r in args.resolutions.split(",")):
             g, lo, delta, info = grid_minimiser(targets, resolution, args.screening_weight)
-            surface = zero_level_mesh(g, lo, delta, normalization)
-            cd = chamfer(surface, mesh)
+            surface = zero_level_mesh(g, lo, delta, frame)
+            cd = mean_surface_distance(surface, mesh)
             print(f"h = {factor:g} spacings ({h_world:.4g}), grid {resolution}^3 (h / cell {targets.lengthscale / delta:.1f}):"
                   f" Chamfer {cd:.5f} = {cd / cd_o3d:.2f} x open3d;  CG {info['iterations']} it, residual "
                   f"{info['residual']:.1e}; targets {info['targets_seconds']:.0f} s, solve {info['solve_seconds']:.0f} s")
@@ -257,8 +258,8 @@ def main(argv=None):
             t0 = time.perf_counter()
             net = regress_siren(g, lo, delta, targets, steps, seed=args.seed)
             seconds = time.perf_counter() - t0
-            surface = zero_level_mesh(net_on_grid(net, g.shape, lo, delta), lo, delta, normalization)
-            cd = chamfer(surface, mesh)
+            surface = zero_level_mesh(net_on_grid(net, g.shape, lo, delta), lo, delta, frame)
+            cd = mean_surface_distance(surface, mesh)
             print(f"    SIREN (fit_cloud's mean net) regressed on that minimiser, {steps} steps ({seconds:.0f} s):"
                   f" Chamfer {cd:.5f} = {cd / cd_o3d:.2f} x open3d")
 

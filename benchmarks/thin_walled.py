@@ -44,6 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np
 
 from baselines import nn_baseline
+from datasets.atomic import atomic_path
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
 PARTS = ("enclosure", "cup", "fandisk")
@@ -87,9 +88,8 @@ def _save_sites(path, scans, frame):
     sites = {s.name: {"center": frame.to_collection(s.extra["defect_center"]).tolist(),
                       "radius": float(s.extra["defect_radius"]) * frame.scale}
              for s in scans if "defect_center" in s.extra}
-    tmp = _sites_path(path).with_suffix(".tmp")
-    tmp.write_text(json.dumps(sites))
-    os.replace(tmp, _sites_path(path))
+    with atomic_path(_sites_path(path)) as tmp:
+        tmp.write_text(json.dumps(sites))
 
 
 def _sites(part, path, args):
@@ -143,9 +143,8 @@ class CachedProjections:
         import torch
 
         if self.dirty:
-            tmp = self.path.with_suffix(".tmp")
-            torch.save(self.codes, tmp)
-            os.replace(tmp, self.path)
+            with atomic_path(self.path) as tmp:
+                torch.save(self.codes, tmp)
             self.dirty = False
 
 
@@ -303,14 +302,12 @@ def _figure(path, scan, field, evidence, site, frame, mesh):
     import trimesh
     from scipy.special import ndtr
 
-    from autodecoder.scanning.free_space import _field_lengthscale
-
     center, radius = np.asarray(site["center"]), float(site["radius"])
     center_file = frame.to_file(center)
     _, _, face = trimesh.proximity.closest_point(mesh, center_file[None])
     normal = np.asarray(mesh.face_normals[face[0]], dtype=np.float64)
     origin = np.asarray(scan.sensor_origin, dtype=np.float64)
-    h = _field_lengthscale(field)
+    h = field.lengthscale
     # the plane through the hole's centre spanned by the sheet's normal and the direction to the sensor
     towards = origin - center
     e2 = towards - (towards @ normal) * normal

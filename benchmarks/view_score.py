@@ -96,7 +96,7 @@ def main(argv=None):
                       mean_batch=2048, screen_batch=1024, pair_clusters=64, covariance_every=1, pool_passes=4,
                       average_decay=0.0, outside_weight=args.outside_weight,
                       covariance_screening_weight=args.cov_screening)
-    s = 2.0 * float(field.config["lengthscale"]) / float(field.normalization.scale)
+    s = 2.0 * float(field.config["lengthscale"]) / float(field.frame.scale)
     seen = torch.tensor(p0, dtype=torch.float32)
 
     dirs = fibonacci_sphere(args.cameras)

@@ -1,10 +1,10 @@
 """Reading scanner point-cloud files (PLY, PCD, XYZ/PTS/TXT, NPY, NPZ; organised TIFF point maps) and writing PLY."""
 import logging
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from .atomic import atomic_path
 
 log = logging.getLogger(__name__)
 
@@ -172,7 +172,7 @@ def read_organized_cloud(path):
 
 
 def write_cloud(path, points, normals=None, colors=None):
-    """Write a binary little-endian PLY file atomically (temporary file in the same folder, then os.replace).
+    """Write a binary little-endian PLY file (plyfile) atomically (:func:`datasets.atomic.atomic_path`).
 
     Parameters
     ----------
@@ -194,7 +194,7 @@ def write_cloud(path, points, normals=None, colors=None):
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"{path}: points must be (N, 3), got {points.shape}")
-    ftype, fname = ("<f8", "double") if points.dtype == np.float64 else ("<f4", "float")
+    ftype = "<f8" if points.dtype == np.float64 else "<f4"
     fields = [("x", ftype), ("y", ftype), ("z", ftype)]
     columns = [points]
     if normals is not None:
@@ -220,22 +220,8 @@ def write_cloud(path, points, normals=None, colors=None):
     if colors is not None:
         for k, name in enumerate(("red", "green", "blue")):
             body[name] = colors[:, k]
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}"]
-    for name, t in fields:
-        header.append(f"property {'uchar' if t == 'u1' else fname} {name}")
-    header.append("end_header\n")
+    from plyfile import PlyData, PlyElement
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write("\n".join(header).encode("ascii"))
-            f.write(body.tobytes())
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 would make exported files private
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as tmp:
+        PlyData([PlyElement.describe(body, "vertex")], text=False, byte_order="<").write(str(tmp))
     return path

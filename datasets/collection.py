@@ -6,13 +6,12 @@ arrays of length S; the collection's frame and provenance are root attributes. R
 """
 import hashlib
 import json
-import os
 import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from .atomic import atomic_path
 from .frame import Frame
 from .scan import LABELS, SPLITS, Scan
 
@@ -60,17 +59,6 @@ def _check_scan(scan, where):
         raise ValueError(f"{where}: scan {scan.name!r} has non-finite points or normals; drop them before storing")
     if scan.split not in SPLITS or scan.label not in LABELS:  # Scan checks this too, unless fields were reassigned
         raise ValueError(f"{where}: scan {scan.name!r} has split {scan.split!r} / label {scan.label!r}")
-
-
-def _tmp_path_beside(path):
-    """A fresh, closed temporary file in ``path``'s folder (same file system, so os.replace is atomic)."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    # mkstemp makes the file 0600; give the final file the permissions a plain open() would
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)
-    return Path(tmp)
 
 
 def _new_file_layout(h5, frame, provenance, compression):
@@ -157,22 +145,15 @@ class _Appender:
 
 
 def _atomic_write(path, fill, copy_from=None):
-    """Write ``path`` through a temporary file beside it: ``fill(h5)`` fills the open file, then os.replace.
-
-    Any exception leaves ``path`` as it was and removes the temporary file.
-    """
+    """Write ``path`` through :func:`datasets.atomic.atomic_path`: ``fill(h5)`` fills the open temporary file (a
+    copy of ``copy_from`` when given). Any exception leaves ``path`` as it was and removes the temporary file."""
     import h5py
 
-    tmp = _tmp_path_beside(path)
-    try:
+    with atomic_path(path) as tmp:
         if copy_from is not None:
             shutil.copyfile(copy_from, tmp)
         with h5py.File(tmp, "r+" if copy_from is not None else "w") as h5:
             fill(h5)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def _open_h5(path):
@@ -266,7 +247,7 @@ class ScanCollection:
     # ---- writing -------------------------------------------------------------------------------------------------
     @classmethod
     def create(cls, path, scans, frame=None, provenance=None, overwrite=False, compression=DEFAULT_COMPRESSION):
-        """Write a new collection file atomically (temporary file in the same folder, then os.replace).
+        """Write a new collection file atomically (:func:`datasets.atomic.atomic_path`).
 
         Parameters
         ----------
@@ -307,7 +288,7 @@ class ScanCollection:
 
     @classmethod
     def append(cls, path, scans):
-        """Add scans to an existing collection atomically: copy to a temporary file, append, os.replace.
+        """Add scans to an existing collection atomically: copy to a temporary file, append, rename into place.
 
         The copy costs one read and write of the file, which is fine at our sizes (a few GB) and means a failure
         mid-append leaves the original untouched. Scans must already be in the collection's frame.

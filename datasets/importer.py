@@ -17,25 +17,22 @@ Sensor origin (optional, file units): an npz key ``sensor_origin`` or a sidecar 
 import json
 import logging
 import zlib
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
 from .cloud_io import CLOUD_SUFFIXES, read_cloud, write_cloud
-from .frame import Frame
-from .outliers import STRAY_FACTOR, STRAY_NEIGHBOURS, stray_points
+from .ingest import group_counts, voxel_downsample, write_scans
+from .layouts import LAYOUT_SIGNS, import_public, resolve_layout
+from .normals import estimate_normals
 from .scan import SPLITS, Scan
 
 log = logging.getLogger(__name__)
 
 MIN_POINTS = 3  # fewer finite points cannot define a tangent plane, let alone a surface
 _SIDECAR_SUFFIX = ".json"
-_NEIGHBOURS = 30  # max neighbours of the normal-estimation search
-_SPACING_RADIUS = 4.0  # search radius in median nearest-neighbour spacings (~50 neighbours on a uniform surface)
-_DECISIVE_COS = 0.3  # |cos(normal, ray to the sensor)| above which the sensor alone decides a normal's sign (~73 deg)
-_VOTE_NEIGHBOURS = 12  # neighbours whose orientation decides a grazing normal's sign
 
 
 @dataclass(frozen=True)
@@ -115,8 +112,6 @@ def find_sources(root, exclude=None):
 
 
 def _public_layouts():
-    from .layouts import LAYOUT_SIGNS
-
     return [f"{name} ({sign})" for name, sign in LAYOUT_SIGNS.items()]
 
 
@@ -154,131 +149,6 @@ def _read_ground_truth(gt, n, cloud):
     if not np.all(np.isin(labels, (0, 1))):
         raise ValueError(f"{gt}: per-point labels must be 0 or 1")
     return labels.astype(np.uint8)
-
-
-def estimate_normals(points, sensor_origin=None):
-    """Unit normals of a cloud, oriented toward the sensor when known, else consistently and away from the centroid.
-
-    The search is a hybrid KNN/radius search whose radius is a few times the cloud's median nearest-neighbour
-    spacing, so it adapts to the scanner's resolution and the file's units.
-
-    Parameters
-    ----------
-    points : (N, 3) float array, N >= 3, finite
-    sensor_origin : (3,) float array, optional
-        In the same units as ``points``.
-
-    Returns
-    -------
-    (N, 3) float64 array
-    """
-    import open3d as o3d
-
-    pts = np.asarray(points, dtype=np.float64)
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-    nn = np.asarray(pcd.compute_nearest_neighbor_distance())
-    nn = nn[nn > 0]
-    spacing = float(np.median(nn)) if len(nn) else 0.0
-    if spacing <= 0:  # every point duplicated: fall back to the spacing of a uniform cloud over the bounding box
-        spacing = float(np.linalg.norm(np.ptp(pts, axis=0))) / max(len(pts), 1) ** 0.5
-    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=_SPACING_RADIUS * spacing,
-                                                              max_nn=_NEIGHBOURS))
-    if sensor_origin is not None:
-        return _orient_toward_sensor(pts, np.asarray(pcd.normals, dtype=np.float64),
-                                     np.asarray(sensor_origin, dtype=np.float64))
-    if len(pts) > 16:
-        try:  # propagate one orientation along a minimum spanning tree so neighbours agree...
-            pcd.orient_normals_consistent_tangent_plane(15)
-        except RuntimeError as e:  # disconnected or degenerate graphs: fall back to per-point centroid test
-            log.debug("consistent orientation failed (%s); orienting each normal away from the centroid", e)
-            normals = np.asarray(pcd.normals, dtype=np.float64)
-            away = np.einsum("ij,ij->i", normals, pts - pts.mean(0)) < 0
-            normals[away] *= -1
-            return normals
-    normals = np.asarray(pcd.normals, dtype=np.float64)
-    # ...then pick the global sign that makes most normals point away from the centroid (outward on closed parts)
-    if np.count_nonzero(np.einsum("ij,ij->i", normals, pts - pts.mean(0)) < 0) > len(pts) / 2:
-        normals = -normals
-    return normals
-
-
-def _orient_toward_sensor(points, normals, origin, decisive=_DECISIVE_COS, k=_VOTE_NEIGHBOURS, rounds=3):
-    """Normals signed to face the sensor where the view decides, and like their neighbours where it does not.
-
-    A depth sensor sees the outside of a surface, so every true normal of a scan faces the sensor. open3d's
-    ``orient_normals_towards_camera_location`` applies that test to each estimated normal on its own, which is
-    right wherever the surface faces the sensor clearly; on a grazing surface the true normal is nearly
-    perpendicular to the ray and the noise of a real scan tilts the estimate across it, so the test flips some of
-    some of them (on real Cyberware views, docs/results.md). There the sign is taken
-    from the neighbours instead: a few rounds of a vote of sum_j (n_i . n_j) over the ``k`` nearest neighbours,
-    the decisively oriented ones counted twice.
-
-    Parameters
-    ----------
-    points, normals : (N, 3) float64 arrays
-        Unit normals, any sign.
-    origin : (3,) float64 array
-        Sensor position, same units as ``points``.
-    decisive : float
-        |cos| between a normal and the ray to the sensor above which the sensor test alone decides.
-
-    Returns
-    -------
-    (N, 3) float64 array
-    """
-    from scipy.spatial import cKDTree
-
-    to_sensor = origin - points
-    to_sensor /= np.maximum(np.linalg.norm(to_sensor, axis=1, keepdims=True), 1e-300)
-    cos = np.einsum("ij,ij->i", normals, to_sensor)
-    normals = np.where((cos < 0)[:, None], -normals, normals)
-    unsure = np.flatnonzero(np.abs(cos) < decisive)
-    if len(unsure) == 0 or len(points) <= k:
-        return normals
-    _, nb = cKDTree(points).query(points[unsure], k + 1)
-    nb = nb[:, 1:]  # (U, k)
-    weight = np.where(np.abs(cos[nb]) >= decisive, 2.0, 1.0)
-    for _ in range(rounds):
-        vote = np.sum(weight * np.einsum("uj,ukj->uk", normals[unsure], normals[nb]), axis=1)
-        flip = unsure[vote < 0]
-        if len(flip) == 0:
-            break
-        normals[flip] *= -1
-    return normals
-
-
-def voxel_downsample(points, normals, labels, size):
-    """One point per occupied voxel of side ``size``: the mean point, the renormalised mean normal, the max label.
-
-    Own implementation (not open3d's) so per-point labels follow the points and the result is deterministic.
-
-    Parameters
-    ----------
-    points : (N, 3) float64 array
-    normals : (N, 3) float64 array, unit
-    labels : (N,) uint8 array or None
-    size : float > 0, same units as ``points``
-
-    Returns
-    -------
-    points (M, 3), normals (M, 3), labels (M,) or None, with voxels in lexicographic order of their integer keys.
-    """
-    keys = np.floor((points - points.min(0)) / size).astype(np.int64)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
-    m = len(counts)
-    out_p = np.stack([np.bincount(inverse, points[:, k], m) for k in range(3)], axis=1) / counts[:, None]
-    out_n = np.stack([np.bincount(inverse, normals[:, k], m) for k in range(3)], axis=1)
-    norm = np.linalg.norm(out_n, axis=1, keepdims=True)
-    # opposite normals in one voxel (a thin wall) can cancel: keep one of the originals there instead
-    first = np.full(m, len(points))
-    np.minimum.at(first, inverse, np.arange(len(points)))
-    out_n = np.where(norm > 1e-6, out_n / np.maximum(norm, 1e-12), normals[first])
-    out_l = None
-    if labels is not None:
-        out_l = np.zeros(m, dtype=np.uint8)
-        np.maximum.at(out_l, inverse, labels)
-    return out_p, out_n, out_l
 
 
 def load_source(src, voxel=None, n_points=None, seed=0):
@@ -381,8 +251,6 @@ def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, p
     """
     from tqdm import tqdm
 
-    from .layouts import import_public, resolve_layout
-
     root, out = Path(root), Path(out)
     if voxel is not None and n_points is not None:
         raise ValueError("give --voxel or --points, not both")
@@ -412,56 +280,6 @@ def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, p
     summary["n_dropped"] = n_dropped
     log.info("imported %d scans from %s into %s", len(scans), root, out)
     return summary
-
-
-def write_scans(scans, out, provenance, overwrite=False, drop_strays=False):
-    """Count each scan's stray points (:func:`datasets.outliers.stray_points`; removed with ``drop_strays``), fit
-    the collection frame to the training points that are not stray (all scans' when there is no train split: one
-    return 10 cm off the part would otherwise set the box), move the scans (file units) into it and write the
-    collection atomically. Returns the summary dict of :func:`import_tree` (without ``n_dropped``)."""
-    from .collection import ScanCollection
-
-    strays = [stray_points(s.points) for s in scans]
-    if drop_strays:
-        scans = [_without(s, m) if m.any() else s for s, m in zip(scans, strays)]
-    fit_on = [i for i, s in enumerate(scans) if s.split == "train"] or list(range(len(scans)))
-    frame = Frame.fit(np.concatenate([scans[i].points if drop_strays else scans[i].points[~strays[i]]
-                                      for i in fit_on]))
-    counts = [int(m.sum()) for m in strays]
-    provenance = dict(provenance, frame_fitted_on="train" if any(s.split == "train" for s in scans)
-                      else "all (no train split)", stray_points=_stray_report(scans, counts, drop_strays))
-    ScanCollection.create(out, (frame.apply(s) for s in scans), frame=frame, provenance=provenance,
-                          overwrite=overwrite)
-    sizes = np.array([len(s) for s in scans])
-    return {"out": str(out), "n_scans": len(scans), "n_stray": int(sum(counts)), "strays_dropped": drop_strays,
-            "frame": frame.as_dict(), "points_min": int(sizes.min()), "points_median": float(np.median(sizes)),
-            "points_max": int(sizes.max()), "groups": _group_counts((s.split, s.label, s.defect) for s in scans)}
-
-
-def _without(scan, mask):
-    """The scan without the points where ``mask`` is True (labels follow)."""
-    keep = ~mask
-    out = replace(scan, points=scan.points[keep], normals=scan.normals[keep],
-                  point_labels=None if scan.point_labels is None else scan.point_labels[keep])
-    out.points = np.asarray(scan.points[keep], dtype=np.float64)  # file-unit precision, as load_source keeps it
-    return out
-
-
-def _stray_report(scans, counts, dropped):
-    """The provenance entry on stray points: the rule, totals, and the scans with the most."""
-    counts = np.asarray(counts)
-    worst = np.argsort(-counts, kind="stable")[:5]
-    return {"rule": f"off the plane of its {STRAY_NEIGHBOURS} nearest neighbours by > {STRAY_FACTOR:g} local spacings",
-            "total": int(counts.sum()), "scans_with": int(np.count_nonzero(counts)),
-            "max_per_scan": int(counts.max(initial=0)), "dropped": bool(dropped), "in_frame_fit": False,
-            "worst": [[scans[i].name, int(counts[i])] for i in worst if counts[i] > 0]}
-
-
-def _group_counts(rows):
-    groups = {}
-    for key in rows:
-        groups[key] = groups.get(key, 0) + 1
-    return dict(sorted(groups.items()))
 
 
 def export_collection(path, out_dir, file_frame=False, overwrite=False):
@@ -523,7 +341,7 @@ def collection_info(path):
         meta = c.metadata()
         lines = [f"{path}: {len(c)} scans, format version 1, written by toolkit {c.toolkit_version or '?'}"]
         if meta:
-            groups = _group_counts((m["split"], m["label"], m["defect"] or "-") for m in meta)
+            groups = group_counts((m["split"], m["label"], m["defect"] or "-") for m in meta)
             lines.append(f"{'split':<12}{'label':<12}{'defect':<16}{'scans':>7}")
             lines += [f"{s:<12}{lab:<12}{d:<16}{n:>7}" for (s, lab, d), n in groups.items()]
             n = c.n_points

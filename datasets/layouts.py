@@ -447,7 +447,8 @@ def import_public(root, out, layout, views=DEFAULT_VIEWS, validation_views=DEFAU
     """
     from tqdm import tqdm
 
-    from .importer import estimate_normals, voxel_downsample, write_scans
+    from .ingest import voxel_downsample, write_scans
+    from .normals import estimate_normals
     from .scan import Scan
     from .templates import render_views
 

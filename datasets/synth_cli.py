@@ -1,8 +1,5 @@
 """The ``synth`` command: virtual scans of a CAD part (with synthetic defects) -> a scan collection or a PLY tree."""
 import json
-import os
-import shutil
-import tempfile
 from pathlib import Path
 
 FORMATS = ("h5", "tree")
@@ -90,10 +87,10 @@ def _write_tree(out, scans, frame, provenance):
 
     Written into a temporary folder beside ``out`` and renamed into place, so a reader never sees half a tree.
     """
+    from .atomic import atomic_directory
     from .cloud_io import write_cloud
 
-    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.", suffix=".tmp"))
-    try:
+    with atomic_directory(out) as tmp:
         for scan in scans:
             write_cloud(tmp / f"{scan.name}.ply", scan.points, scan.normals)
             if scan.label == "defective":
@@ -104,13 +101,3 @@ def _write_tree(out, scans, frame, provenance):
         meta = {"frame": frame.as_dict(), "provenance": provenance,
                 "sensor_origins": {s.name: [float(v) for v in s.sensor_origin] for s in scans}}
         (tmp / "synth.json").write_text(json.dumps(meta, indent=1) + "\n")
-        old = None
-        if out.exists():
-            old = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.", suffix=".old"))
-            os.replace(out, old / out.name)
-        os.replace(tmp, out)
-        if old is not None:
-            shutil.rmtree(old)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise

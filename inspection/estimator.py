@@ -6,6 +6,8 @@ import numpy as np
 from sklearn.base import BaseEstimator
 from sklearn.exceptions import NotFittedError
 
+from datasets.validation import points_and_normals
+
 from .calibration import Calibration
 from .threshold import DEFAULT_ALPHA, check_alpha, fit_threshold
 from .scores import (POINT_SCORES, REFERENCE_QUANTITY, LocalReference, aggregate as aggregate_scores, check_aggregate,
@@ -55,15 +57,6 @@ class ScanResult:
     field: object = None
     components: dict = None
     rays: object = None
-
-
-def _points_normals(scan):
-    """(points, normals or None) of a Scan, a (points, normals) pair or an (m, 3) array."""
-    if hasattr(scan, "points"):
-        return np.asarray(scan.points), getattr(scan, "normals", None)
-    if isinstance(scan, tuple) and len(scan) == 2:
-        return np.asarray(scan[0]), None if scan[1] is None else np.asarray(scan[1])
-    return np.asarray(scan), None
 
 
 def _sensor_origin(scan, i):
@@ -215,7 +208,7 @@ class Inspector(BaseEstimator):
         """Project one scan: a :class:`_Projected` with its field and, for reference-based point scores, the
         compared quantity and the field's variance in its units. ``exclude_own_code``: a training scan of a latent
         model is projected without starting from the code it was trained with (cross-fitting)."""
-        points, normals = _points_normals(scan)
+        points, normals = points_and_normals(scan)
         name = _scan_name(scan, i)
         if points.ndim != 2 or points.shape[-1] != 3 or len(points) == 0:
             raise ValueError(f"{name}: a scan needs (m >= 1, 3) points, got shape {points.shape}")

@@ -1,9 +1,9 @@
 """Pictures of an inspection run: ROC curve, score histograms with the threshold, the colour legend of the maps."""
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from datasets.atomic import atomic_path
 
 
 def _pyplot():
@@ -16,19 +16,10 @@ def _pyplot():
 
 
 def _save(fig, path, dpi=110):
-    """Save a figure atomically (temporary PNG beside ``path`` renamed into place)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".png")
-    os.close(fd)
-    try:
+    """Save a figure through :func:`datasets.atomic.atomic_path` (a temporary PNG beside ``path``)."""
+    with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, dpi=dpi)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return Path(path)
 
 
 def plot_roc(path, labels, scores, defects=None, title="ROC (object level)"):

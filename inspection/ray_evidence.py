@@ -148,11 +148,11 @@ class RayReference:
         -------
         RayReference
         """
-        from autodecoder.scanning.free_space import OWN_DEPTH_FACTOR, _field_lengthscale
+        from autodecoder.scanning.free_space import OWN_DEPTH_FACTOR
 
         evidences, scale = [], None
         for points, origin, field_ in scans_and_fields:
-            scale = _field_lengthscale(field_)
+            scale = field_.lengthscale
             if scale is None:
                 raise ValueError("RayReference.build: the field does not say its kernel lengthscale")
             options = dict(ray_options)

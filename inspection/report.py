@@ -3,32 +3,21 @@ import csv
 import io
 import json
 import math
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from datasets.atomic import atomic_path
 
 CSV_COLUMNS = ("name", "split", "label", "defect", "score", "p_value", "verdict")
 RAY_CSV_COLUMNS = CSV_COLUMNS + ("score_points", "score_rays")  # with rays: the two components of the score
 
 
 def atomic_write_text(path, text):
-    """Write ``text`` to ``path`` through a temporary file in the same folder renamed into place."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
-            f.write(text)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    """Write ``text`` (UTF-8) to ``path`` through :func:`datasets.atomic.atomic_path`."""
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text(text, encoding="utf-8", newline="")
+    return Path(path)
 
 
 def write_scores_csv(path, rows, columns=CSV_COLUMNS):

@@ -8,6 +8,8 @@ import re
 
 import numpy as np
 
+from autodecoder.field.protocol import check_field
+
 POINT_SCORES = ("residual", "nll", "local", "distance")
 REFERENCE_NEIGHBOURS = 16
 # |grad E f| is unitless (~1 on the mean surface of a well-fitted field, -> 0 far from it, where E f saturates); the
@@ -107,12 +109,10 @@ def field_quantity(field, points, quantity, with_variance=False):
     """
     if quantity not in ("mean", "distance"):
         raise ValueError(f"reference quantity must be 'mean' or 'distance', got {quantity!r}")
+    check_field(field)
     mean = np.asarray(field.mean(points), dtype=np.float64)
     scale = 1.0
     if quantity == "distance":
-        if not hasattr(field, "mean_gradient"):
-            raise ValueError(f"the 'distance' point score needs a field with mean_gradient(x); "
-                             f"{type(field).__name__} has none (use point_score 'local' or 'residual')")
         grad = np.linalg.norm(np.asarray(field.mean_gradient(points), dtype=np.float64), axis=1)
         scale = np.maximum(grad, GRADIENT_FLOOR)
     if not with_variance:

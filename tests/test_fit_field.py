@@ -127,7 +127,7 @@ def test_default_lengthscale_is_one_and_a_half_point_spacings_whatever_the_units
                   pair_clusters=2)
     for scale in (1.0, 40.0):
         field = fit_cloud(CENTER + scale * (points - CENTER), normals, **kwargs)
-        h_world = field.config["lengthscale"] / field.normalization.scale
+        h_world = field.config["lengthscale"] / field.frame.scale
         expected = 1.5 * np.sqrt(4 * np.pi * (scale * RADIUS) ** 2 / len(points))
         assert abs(h_world / expected - 1) < 0.15
 
@@ -181,8 +181,8 @@ def test_queries_reject_malformed_points(sphere_field):
 
 
 def test_mean_gradient_matches_finite_differences(sphere_field):
-    """grad E f in world units (the cloud is not in the unit cube: the normalization's scale must cancel)."""
-    x = np.random.default_rng(3).uniform(-0.3, 0.3, (20, 3)) + sphere_field.normalization.center
+    """grad E f in world units (the cloud is not in the unit cube: the frame's scale must cancel)."""
+    x = np.random.default_rng(3).uniform(-0.3, 0.3, (20, 3)) + sphere_field.frame.center
     eps = 1e-3
     fd = np.stack([(sphere_field.mean(x + eps * e) - sphere_field.mean(x - eps * e)) / (2 * eps)
                    for e in np.eye(3)], 1)
@@ -325,7 +325,7 @@ def test_outside_value_is_the_far_field_of_a_closed_surface(sphere_field):
     from autodecoder.field.targets import CloudTargets
 
     points, normals = sphere_cloud(1500)
-    model_points = sphere_field.normalization.to_model(points)
+    model_points = sphere_field.frame.to_collection(points)
     targets = CloudTargets(model_points, normals, sphere_field.config["lengthscale"])
     w = targets.outside_value()
     post = targets.posterior
@@ -372,7 +372,7 @@ def test_outside_term_closes_an_open_sheet():
     boundary = {}
     for weight in (0.0, 100.0):
         field = fit_cloud(points, normals, outside_weight=weight, **kw)
-        targets = CloudTargets(field.normalization.to_model(points), normals, field.config["lengthscale"])
+        targets = CloudTargets(field.frame.to_collection(points), normals, field.config["lengthscale"])
         with torch.no_grad():
             boundary[weight] = field.mean_net(torch.from_numpy(
                 targets.boundary_batch(1000, np.random.default_rng(1)))).numpy()
@@ -380,3 +380,43 @@ def test_outside_term_closes_an_open_sheet():
     assert (boundary[0.0] < 0.5 * w).mean() > 0.3
     assert (boundary[100.0] < 0.5 * w).mean() < 0.01
     assert abs(np.median(boundary[100.0]) - w) < 0.15 * w
+
+
+def test_cosine_decay_closed_form():
+    """The one learning-rate schedule: 1 at the start, the floor at the end and after, (1 + floor) / 2 half-way,
+    never increasing."""
+    from autodecoder.field.schedule import cosine_decay
+
+    assert cosine_decay(0, 100, 0.1) == pytest.approx(1.0)
+    assert cosine_decay(50, 100, 0.1) == pytest.approx(0.55)
+    assert cosine_decay(100, 100, 0.1) == pytest.approx(0.1)
+    assert cosine_decay(250, 100, 0.1) == pytest.approx(0.1)
+    assert cosine_decay(0, 0, 0.3) == pytest.approx(1.0)
+    values = [cosine_decay(s, 37, 0.05) for s in range(40)]
+    assert all(a >= b for a, b in zip(values, values[1:]))
+
+
+def test_mean_averager_is_the_warmed_up_exponential_average_of_the_late_iterates():
+    """MeanAverager against the recursion written out by hand: nothing before ``start``, the first averaged iterate
+    copied, then a <- d_k a + (1 - d_k) p with d_k = min(decay, (1 + k) / (10 + k)) after k averaged steps."""
+    from autodecoder.field.fit import MeanAverager
+
+    net = torch.nn.Linear(2, 1)
+    averager = MeanAverager(net, decay=0.5, start=3)
+    values = np.random.default_rng(0).normal(size=(12, 3))
+    expected, k = None, 0
+    for step, v in enumerate(values):
+        with torch.no_grad():
+            net.weight.copy_(torch.tensor(v[:2]).reshape(1, 2))
+            net.bias.copy_(torch.tensor(v[2:]))
+        averager.update(step)
+        if step >= 3:
+            if expected is None:
+                expected = v.copy()
+            else:
+                d = min(0.5, (1 + k) / (10 + k))
+                expected = d * expected + (1 - d) * v
+            k += 1
+    averager.apply()
+    np.testing.assert_allclose(np.concatenate([net.weight.detach().numpy().ravel(), net.bias.detach().numpy()]),
+                               expected, rtol=1e-6)

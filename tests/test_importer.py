@@ -7,7 +7,8 @@ import pytest
 
 from datasets import Frame, ScanCollection, read_cloud, write_cloud
 from datasets.__main__ import main
-from datasets.importer import import_tree, voxel_downsample
+from datasets.importer import import_tree
+from datasets.ingest import voxel_downsample
 
 FORMATS = ("ply", "pcd", "xyz", "txt", "pts", "npy", "npz")
 CENTER, RADIUS = np.array([5.0, -2.0, 30.0]), 2.0

@@ -7,10 +7,11 @@ import pytest
 
 from inspection import Inspector, NotFittedError, aggregate, conformal_p_values, conformal_threshold, point_scores
 from inspection.calibration import Calibration
+from autodecoder.field.protocol import Field
 
 
 # ---------------------------------------------------------------------------------------------- test doubles
-class SphereField:
+class SphereField(Field):
     """Analytic stochastic field: mean = |x - c| - r (a signed distance), constant variance."""
 
     def __init__(self, center=(0, 0, 0), radius=1.0, variance=1e-4, noise=0.01):

@@ -37,7 +37,7 @@ def workdir(tmp_path_factory):
     import torch
 
     from autodecoder.field.stochastic_field import StochasticField
-    from autodecoder.field.frame import Normalization
+    from datasets.frame import Frame
     from autodecoder.field.networks import build_networks
     from inspection.model_io import save_reference_field
 
@@ -52,7 +52,7 @@ def workdir(tmp_path_factory):
               "lengthscale": 0.05, "box_lo": [-0.6] * 3, "box_hi": [0.6] * 3}
     torch.manual_seed(0)
     mean_net, cov_net = build_networks(config)
-    field = StochasticField(mean_net, cov_net, Normalization.identity(), config, noise=0.01)
+    field = StochasticField(mean_net, cov_net, Frame.identity(), config, noise=0.01)
     save_reference_field(field, root / "model.pt", frame=FRAME, fingerprint=fp,
                          train_names=[s.name for s in scans[:3]], heldback_names=[s.name for s in scans[3:6]])
     return root

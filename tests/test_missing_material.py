@@ -14,6 +14,7 @@ from inspection import Inspector, NotFittedError
 from inspection.calibration import Calibration
 from inspection.combine import GATE_MARGIN, Combination
 from inspection.ray_evidence import check_ray_options, image_holes, ray_evidence
+from autodecoder.field.protocol import Field
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -21,7 +22,7 @@ SENSOR = np.array([0.0, 0.0, 2.0])
 
 
 # ---------------------------------------------------------------------------------------------- a toy field
-class WallField:
+class WallField(Field):
     """A thin horizontal wall |z| <= thickness / 2 over a solid floor z <= floor, optionally with a round hole
     through the wall (radius ``hole`` about the z axis), or ending at x = ``edge``. Mean: min of the two solids' signed distances (exact
     distances away from the hole's rim); covariance: sd^2 exp(-|a - b|^2 / (2 ell^2)); box [-1, 1]^3."""
@@ -30,7 +31,7 @@ class WallField:
         self.thickness, self.hole, self.floor, self.edge = thickness, hole, floor, edge
         self.sd, self.ell, self.offset = sd, ell, offset
         self.noise = 0.0
-        self.config = {"lengthscale": 0.02}
+        self.lengthscale = 0.02
         self.bounds = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 
     def torch_mean(self, x):
@@ -330,7 +331,7 @@ def test_cli_calibrate_and_score_with_rays(tmp_path, capsys):
     calibrate --rays stores the ray record, score writes the two components and the ray maps; scans without an
     origin are refused in one line."""
     from autodecoder.field.stochastic_field import StochasticField
-    from autodecoder.field.frame import Normalization
+    from datasets.frame import Frame
     from autodecoder.field.networks import build_networks
     from datasets import Frame, ScanCollection, read_cloud
     from inspection.__main__ import main
@@ -357,7 +358,7 @@ def test_cli_calibrate_and_score_with_rays(tmp_path, capsys):
     config = {"width": 16, "depth": 1, "latent_dim": 0, "covariance": "feature", "features": 8, "omega0": 5.0,
               "lengthscale": 0.05, "box_lo": [-0.6] * 3, "box_hi": [0.6] * 3}
     torch.manual_seed(0)
-    field = StochasticField(*build_networks(config), Normalization.identity(), config, noise=0.01)
+    field = StochasticField(*build_networks(config), Frame.identity(), config, noise=0.01)
     model = tmp_path / "model.pt"
     save_reference_field(field, model, frame=frame, fingerprint=fp, train_names=names[:2],
                          heldback_names=names[2:6])

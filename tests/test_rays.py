@@ -5,6 +5,7 @@ import pytest
 import torch
 from scipy.stats import multivariate_normal
 
+from autodecoder.field.protocol import Field
 from autodecoder.scanning.rays import cast_rays, first_hit, monte_carlo_survival, orthant_probability, orthant_survival
 
 
@@ -106,7 +107,7 @@ def test_singular_and_slightly_indefinite_covariances_are_repaired():
         orthant_survival(mean, cov * float("nan"))
 
 
-class Sphere:
+class Sphere(Field):
     """Toy field: f = |x| - 1, std 0.1 (1 + x_0) / 2 + 0.02, squared-exponential correlation (lengthscale 0.3)."""
 
     def __init__(self, dtype=torch.float64):

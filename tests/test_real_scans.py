@@ -10,7 +10,8 @@ import pytest
 
 from datasets import Frame, ScanCollection, write_cloud
 from datasets.__main__ import main
-from datasets.importer import estimate_normals, import_tree
+from datasets.importer import import_tree
+from datasets.normals import estimate_normals
 from datasets.outliers import stray_points
 
 REALSCANS = Path(__file__).resolve().parents[2] / "shared" / "realscans" / "bunny"

@@ -54,11 +54,11 @@ def test_grid_minimiser_recovers_the_closed_form_potential(target_limit):
 
 
 def test_zero_level_mesh_is_the_sphere(target_limit):
-    from autodecoder.field.frame import Normalization
+    from datasets.frame import Frame
 
     targets = _sphere_targets()
     g, lo, delta, _ = target_limit.grid_minimiser(targets, 25)
-    mesh = target_limit.zero_level_mesh(g, lo, delta, Normalization.identity())
+    mesh = target_limit.zero_level_mesh(g, lo, delta, Frame.identity())
     r = np.linalg.norm(mesh.vertices, axis=1)
     assert np.abs(r - 0.3).max() < delta / 4
     assert mesh.volume > 0  # outward faces: g > 0 is outside

@@ -6,6 +6,7 @@ import trimesh
 from datasets.defects import make_defect
 from datasets.parts import BUILTIN_PARTS, load_part, open_cup, sheet_enclosure
 from datasets.scanner import VirtualScanner
+from autodecoder.field.protocol import Field
 
 WALL = 1.5  # both parts' default sheet thickness, mm
 
@@ -159,7 +160,7 @@ def test_fitted_mean_changes_sign_across_a_sheet_seen_from_one_side_only():
     to it). Seen from both sides, a sheet thinner than the kernel has no sign change left: the two faces' normals
     cancel in the posterior mean (to O(t^2 / h^2)), so the field of a closed thin sheet is ~0 across it."""
     one = _fit(*_sheet_cloud(None))
-    h = one.config["lengthscale"] / one.normalization.scale
+    h = one.config["lengthscale"] / one.frame.scale
     mean, sd = _profile(one, np.array([h, -h, -3 * h]))
     assert mean[0] > sd[0] and mean[1] < -sd[1] and mean[2] < -sd[2]  # negative behind the face, far behind too
     both = _fit(*_sheet_cloud(0.4 * h))
@@ -170,13 +171,13 @@ def test_fitted_mean_changes_sign_across_a_sheet_seen_from_one_side_only():
 
 
 # ---------------------------------------------------------------------------------------------- rays through a sheet
-class OneSidedSheetField:
+class OneSidedSheetField(Field):
     """The field of a flat sheet z = 0 seen from above, as a partial scan's latent field is: E f = clip(z, -a, a)
     (solid everywhere below the sheet), sd constant; box [-1, 1]^3; kernel lengthscale 0.02."""
 
     def __init__(self, a=0.02, sd=0.004, ell=0.05):
         self.a, self.sd, self.ell = a, sd, ell
-        self.config = {"lengthscale": 0.02}
+        self.lengthscale = 0.02
         self.bounds = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 
     def torch_mean(self, x):

@@ -36,7 +36,7 @@ def test_update_lowers_the_misfit_on_new_data_and_keeps_the_old_surface(fields):
     assert after_new < 0.7 * before_new
     assert np.abs(updated.mean(old_p)).mean() < max(2 * np.abs(field.mean(old_p)).mean(), 0.05)
     assert updated.training_points.shape == (800, 3)
-    assert updated.normalization == field.normalization
+    assert updated.frame == field.frame
     assert updated.info["updates"][-1]["n_new"] == 400
     assert field.training_points.shape == (400, 3)  # the old field is untouched
     assert "updates" not in field.info

@@ -7,6 +7,7 @@ import torch
 
 from autodecoder.scanning.views import camera_rays, camera_score, next_best_views
 from tests.test_rays import Sphere
+from autodecoder.field.protocol import Field
 
 
 def test_camera_rays_are_unit_and_inside_the_field_of_view():
@@ -146,7 +147,7 @@ def test_distribution_summary_is_the_hit_weighted_variance_along_the_rays():
         camera_score(field, p, -p, center, radius, hit_summary="mode", **kw)
 
 
-class TwoSheets:
+class TwoSheets(Field):
     """Toy field in z only, seen from +z: a sheet at z = 1 that the ray hits with probability ~1/2 (mean 0 there,
     small sd) and a sure surface at z = -1; the empty space between them (z ~ 0) has a large variance.
 

@@ -1,29 +1,16 @@
 """Atomic writes and safe reads of torch files (fields, checkpoints)."""
-import os
-import tempfile
 from pathlib import Path
 
 import torch
 
+from datasets.atomic import atomic_path
+
 
 def atomic_torch_save(obj, path):
-    """``torch.save`` to a temporary file beside ``path``, then rename it into place.
-
-    An interrupted write leaves any previous file at ``path`` untouched and no partial file behind.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            torch.save(obj, fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    """``torch.save`` through :func:`datasets.atomic.atomic_path`: an interrupted write leaves any previous file at
+    ``path`` untouched and no partial file behind."""
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
 
 
 def load_torch_file(path, what="file"):

@@ -6,15 +6,17 @@ from typing import Optional
 
 import numpy as np
 import torch
+from torch.optim.swa_utils import AveragedModel
 from tqdm.auto import tqdm
 
 from autodecoder.field.stochastic_field import StochasticField
-from autodecoder.field.frame import Normalization
+from datasets.frame import Frame
 from autodecoder.field.losses import (covariance_dirichlet_loss_features, covariance_dirichlet_loss_pairs, mean_dirichlet_loss,
                      screening_loss, SCREENING_WEIGHT)
 from autodecoder.field.networks import build_networks
+from autodecoder.field.schedule import cosine_decay
 from autodecoder.field.targets import FIT_LENGTHSCALE_FACTOR, CloudTargets, default_lengthscale
-from autodecoder.field.validation import check_oriented_cloud
+from datasets.validation import check_oriented_cloud
 
 
 @dataclass
@@ -147,10 +149,6 @@ def even_pool_size(steps, size, passes):
     return max(1, min(size, math.ceil(steps / (pools * passes))))
 
 
-def _cosine_lr(step, total, fraction):
-    return fraction + (1 - fraction) * 0.5 * (1 + np.cos(np.pi * min(step / max(total, 1), 1.0)))
-
-
 class MeanPool:
     """Mean-loss samples drawn ``batch * refresh`` at a time, served in shuffled minibatches for ``passes``
     passes, then redrawn.
@@ -223,7 +221,8 @@ class MeanAverager:
 
     The last iterate of a stochastic run carries the noise of its last minibatches: on fandisk the mean surface's
     offset from the true surface is smooth over about one kernel lengthscale, the signature of that noise. An
-    average of the late iterates removes part of it at the cost of one in-place lerp per step.
+    average of the late iterates removes part of it at the cost of one in-place lerp per step
+    (``torch.optim.swa_utils.AveragedModel`` with this schedule as its ``avg_fn``).
 
     Averaging starts at ``start`` (earlier iterates are far from the final one) with the warm-up decay
     ``min(decay, (1 + k) / (10 + k))`` after k averaged steps, so that a short run (a fine-tune of a few steps)
@@ -239,28 +238,32 @@ class MeanAverager:
     """
 
     def __init__(self, net, decay, start):
-        self.params, self.decay, self.start = list(net.parameters()), float(decay), int(start)
-        self.average = None
-        self.count = 0
+        self.net, self.decay, self.start = net, float(decay), int(start)
+        self._averaged = None  # torch.optim.swa_utils.AveragedModel, made at the first averaged step
+
+    def _ema(self, average, current, n_averaged):
+        # n_averaged: steps averaged before this one (>= 1); the warm-up decay of the class docstring
+        decay = min(self.decay, (1 + float(n_averaged)) / (10 + float(n_averaged)))
+        return average.lerp_(current, 1 - decay)
 
     def update(self, step):
         if self.decay <= 0 or step < self.start:
             return
-        with torch.no_grad():
-            if self.average is None:
-                self.average = [p.detach().clone() for p in self.params]
-            else:
-                decay = min(self.decay, (1 + self.count) / (10 + self.count))
-                for avg, p in zip(self.average, self.params):
-                    avg.lerp_(p, 1 - decay)
-        self.count += 1
+        if self._averaged is None:  # copies the net: the first averaged step is the average
+            self._averaged = AveragedModel(self.net, avg_fn=self._ema, use_buffers=False)
+        self._averaged.update_parameters(self.net)
+
+    @property
+    def average(self):
+        """The averaged parameters (list of tensors, the net's order), or None before the first averaged step."""
+        return None if self._averaged is None else list(self._averaged.module.parameters())
 
     def apply(self):
         """Copy the average into the net (no-op when nothing was averaged)."""
-        if self.average is None:
+        if self._averaged is None:
             return
         with torch.no_grad():
-            for p, avg in zip(self.params, self.average):
+            for p, avg in zip(self.net.parameters(), self._averaged.module.parameters()):
                 p.copy_(avg)
 
 
@@ -371,10 +374,10 @@ def fit_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, width=64
     points, normals = check_oriented_cloud(points, normals)
     options = FitOptions(**{**asdict(options or FitOptions()), **option_overrides})
     t0 = time.perf_counter()
-    normalization = Normalization.fit(points)
-    model_points = normalization.to_model(points)
+    frame = Frame.fit(points)
+    model_points = frame.to_collection(points)
     h = (default_lengthscale(model_points, FIT_LENGTHSCALE_FACTOR) if lengthscale is None
-         else float(lengthscale) * normalization.scale)
+         else float(lengthscale) * frame.scale)
     targets = CloudTargets(model_points, normals, h)
     config = {"width": width, "depth": depth, "latent_dim": 0, "covariance": covariance, "features": features,
               "omega0": omega0, "lengthscale": h, "box_lo": targets.box.lo.tolist(), "box_hi": targets.box.hi.tolist()}
@@ -385,14 +388,14 @@ def fit_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, width=64
     history = train_single(mean_net, cov_net, targets, options, rng, quiet=quiet)
 
     with torch.no_grad():
-        residual = mean_net(torch.from_numpy(targets.points32)).double().numpy() / normalization.scale
+        residual = mean_net(torch.from_numpy(targets.points32)).double().numpy() / frame.scale
     if noise is None:
         noise = float(np.sqrt(np.mean(residual**2)))
     info = {"fit_seconds": time.perf_counter() - t0, "steps": options.steps, "n_points": len(points),
             "final_losses": history[-1] if history else {}, "options": asdict(options),
             "history": history}
     # the field keeps its cloud (world frame) so that autodecoder.scanning.update_field can fine-tune on old + new scans
-    return StochasticField(mean_net, cov_net, normalization, config, noise=noise, info=info,
+    return StochasticField(mean_net, cov_net, frame, config, noise=noise, info=info,
                            training_points=points, training_normals=normals)
 
 
@@ -418,7 +421,7 @@ def train_single(mean_net, cov_net, targets, options, rng, quiet=False, steps=No
     averaging = MeanAverager(mean_net, options.average_decay, start=steps // 2)
     bar = tqdm(range(steps), desc="fitting", disable=quiet, leave=False)
     for step in bar:
-        lr = options.lr * _cosine_lr(step, steps, options.final_lr_fraction)
+        lr = options.lr * cosine_decay(step, steps, options.final_lr_fraction)
         for opt in (opt_mean, opt_cov):
             for group in opt.param_groups:
                 group["lr"] = lr

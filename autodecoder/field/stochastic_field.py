@@ -1,7 +1,7 @@
 """StochasticField: the fitted stochastic implicit surface f(x) ~ N(g(x), c(x, x)) and its queries.
 
 All public queries take and return coordinates and values in the cloud's own ("world") frame; internally the
-networks work in the unit-cube model frame (see :class:`autodecoder.field.frame.Normalization`). Convention: f < 0
+networks work in the unit-cube model frame (see :class:`datasets.frame.Frame`). Convention: f < 0
 inside, f > 0 outside; f is a length (its gradient is the unit outward normal on the surface).
 """
 import math
@@ -12,9 +12,10 @@ import numpy as np
 import torch
 
 from autodecoder.field.checkpoint_io import atomic_torch_save, load_torch_file
-from autodecoder.field.frame import Normalization
+from datasets.frame import Frame
 from autodecoder.field.networks import build_networks
-from autodecoder.field.validation import check_points
+from autodecoder.field.protocol import Field
+from datasets.validation import check_points
 
 FIELD_FORMAT = "nsspr-field"
 FIELD_VERSION = 1
@@ -22,14 +23,14 @@ _CHUNK = 65536
 _MIN_VARIANCE = 1e-20
 
 
-class StochasticField:
+class StochasticField(Field):
     """A Gaussian process f over space given by a mean net g and a covariance net c (optionally with a code z).
 
     Parameters
     ----------
     mean_net, cov_net : torch.nn.Module
         :class:`MeanNet` and a covariance net (:class:`FeatureCovarianceNet` or :class:`PairCovarianceNet`).
-    normalization : Normalization
+    frame : datasets.frame.Frame
         World -> model frame.
     config : dict
         Network configuration (see :func:`autodecoder.field.networks.build_networks`) plus ``lengthscale`` and the
@@ -42,14 +43,14 @@ class StochasticField:
         Free-form provenance (fit time, losses); plain Python values only.
     training_points, training_normals : (n, 3) arrays, optional
         The oriented cloud the field was fitted to (world frame), kept as float32 tensors and saved with the field
-        so that :meth:`update` can fine-tune on old + new data; None when unknown.
+        so that :func:`autodecoder.scanning.update.update_field` can fine-tune on old + new data; None when unknown.
     """
 
-    def __init__(self, mean_net, cov_net, normalization, config, code=None, noise=0.0, info=None,
+    def __init__(self, mean_net, cov_net, frame, config, code=None, noise=0.0, info=None,
                  training_points=None, training_normals=None):
         self.mean_net = mean_net.eval()
         self.cov_net = cov_net.eval()
-        self.normalization = normalization
+        self.frame = frame
         self.config = dict(config)
         self.code = None if code is None else code.detach().float().reshape(-1)
         self.noise = float(noise)
@@ -59,15 +60,15 @@ class StochasticField:
 
     # ----------------------------------------------------------------------------------- torch, differentiable
     def _model_x(self, x):
-        c = torch.as_tensor(self.normalization.center, dtype=x.dtype, device=x.device)
-        return (x - c) * self.normalization.scale
+        c = torch.tensor(self.frame.center, dtype=x.dtype, device=x.device)  # the frame's array is read-only
+        return (x - c) * self.frame.scale
 
     def _code_for(self, x):
         return None if self.code is None else self.code.to(x.dtype)
 
     def torch_mean(self, x):
         """E f(x) for world points x (m, 3) tensor -> (m,), differentiable with respect to x."""
-        return self.mean_net(self._model_x(x), self._code_for(x)) / self.normalization.scale
+        return self.mean_net(self._model_x(x), self._code_for(x)) / self.frame.scale
 
     def torch_mean_and_gradient(self, x):
         """E f(x) and its gradient for world points x (m, 3) tensor -> (m,), (m, 3).
@@ -75,21 +76,27 @@ class StochasticField:
         The gradient is unitless (world length over world length), so E f / |grad E f| is a first-order distance to
         the mean surface in world units."""
         value, grad = self.mean_net.value_and_gradient(self._model_x(x), self._code_for(x))
-        return value / self.normalization.scale, grad
+        return value / self.frame.scale, grad
 
     def torch_covariance(self, x1, x2):
         """Cov(f(x1_i), f(x2_i)) for world points taken row by row: (m, 3), (m, 3) -> (m,)."""
-        s2 = self.normalization.scale**2
+        s2 = self.frame.scale**2
         return self.cov_net.covariance(self._model_x(x1), self._model_x(x2), self._code_for(x1)) / s2
 
     def torch_variance(self, x):
         """Var f(x) for world points (m, 3) -> (m,)."""
-        return self.cov_net.variance(self._model_x(x), self._code_for(x)) / self.normalization.scale**2
+        return self.cov_net.variance(self._model_x(x), self._code_for(x)) / self.frame.scale**2
+
+    @property
+    def lengthscale(self):
+        """The GP kernel lengthscale of the fit, world units (None for a config without one)."""
+        h = self.config.get("lengthscale")
+        return None if h is None else float(h) / self.frame.scale
 
     @property
     def bounds(self):
         """(2, 3) array: the integration box (min, max corners) in world coordinates."""
-        return self.normalization.to_world(np.stack([self.config["box_lo"], self.config["box_hi"]]))
+        return self.frame.to_file(np.stack([self.config["box_lo"], self.config["box_hi"]]))
 
     # ------------------------------------------------------------------------------------------ numpy queries
     def _evaluate(self, fn, *arrays, shape=()):
@@ -168,14 +175,14 @@ class StochasticField:
         lo, hi = np.asarray(self.config["box_lo"]), np.asarray(self.config["box_hi"])
         axes = [np.linspace(lo[d], hi[d], resolution) for d in range(3)]
         grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-        values = self.mean(self.normalization.to_world(grid)).reshape((resolution,) * 3)
+        values = self.mean(self.frame.to_file(grid)).reshape((resolution,) * 3)
         if not (values.min() < 0 < values.max()):
             raise ValueError("the mean field has no zero crossing in its box: there is no surface to mesh")
         spacing = tuple((hi - lo) / (resolution - 1))
         # skimage's default winding ('descent') gives counter-clockwise faces seen from where values grow, i.e.
         # outward-facing normals for f < 0 inside (checked by the sphere test)
         verts, faces, _, _ = marching_cubes(values, level=0.0, spacing=spacing)
-        return trimesh.Trimesh(self.normalization.to_world(verts + lo), faces, process=False)
+        return trimesh.Trimesh(self.frame.to_file(verts + lo), faces, process=False)
 
     # ----------------------------------------------------------------------------------------------- files
     def state(self):
@@ -187,7 +194,7 @@ class StochasticField:
             "mean_state": self.mean_net.state_dict(),
             "cov_state": self.cov_net.state_dict(),
             "code": self.code,
-            "normalization": self.normalization.as_dict(),
+            "normalization": self.frame.as_dict(),  # the file key of format version 1 (the frame was called so)
             "noise": self.noise,
             "info": self.info,
             "training_points": self.training_points,
@@ -208,7 +215,7 @@ class StochasticField:
         mean_net, cov_net = build_networks(state["config"])
         mean_net.load_state_dict(state["mean_state"])
         cov_net.load_state_dict(state["cov_state"])
-        return cls(mean_net, cov_net, Normalization.from_dict(state["normalization"]), state["config"],
+        return cls(mean_net, cov_net, Frame.from_dict(state["normalization"]), state["config"],
                    code=state["code"], noise=state["noise"], info=state.get("info"),
                    training_points=state.get("training_points"), training_normals=state.get("training_normals"))
 

@@ -32,7 +32,7 @@ import torch
 
 from autodecoder.field.checkpoint_io import atomic_torch_save, load_torch_file
 from autodecoder.field.networks import build_networks
-from autodecoder.field.frame import Normalization
+from datasets.frame import Frame
 from autodecoder.field.stochastic_field import StochasticField
 from autodecoder.latent.projection import project, project_many
 from datasets.frame import Frame
@@ -121,14 +121,14 @@ class LatentModel:
                 f"width={self.config['width']}, depth={self.config['depth']}, epoch={self.epoch})")
 
     def field(self, code, mean_net=None, cov_net=None, info=None):
-        """The :class:`StochasticField` of a code (L,), in the collection frame (identity normalization)."""
+        """The :class:`StochasticField` of a code (L,), in the collection frame (identity frame)."""
         code = torch.as_tensor(code, dtype=torch.float32).reshape(-1)
         if code.shape != (self.latent_dim,):
             raise ValueError(f"code must have {self.latent_dim} entries, got {tuple(code.shape)}")
         field_config = {k: self.config[k] for k in ("width", "depth", "latent_dim", "covariance", "features",
                                                     "omega0", "lengthscale", "box_lo", "box_hi")
                         if k in self.config}
-        return StochasticField(mean_net or self.mean_net, cov_net or self.cov_net, Normalization.identity(),
+        return StochasticField(mean_net or self.mean_net, cov_net or self.cov_net, Frame.identity(),
                                field_config, code=code, noise=self.noise, info=info)
 
     def training_field(self, name):

@@ -22,8 +22,10 @@ import torch
 
 from autodecoder.field.fit import FitOptions, train_single
 from autodecoder.field.sampling import Box
+from autodecoder.field.schedule import cosine_decay
 from autodecoder.field.targets import CloudTargets
-from autodecoder.field.validation import check_points
+from datasets.normals import estimate_normals
+from datasets.validation import check_oriented_cloud, check_points, points_and_normals
 
 
 @dataclass
@@ -99,35 +101,14 @@ class Projection:
     info: dict = field(default_factory=dict)
 
 
-def _pca_normals(points, k=16):
-    """Unoriented unit normals (n, 3): the smallest principal direction of each point's k neighbours."""
-    from scipy.spatial import cKDTree
-
-    k = min(k, len(points))
-    _, idx = cKDTree(points).query(points, k)
-    nb = points[idx] - points[idx].mean(1, keepdims=True)  # (n, k, 3)
-    cov = np.einsum("nki,nkj->nij", nb, nb)
-    _, vecs = np.linalg.eigh(cov)
-    return vecs[:, :, 0]
-
-
 def _prepare(scan_like, index):
-    if hasattr(scan_like, "points"):
-        points, normals = scan_like.points, scan_like.normals
-    elif isinstance(scan_like, (tuple, list)) and len(scan_like) == 2:
-        points, normals = scan_like
-    else:
-        points, normals = scan_like, None
-    points = check_points(points, f"scan {index} points", min_points=10)
+    """(points, normals, oriented) float32 of one scan; a scan without normals gets unoriented estimated ones."""
+    points, normals = points_and_normals(scan_like)
     if normals is None:
-        return points.astype(np.float32), _pca_normals(points).astype(np.float32), False
-    normals = check_points(normals, f"scan {index} normals", min_points=10)
-    if normals.shape != points.shape:
-        raise ValueError(f"scan {index}: points {points.shape} and normals {normals.shape} differ in shape")
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
-    if (length < 1e-8).any():
-        raise ValueError(f"scan {index}: {int((length < 1e-8).sum())} normals have zero length")
-    return points.astype(np.float32), (normals / length).astype(np.float32), True
+        points = check_points(points, f"scan {index} points", min_points=10)
+        return points.astype(np.float32), estimate_normals(points, orient=False).astype(np.float32), False
+    points, normals = check_oriented_cloud(points, normals, min_points=10, name=f"scan {index}")
+    return points.astype(np.float32), normals.astype(np.float32), True
 
 
 def _point_losses(mean_net, x, normals, oriented, z, screening_weight):
@@ -265,7 +246,7 @@ def _project_batch(model, prepared, opts, seed):
     explore = min(opts.explore, opts.steps) if starts > 1 else 0
     for step in range(opts.steps):
         for grp in opt.param_groups:
-            grp["lr"] = opts.lr * (0.1 + 0.9 * 0.5 * (1 + np.cos(np.pi * step / max(opts.steps, 1))))
+            grp["lr"] = opts.lr * cosine_decay(step, opts.steps, 0.1)
         k = z.shape[1]
         xs, ns = subset(opts.sample)
         x = xs[:, None].expand(b, k, *xs.shape[1:]).reshape(b * k, -1, 3)

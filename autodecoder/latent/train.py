@@ -32,7 +32,10 @@ from autodecoder.latent.model import (LATENT_FORMAT, LATENT_VERSION, LatentModel
 from autodecoder.field.losses import SCREENING_WEIGHT, covariance_dirichlet_loss_features, mean_dirichlet_loss, screening_loss
 from autodecoder.field.networks import build_networks
 from autodecoder.field.sampling import Box
+from autodecoder.field.schedule import cosine_decay
 from autodecoder.latent.pools import ScanTargetPool, stack_inputs
+from datasets.atomic import atomic_path
+from datasets.frame import Frame
 from autodecoder.field.targets import DEFAULT_LENGTHSCALE_FACTOR, MIN_LENGTHSCALE, CloudTargets, point_spacing
 
 # Optimisation steps the default epoch count aims at: on fandisk (26 partial scans, batch 8, 4 steps an epoch) the
@@ -149,10 +152,6 @@ class _NetPair(nn.Module):
         cov_dir = covariance_dirichlet_loss_features(jac.view(s, m, 3, -1), sigma, weights)
         cov_scr = screening_loss(self.cov_net.variance(screen, z_screen.detach()), self.screening_weight)
         return torch.stack([mean_dir, mean_scr, cov_dir, cov_scr])
-
-
-def _cosine(step, total, fraction):
-    return fraction + (1 - fraction) * 0.5 * (1 + math.cos(math.pi * min(step / max(total, 1), 1.0)))
 
 
 def _dist():
@@ -469,7 +468,7 @@ def _train_epoch(state, module, pools, scope, options, epoch, steps_per_epoch, b
     order = np.resize(order, steps_per_epoch * batch)
     sums = torch.zeros(6, dtype=torch.float64)
     for k in range(steps_per_epoch):
-        f = _cosine(epoch * steps_per_epoch + k, total_steps, options.final_lr_fraction)
+        f = cosine_decay(epoch * steps_per_epoch + k, total_steps, options.final_lr_fraction)
         for g in state.opt_nets.param_groups:
             g["lr"] = options.lr * f
         for g in state.opt_codes.param_groups:
@@ -696,11 +695,12 @@ def _checkpoint_to_resume(out, collection, data, resume, overwrite):
 
 
 def _frame_dict(frame):
+    """The training frame as the checkpoint stores it (:meth:`datasets.frame.Frame.as_dict`); None is the identity."""
     if frame is None:
-        return {"center": [0.0, 0.0, 0.0], "scale": 1.0}
-    if isinstance(frame, dict):
-        return {"center": [float(c) for c in frame["center"]], "scale": float(frame["scale"])}
-    return {"center": [float(c) for c in frame.center], "scale": float(frame.scale)}
+        frame = Frame.identity()
+    elif isinstance(frame, dict):
+        frame = Frame.from_dict(frame)
+    return frame.as_dict()
 
 
 def _part_ids(local_ids, n_scans, world):
@@ -785,13 +785,10 @@ def log_paths(out):
 
 def _write_log(out, history):
     csv_path, _ = log_paths(out)
-    csv_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = csv_path.with_name("." + csv_path.name + ".tmp")
-    with open(tmp, "w") as fh:
+    with atomic_path(csv_path) as tmp, open(tmp, "w") as fh:
         fh.write(",".join(LOG_COLUMNS) + "\n")
         for r in history:
             fh.write(",".join(f"{r[c]:.6g}" if isinstance(r[c], float) else str(r[c]) for c in LOG_COLUMNS) + "\n")
-    os.replace(tmp, csv_path)
 
 
 def _plot_losses(out, history):
@@ -812,7 +809,6 @@ def _plot_losses(out, history):
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    tmp = png.with_name("." + png.name + ".tmp.png")
-    fig.savefig(tmp, dpi=100)
+    with atomic_path(png, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=100)
     plt.close(fig)
-    os.replace(tmp, png)

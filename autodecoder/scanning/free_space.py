@@ -59,7 +59,7 @@ import numpy as np
 import torch
 
 from autodecoder.scanning.rays import orthant_survival, ray_gaussian
-from autodecoder.field.validation import check_points
+from datasets.validation import check_points
 
 DEFAULT_OUTSIDE_SIGMA = 2.0
 DEFAULT_MAX_SAMPLES = 128
@@ -103,15 +103,6 @@ class FreeSpaceCheck:
     t_enter: np.ndarray = None
 
 
-def _field_lengthscale(field):
-    """The field's kernel lengthscale in world units, or None when it does not say."""
-    config = getattr(field, "config", None) or {}
-    if "lengthscale" not in config:
-        return None
-    scale = float(getattr(getattr(field, "normalization", None), "scale", 1.0))
-    return float(config["lengthscale"]) / scale
-
-
 def box_interval(origin, directions, bounds):
     """Where rays from ``origin`` (3,) along unit ``directions`` (B, 3) enter and leave a box (2, 3) (min, max
     corners): (t_in, t_out), (B,) each, t_in >= 0; rays that miss the box (or leave it behind the origin) get
@@ -125,12 +116,6 @@ def box_interval(origin, directions, bounds):
     t_max = np.where(np.isnan(t1), np.inf, np.maximum(t1, t2)).min(1)
     hit = (t_max >= np.maximum(t_min, 0.0))
     return np.where(hit, np.maximum(t_min, 0.0), 0.0), np.where(hit, t_max, 0.0)
-
-
-def _variance(field, x):
-    if hasattr(field, "torch_variance"):
-        return field.torch_variance(x)
-    return field.torch_covariance(x, x)
 
 
 @dataclass
@@ -154,7 +139,7 @@ class _Options:
                              f"{self.n_select}, {self.q_floor}")
         if self.step is not None and not self.step > 0:
             raise ValueError(f"step must be > 0 (world units), got {self.step}")
-        scale = _field_lengthscale(field)
+        scale = field.lengthscale
         if self.observed is not None:
             self.observed = check_points(self.observed, "observed points", min_points=0)
             if self.clearance is None:
@@ -186,8 +171,8 @@ def blocked_probability(field, origin, points, outside_sigma=DEFAULT_OUTSIDE_SIG
 
     Parameters
     ----------
-    field : StochasticField or an object with ``torch_mean(x)`` and ``torch_covariance(x1, x2)`` (and optionally
-        ``torch_variance``, ``bounds`` (2, 3), ``config["lengthscale"]``), world frame.
+    field : autodecoder.field.protocol.Field
+        World frame; its ``bounds`` and ``lengthscale`` are used when it has them.
     origin : (3,) array
         The sensor position, in the field's frame (outside the part).
     points : (B, 3) array
@@ -238,7 +223,7 @@ def blocked_probability(field, origin, points, outside_sigma=DEFAULT_OUTSIDE_SIG
     if (t_obs <= 0).any():
         raise ValueError(f"{int((t_obs <= 0).sum())} points coincide with the sensor origin {origin.tolist()}")
     d = offsets / t_obs[:, None]
-    bounds = getattr(field, "bounds", None)
+    bounds = field.bounds
     t_near = np.zeros(len(points)) if bounds is None else np.minimum(box_interval(origin, d, bounds)[0], t_obs)
     q_out = 0.5 * math.erfc(outside_sigma / math.sqrt(2))
     return _segments(field, origin, d, t_near, t_obs, q_out, opts)
@@ -275,7 +260,7 @@ def missing_return_probability(field, origin, directions, t_far=None, observed=N
     if (length <= 0).any():
         raise ValueError(f"{int((length <= 0).sum())} ray directions have zero length")
     d = d / length[:, None]
-    bounds = getattr(field, "bounds", None)
+    bounds = field.bounds
     if bounds is not None:
         t_near, t_stop = box_interval(origin, d, bounds)
     elif t_far is not None and t_far > 0:
@@ -290,7 +275,7 @@ def _segments(field, origin, d, t_near, t_stop, q_out, opts):
     ``q_out`` None tests the whole range."""
     step = opts.step
     if step is None:
-        scale = _field_lengthscale(field)
+        scale = field.lengthscale
         longest = float((t_stop - t_near).max()) if len(d) else 0.0
         step = 0.5 * scale if scale else max(longest, 1e-12) / (opts.max_samples - 1)
     tree = None
@@ -322,7 +307,7 @@ def _check_segments(field, origin, d, t_near, t_stop, step, q_out, tree, opts):
     x = origin + t[..., None] * d[:, None, :]  # (b, n - 1, 3)
     xt = torch.as_tensor(x.reshape(-1, 3), dtype=torch.float32)
     mean = field.torch_mean(xt).double().numpy().reshape(t.shape)
-    var = np.maximum(_variance(field, xt).double().numpy().reshape(t.shape), _MIN_VARIANCE)
+    var = np.maximum(field.torch_variance(xt).double().numpy().reshape(t.shape), _MIN_VARIANCE)
     ratio = torch.as_tensor(mean / np.sqrt(var))
     q = torch.special.ndtr(-ratio).numpy()  # P(f <= 0), (b, n - 1)
     log_p_out = torch.special.log_ndtr(ratio).numpy()  # log P(f > 0), accurate where q is ~1

@@ -28,7 +28,7 @@ from autodecoder.field.fit import FitOptions, train_single
 from autodecoder.field.sampling import Box
 from autodecoder.field.stochastic_field import StochasticField
 from autodecoder.field.targets import CloudTargets, default_box
-from autodecoder.field.validation import check_oriented_cloud
+from datasets.validation import check_oriented_cloud
 
 
 def update_field(field, points, normals, epochs=50, steps=None, lr_fraction=0.3, old_points=None, old_normals=None,
@@ -81,8 +81,8 @@ def update_field(field, points, normals, epochs=50, steps=None, lr_fraction=0.3,
     if steps is None:
         steps = max(1, int(epochs) * math.ceil(len(all_points) / options.screen_batch))
     t0 = time.perf_counter()
-    norm = field.normalization
-    model_points = norm.to_model(all_points)
+    norm = field.frame
+    model_points = norm.to_collection(all_points)
     h = float(field.config["lengthscale"])
     new_box = default_box(model_points, h)
     lo = np.minimum(np.asarray(field.config["box_lo"]), new_box.lo)

@@ -274,7 +274,7 @@ def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), 
         ``training_points`` when it carries them (else no factor); None: the variance alone.
     observed_scale : float, optional
         s of the novelty factor, world units; default one kernel support, 2 x the field's kernel lengthscale
-        (``field.config['lengthscale']`` in the model frame, divided by the normalisation's scale).
+        (``field.lengthscale``, world units).
     candidates : int, optional
         Random cameras scored (one pass, no gradient, a fraction of an ascent step each) to choose the starts
         from; default ``starts`` (plain random starts). A local ascent moves a camera a few tens of degrees at
@@ -340,7 +340,7 @@ def _observed_points(field, observed, observed_scale):
     if isinstance(observed, str):
         if observed != "auto":
             raise ValueError(f"observed must be points, 'auto' or None, got {observed!r}")
-        observed = getattr(field, "training_points", None)
+        observed = field.training_points
     if observed is None:
         return None, observed_scale
     observed = torch.as_tensor(np.asarray(observed, dtype=np.float32))
@@ -349,16 +349,15 @@ def _observed_points(field, observed, observed_scale):
     if not torch.isfinite(observed).all():
         raise ValueError("observed points contain NaN or infinite coordinates")
     if observed_scale is None:
-        config, norm = getattr(field, "config", None), getattr(field, "normalization", None)
-        if config is None or "lengthscale" not in config or norm is None:
+        if field.lengthscale is None:
             raise ValueError("observed_scale is needed for a field without a kernel lengthscale")
-        observed_scale = 2.0 * float(config["lengthscale"]) / float(norm.scale)
+        observed_scale = 2.0 * field.lengthscale
     return observed, observed_scale
 
 
 def _warn_if_half_solid(field):
     """Warn (at the caller of :func:`next_best_views`) when much of the field's box boundary is likely inside."""
-    if hasattr(field, "prob_inside") and hasattr(field, "bounds"):
+    if field.bounds is not None:
         inside = far_field_inside_fraction(field)
         if inside > HALF_SOLID_FRACTION:
             warnings.warn(f"{inside:.0%} of the field's box boundary is likely inside the part (P(f <= 0) > 0.25): "
