@@ -1,17 +1,20 @@
 """Train the latent (autodecoder) model over a scan collection: ``python train_latent.py --data c.h5 --out model.pt``.
 
 Many processes: ``torchrun --nproc_per_node=N train_latent.py ...`` (gloo on CPU, nccl on GPU).
+
+The command line only: arguments are parsed and checked here, the training is
+:func:`autodecoder.latent.train.train_collection` (imported when needed, so ``--help`` stays fast).
 """
 import argparse
 import os
 import sys
-from pathlib import Path
 
 DEFAULTS = dict(latent_dim=32, width=64, depth=3, epochs=None, lr=1e-3, batch=8, seed=0)
 
 
 class _UsageError(Exception):
-    """A problem with the arguments or the input files: printed as one line, exit status 2."""
+    """A problem with the arguments: printed as one line, exit status 2 (problems with the input files are the
+    library's ``TrainingInputError``, printed the same way)."""
 
 
 def build_parser():
@@ -73,126 +76,22 @@ def _parse(argv):
     return args
 
 
-def split_training_scans(collection, split="train", calibration_fraction=0.2, seed=0):
-    """(training indices, calibration names) of a collection.
-
-    The good (or unlabelled) scans of ``split`` are trained on. Calibration scans: the good scans of the
-    'validation' split when there are any; otherwise ``calibration_fraction`` of the training scans, drawn with
-    ``seed``, held back from training.
-    """
-    import numpy as np
-
-    candidates = collection.select(split=split, label=("good", "unknown"))
-    if not candidates:
-        raise _UsageError(f"{collection.path}: no good scans in split {split!r}")
-    names = collection.names
-    validation = collection.select(split="validation", label="good") if split != "validation" else []
-    if validation:
-        return candidates, [names[i] for i in validation]
-    n_hold = int(round(calibration_fraction * len(candidates)))
-    if len(candidates) - n_hold < 1:
-        raise _UsageError(f"{collection.path}: {len(candidates)} good scans in split {split!r} leave none to train "
-                          f"on after holding back {n_hold} for calibration (lower --calibration-fraction)")
-    order = np.random.default_rng(seed).permutation(len(candidates))
-    held = sorted(candidates[i] for i in order[:n_hold])
-    train = sorted(candidates[i] for i in order[n_hold:])
-    return train, [names[i] for i in held]
-
-
-class CollectionScans:
-    """A lazy sequence of some scans of an open collection (reads a scan when indexed)."""
-
-    def __init__(self, collection, indices):
-        self.collection, self.indices = collection, list(indices)
-        all_names = collection.names
-        self.names = [all_names[i] for i in self.indices]
-
-    def __len__(self):
-        return len(self.indices)
-
-    def __getitem__(self, k):
-        return self.collection[self.indices[k]]
-
-
-def _setup_distributed(device_arg):
-    """Initialise torch.distributed from torchrun's environment; returns (device, initialised here?)."""
-    import torch
-
-    if device_arg == "auto":
-        device_arg = "cuda" if torch.cuda.is_available() else "cpu"
-    if device_arg == "cuda" and not torch.cuda.is_available():
-        raise _UsageError("--device cuda: no CUDA device is available")
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world <= 1:
-        return torch.device(device_arg), False
-    import torch.distributed as dist
-
-    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-    if device_arg == "cuda":
-        torch.cuda.set_device(local_rank)
-        device = torch.device("cuda", local_rank)
-    else:
-        device = torch.device("cpu")
-    if not dist.is_initialized():
-        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
-        return device, True
-    return device, False
+def options_from_args(args):
+    """The keyword arguments of :func:`autodecoder.latent.train.train_collection` for parsed arguments."""
+    options = dict(split=args.split, calibration_fraction=args.calibration_fraction, resume=args.resume,
+                   overwrite=args.overwrite, device=args.device, quiet=args.quiet, latent_dim=args.latent_dim,
+                   width=args.width, depth=args.depth, epochs=args.epochs, lr=args.lr, batch=args.batch,
+                   seed=args.seed, checkpoint_every=args.checkpoint_every)
+    if args.code_lr is not None:
+        options["code_lr"] = args.code_lr
+    return options
 
 
 def run(args):
-    """Train from parsed arguments; returns the LatentModel."""
-    from datasets.collection import ScanCollection
+    """Train from parsed arguments; returns the LatentModel (raises TrainingInputError on bad input files)."""
+    from autodecoder.latent.train import train_collection
 
-    data, out = Path(args.data), Path(args.out)
-    if not data.is_file():
-        raise _UsageError(f"{data}: no such scan collection")
-    try:
-        collection = ScanCollection(data)
-    except (ValueError, OSError) as exc:
-        raise _UsageError(f"{data}: not a readable scan collection ({str(exc).splitlines()[0]})") from None
-    resume = None
-    if out.exists():
-        if args.resume:
-            from autodecoder.latent.model import read_checkpoint
-
-            try:
-                resume = read_checkpoint(out)
-            except (ValueError, FileNotFoundError) as exc:
-                raise _UsageError(str(exc)) from None
-            if resume.get("fingerprint", "") != collection.fingerprint():
-                raise _UsageError(f"{out}: this checkpoint was trained on another collection than {data} "
-                                  f"(fingerprints differ); use a new --out or the original data")
-        elif not args.overwrite:
-            raise _UsageError(f"{out}: already exists (pass --resume to continue it or --overwrite to replace it)")
-    if resume is not None:
-        names = collection.names
-        index = {n: i for i, n in enumerate(names)}
-        train = [index[n] for n in resume["train_names"]]
-        calibration = list(resume["calibration_names"])
-        seed = int(resume["config"]["seed"])
-    else:
-        train, calibration = split_training_scans(collection, args.split, args.calibration_fraction, args.seed)
-        seed = args.seed
-    device, initialised = _setup_distributed(args.device)
-    from autodecoder.latent.train import train_latent
-
-    overrides = dict(latent_dim=args.latent_dim, width=args.width, depth=args.depth, epochs=args.epochs, lr=args.lr,
-                     batch=args.batch, seed=seed, checkpoint_every=args.checkpoint_every)
-    if args.code_lr is not None:
-        overrides["code_lr"] = args.code_lr
-    try:
-        model = train_latent(CollectionScans(collection, train), out, frame=collection.frame,
-                             fingerprint=collection.fingerprint(), calibration_names=calibration, resume=resume,
-                             device=device, quiet=args.quiet, **overrides)
-    except ValueError as exc:
-        raise _UsageError(f"{data}: {exc}") from None
-    finally:
-        collection.close()
-        if initialised:
-            import torch.distributed as dist
-
-            dist.destroy_process_group()
-    return model
+    return train_collection(args.data, args.out, **options_from_args(args))
 
 
 def main(argv=None):
@@ -208,9 +107,11 @@ def main(argv=None):
     except _UsageError as exc:
         print(f"train_latent.py: error: {exc}", file=sys.stderr)
         return 2
+    from autodecoder.latent.train import TrainingInputError
+
     try:
         model = run(args)
-    except _UsageError as exc:
+    except TrainingInputError as exc:
         print(f"train_latent.py: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

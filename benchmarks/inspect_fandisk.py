@@ -89,9 +89,9 @@ def _train(data, args, work, key):
     from inspection.training import train_model
 
     t0 = time.perf_counter()
-    how = train_model(data, model, calibration_fraction=args.calibration_fraction, seed=args.seed,
-                      epochs=args.epochs, quiet=False)
-    print(f"trained {model} in {time.perf_counter() - t0:.0f} s ({'train_latent.py' if how == 'cli' else 'API'})")
+    train_model(data, model, calibration_fraction=args.calibration_fraction, seed=args.seed, epochs=args.epochs,
+                quiet=False)
+    print(f"trained {model} in {time.perf_counter() - t0:.0f} s")
     return model
 
 

@@ -1,9 +1,10 @@
-"""Registering a scan into the model's frame: centroid shift, then coarse-to-fine point-to-plane ICP (open3d).
+"""Registering a scan into the model's frame: coarse-to-fine point-to-plane ICP (open3d) from the scan's own pose.
 
 For parts not held in a fixture (a few degrees of pose error): the scan (source) is moved onto a reference cloud
 (target) that covers the part better than one view does, e.g. the union of training scans or points sampled from
-the model's mean surface. Large rotations (tens of degrees and more) need a global registration first; this
-module does not attempt one.
+the model's mean surface. ICP starts from the identity, with no centroid shift: a partial view's centroid is not
+the part's, so shifting centroids would move a roughly placed scan away from its place. Large rotations (tens of
+degrees and more) need a global registration first; this module does not attempt one.
 """
 import numpy as np
 
@@ -33,6 +34,8 @@ class Aligner:
     levels : sequence of float
         Voxel sizes of the coarse-to-fine ICP, in multiples of the reference's median point spacing.
     seed : int
+    iterations : int
+        ICP iterations at each level.
     """
 
     def __init__(self, target_points, target_normals=None, max_points=30000, levels=DEFAULT_LEVELS, seed=0,

@@ -36,9 +36,9 @@ def run_demo(out="demo_output", seed=0, quick=False, progress=True, echo=print):
 
     echo(f"[2/4] training the latent model ({DEMO_EPOCHS if not quick else QUICK_EPOCHS} epochs; the validation "
          f"scans are held back for calibration)")
-    how = train_model(data, model, calibration_fraction=0.2, seed=seed, quiet=not progress, overwrite=True,
-                      epochs=QUICK_EPOCHS if quick else DEMO_EPOCHS)
-    echo(f"      trained with {'train_latent.py' if how == 'cli' else 'autodecoder.latent.train'} -> {model}")
+    train_model(data, model, calibration_fraction=0.2, seed=seed, quiet=not progress, overwrite=True,
+                epochs=QUICK_EPOCHS if quick else DEMO_EPOCHS)
+    echo(f"      trained with autodecoder.latent.train (what train_latent.py runs) -> {model}")
     t2 = time.perf_counter()
     echo("[3/4] calibrating with the defaults (the validation scans and the training scans, cross-fitted)")
     insp, info = calibrate(model, data, progress=progress)

@@ -3,6 +3,8 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+from sklearn.base import BaseEstimator
+from sklearn.exceptions import NotFittedError
 
 from datasets.validation import points_and_normals
 
@@ -21,10 +23,6 @@ DEFAULT_POINT_SCORE = "residual"
 DEFAULT_PROJECTION = {"steps": 60, "starts": 2, "explore": 20, "max_candidates": 16}
 # rays per good scan of the ray reference (denser than a scan's inspection, which tests RAY_DEFAULTS["n_rays"])
 REFERENCE_RAYS = 1536
-
-
-from sklearn.base import BaseEstimator
-from sklearn.exceptions import NotFittedError
 
 
 @dataclass

@@ -120,11 +120,7 @@ def make_aligner(handle, data_info, reference=None, seed=0):
             has_train = bool(c.select(split="train", label="good"))
         if has_train:
             return Aligner(*from_collection(data_info["source"]), seed=seed)
-    surf = handle.reference_points(seed=seed)
-    if surf is None:
-        raise InspectionError(f"{handle.path}: --align needs a reference: pass --reference (a collection or cloud "
-                              f"file in the model's frame); this model cannot give its mean surface")
-    return Aligner(*surf, seed=seed)
+    return Aligner(*handle.reference_points(seed=seed), seed=seed)
 
 
 def prepare_out(out, overwrite=False):
@@ -149,27 +145,27 @@ def prepare_out(out, overwrite=False):
 
 # ------------------------------------------------------------------------------------------------------ jobs
 def calibration_scans(handle, data, split=None, frame_check=True):
-    """The good scans of ``data`` that the model did not train on. Returns (scans, info, how)."""
+    """The good scans of ``data`` that the model did not train on. Returns (scans, info, how).
+
+    On the model's own training collection (same fingerprint) these are the scans the trainer held back: the
+    checkpoint records them, chosen by the trainer's one rule (:func:`autodecoder.latent.train.split_training_scans`:
+    the validation split's good scans, else a seeded fraction of the training scans). A model that records none is
+    calibrated on the good scans outside the training split; with ``split``, on that split's good scans, training
+    scans only when held back. On any other data: its good scans (of ``split``) the model did not train on.
+    """
     scans, info = load_scans(data, handle.frame if frame_check else None, split=split, label="good",
                              model_fingerprint=handle.fingerprint)
     how = f"good scans of {data}" + (f" (split {split})" if split else "")
-    train = set(handle.train_names)
+    train, held = set(handle.train_names), set(handle.heldback_names)
     if info.get("same_as_training"):
-        held = set(handle.heldback_names)
-        if split is None:
-            if held:
-                val = [s for s in scans if s.split == "validation" and s.name not in held]
-                scans = [s for s in scans if s.name in held] + val
-                how = f"the model's {len(held)} held-back good scans" + (f" and {len(val)} more validation scans"
-                                                                         if val else "")
-            else:
-                val = [s for s in scans if s.split == "validation"]
-                scans = val if val else [s for s in scans if s.split != "train"]
-                how = "validation scans" if val else "good test scans (the model trained on the train split)"
+        if split is None and held:
+            scans = [s for s in scans if s.name in held]
+            how = f"the model's {len(held)} held-back good scans"
         else:
             scans = [s for s in scans if s.split != "train" or s.name in held]
-    if train:
-        scans = [s for s in scans if s.name not in train or s.name in set(handle.heldback_names)]
+            if split is None:
+                how = "good scans outside the training split (the model records no held-back scans)"
+    scans = [s for s in scans if s.name not in train or s.name in held]
     if not scans:
         raise InspectionError(f"{data}: no good scans the model did not train on (give a collection of good parts, "
                               f"a validation split, or a model with held-back calibration scans)")
@@ -298,25 +294,13 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
     -------
     summary : dict
     """
-    from tqdm import tqdm
-
-    from .estimator import Inspector
-    from .maps import RAY_MAP_LABEL, RAY_MAP_RANGE, safe_name, write_legend, write_map
     from .model_io import load_model
-    from .plots import plot_roc, plot_score_histograms
-    from .report import CSV_COLUMNS, RAY_CSV_COLUMNS, format_table, summarize, write_json, write_scores_csv
-    from .scores import point_scores
+    from .report import format_table
 
     if maps not in ("flagged", "all", "none"):
         raise InspectionError(f"--maps must be flagged, all or none, got {maps!r}")
     handle = load_model(model)
-    if handle.calibration is None:
-        insp = _calibrate_for_scoring(handle, data, alpha, progress, echo)
-    else:
-        insp = Inspector(handle.model, alpha=handle.calibration.alpha if alpha is None else alpha)
-        insp.set_calibration(handle.calibration)
-    cal = handle.calibration
-    alpha = insp.alpha
+    insp = _calibrated_inspector(handle, data, alpha, progress, echo)
     scans, info = load_scans(data, handle.frame, split=split, model_fingerprint=handle.fingerprint)
     if not scans:
         raise InspectionError(f"{data}: no scans" + (f" in split {split!r}" if split else ""))
@@ -324,52 +308,105 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
         check_sensor_origins(scans, data)
     out = prepare_out(out, overwrite=overwrite)
     aligner = make_aligner(handle, info, reference) if align else None
-    rows, point_labels, point_vals, ray_vals = [], [], [], []
-    maps_dir = out / "maps"
-    n_maps = 0
-    seconds = []
+    results = _inspect_scans(insp, scans, aligner, maps, out / "maps", progress)
+    summary = _summarize(handle, insp, data, split, align, results)
+    _write_results(out, insp, results, summary)
+    echo(format_table(results["rows"], summary))
+    echo(f"results in {out}/: scores.csv, summary.json, roc.png, scores.png"
+         + (f", maps/ ({results['maps']} coloured PLY + legend.png)" if results["maps"] else ""))
+    return summary
+
+
+def _calibrated_inspector(handle, data, alpha, progress, echo):
+    """The Inspector of ``handle`` with its stored calibration (``alpha`` None: the calibration's), calibrating
+    first when the model has none (:func:`_calibrate_for_scoring`)."""
+    from .estimator import Inspector
+
+    if handle.calibration is None:
+        return _calibrate_for_scoring(handle, data, alpha, progress, echo)
+    insp = Inspector(handle.model, alpha=handle.calibration.alpha if alpha is None else alpha)
+    insp.set_calibration(handle.calibration)
+    return insp
+
+
+def _inspect_scans(insp, scans, aligner, maps, maps_dir, progress):
+    """Inspect every scan (aligned first when ``aligner``) and write the anomaly maps ``maps`` asks for.
+
+    Returns a dict: ``rows`` (one per scan, the CSV columns), ``point_labels``, ``point_scores`` and ``ray_maps``
+    (per scan with ground-truth point labels), ``seconds`` (per scan) and ``maps`` (maps written)."""
+    from tqdm import tqdm
+
+    results = {"rows": [], "point_labels": [], "point_scores": [], "ray_maps": [], "seconds": [], "maps": 0}
     for scan in tqdm(scans, desc="inspect", unit="scan", disable=not progress):
         t0 = time.perf_counter()
         if aligner is not None:
             scan = aligner.align_scan(scan)
         res = insp.inspect(scan)
-        seconds.append(time.perf_counter() - t0)
-        p = float(insp.p_values_from_scores([res.score])[0])
+        results["seconds"].append(time.perf_counter() - t0)
         verdict = "defective" if insp.predict_from_scores([res.score])[0] == -1 else "good"
-        rows.append({"name": scan.name, "split": scan.split, "label": scan.label, "defect": scan.defect,
-                     "score": res.score, "p_value": p, "verdict": verdict})
+        row = {"name": scan.name, "split": scan.split, "label": scan.label, "defect": scan.defect,
+               "score": res.score, "p_value": float(insp.p_values_from_scores([res.score])[0]), "verdict": verdict}
         if insp.rays:
-            rows[-1].update(score_points=res.components["points"], score_rays=res.components["rays"])
+            row.update(score_points=res.components["points"], score_rays=res.components["rays"])
+        results["rows"].append(row)
         if scan.point_labels is not None:
-            point_labels.append(scan.point_labels)
-            point_vals.append(res.point_scores)
+            results["point_labels"].append(scan.point_labels)
+            results["point_scores"].append(res.point_scores)
             if insp.rays:
-                ray_vals.append(res.rays.point_map)
+                results["ray_maps"].append(res.rays.point_map)
         if maps == "all" or (maps == "flagged" and verdict == "defective"):
-            resid = res.point_scores if insp.point_score in ("residual", "local", "distance") else \
-                point_scores(res.field, scan.points, "residual", insp.noise)
-            write_map(maps_dir / f"{safe_name(scan.name)}.ply", scan.points, scan.normals, resid)
-            if insp.rays:
-                write_map(maps_dir / "rays" / f"{safe_name(scan.name)}.ply", scan.points, scan.normals,
-                          res.rays.point_map, vrange=RAY_MAP_RANGE)
-            n_maps += 1
+            _write_scan_maps(insp, scan, res, maps_dir)
+            results["maps"] += 1
+    return results
+
+
+def _write_scan_maps(insp, scan, res, maps_dir):
+    """One scan's anomaly map (the standardized residual, or the point score when it is one of the residual kind)
+    and, with rays, its ray map."""
+    from .maps import RAY_MAP_RANGE, safe_name, write_map
+    from .scores import point_scores
+
+    resid = res.point_scores if insp.point_score in ("residual", "local", "distance") else \
+        point_scores(res.field, scan.points, "residual", insp.noise)
+    write_map(maps_dir / f"{safe_name(scan.name)}.ply", scan.points, scan.normals, resid)
+    if insp.rays:
+        write_map(maps_dir / "rays" / f"{safe_name(scan.name)}.ply", scan.points, scan.normals, res.rays.point_map,
+                  vrange=RAY_MAP_RANGE)
+
+
+def _summarize(handle, insp, data, split, align, results):
+    """summary.json's content: the verdict metrics (:func:`inspection.report.summarize`) and how they were made."""
+    from .report import summarize
+
+    cal = handle.calibration
     extra = {"model": str(handle.path), "model_kind": handle.kind, "data": str(data), "split": split,
              "aggregate": insp.aggregate, "point_score": insp.point_score, "noise": insp.noise,
              "projection": insp.projection, "n_calibration": insp.n_calibration_,
              "calibration_source": cal.source if cal is not None else "held-back scans, calibrated by score",
              "decision": insp.decision_threshold_.as_dict(), "aligned": bool(align),
-             "seconds_per_scan": float(np.mean(seconds)), "maps": n_maps,
+             "seconds_per_scan": float(np.mean(results["seconds"])), "maps": results["maps"],
              "higher_score_means": "more anomalous",
              "rays": None if not insp.rays else {
                  "options": insp._ray_record()["options"],
                  "score": "max of the point and ray scores, each standardized on the calibration scans"}}
-    summary = summarize(rows, insp.threshold_, alpha, point_labels, point_vals, extra)
-    if ray_vals:
+    summary = summarize(results["rows"], insp.threshold_, insp.alpha, results["point_labels"],
+                        results["point_scores"], extra)
+    if results["ray_maps"]:
         from sklearn.metrics import roc_auc_score
 
-        yl = np.concatenate(point_labels).astype(int)
+        yl = np.concatenate(results["point_labels"]).astype(int)
         if 0 < yl.sum() < len(yl):
-            summary["metrics"]["ray_point_auroc"] = float(roc_auc_score(yl, np.concatenate(ray_vals)))
+            summary["metrics"]["ray_point_auroc"] = float(roc_auc_score(yl, np.concatenate(results["ray_maps"])))
+    return summary
+
+
+def _write_results(out, insp, results, summary):
+    """scores.csv, summary.json, roc.png (scans with known labels), scores.png and the maps' legends."""
+    from .maps import RAY_MAP_LABEL, RAY_MAP_RANGE, write_legend
+    from .plots import plot_roc, plot_score_histograms
+    from .report import CSV_COLUMNS, RAY_CSV_COLUMNS, write_json, write_scores_csv
+
+    rows = results["rows"]
     write_scores_csv(out / "scores.csv", rows, RAY_CSV_COLUMNS if insp.rays else CSV_COLUMNS)
     write_json(out / "summary.json", summary)
     labels = np.array([r["label"] for r in rows])
@@ -378,11 +415,7 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
     plot_roc(out / "roc.png", (labels[known] == "defective").astype(int), sc[known],
              np.array([r["defect"] for r in rows])[known])
     plot_score_histograms(out / "scores.png", sc, labels, insp.decision_threshold_, insp.calibration_scores_)
-    if n_maps:
-        write_legend(maps_dir / "legend.png")
+    if results["maps"]:
+        write_legend(out / "maps" / "legend.png")
         if insp.rays:
-            write_legend(maps_dir / "rays" / "legend.png", RAY_MAP_RANGE, RAY_MAP_LABEL)
-    echo(format_table(rows, summary))
-    echo(f"results in {out}/: scores.csv, summary.json, roc.png, scores.png"
-         + (f", maps/ ({n_maps} coloured PLY + legend.png)" if n_maps else ""))
-    return summary
+            write_legend(out / "maps" / "rays" / "legend.png", RAY_MAP_RANGE, RAY_MAP_LABEL)

@@ -32,8 +32,8 @@ def point_scores(field, points, kind="residual", noise=None, reference=None, nor
     * ``'nll'``: the paper's negative log likelihood of f(p) = 0, 0.5 * (m^2 / total + log(2 pi total));
     * ``'residual'``: the standardized residual |m| / sqrt(total), the square root of twice the NLL's data term.
       It drops the log-variance term, which varies from view to view with how densely training covered a region
-      (DESIGN.md) and carries no information about the point itself, and it is unitless (in standard deviations),
-      so one colour range serves every part.
+      (measured: docs/results.md, "The per-cloud NLL") and carries no information about the point itself, and it
+      is unitless (in standard deviations), so one colour range serves every part.
     * ``'local'``: the residual standardized against good scans at the same place, |m - m_ref| /
       sqrt(s_ref^2 + noise^2), where m_ref and s_ref are the mean and standard deviation of E f over the
       ``REFERENCE_NEIGHBOURS`` nearest points of good scans, each under its own projected field (a

@@ -1,15 +1,9 @@
-"""Training the latent model for the demo and the benchmark: ``train_latent.py`` when it is ready, else its Python API.
+"""Training the latent model for the demo and the benchmarks: :func:`autodecoder.latent.train.train_collection`, the
+function ``train_latent.py`` runs, with inspection's defaults (quiet, any device).
 
-A fraction of the good training scans is held back (chosen with the seed) and recorded in the checkpoint as the
-calibration scans, exactly as ``train_latent.py --calibration-fraction`` does.
+The calibration scans are held back by the trainer's one rule (:func:`autodecoder.latent.train.split_training_scans`)
+and recorded in the checkpoint, exactly as ``train_latent.py --calibration-fraction`` does.
 """
-import numpy as np
-
-
-def _cli_ready():
-    import train_latent
-
-    return "not yet implemented" not in (train_latent.__doc__ or "")
 
 
 def train_model(collection, out, calibration_fraction=0.2, seed=0, quiet=True, epochs=None, overwrite=False,
@@ -26,44 +20,13 @@ def train_model(collection, out, calibration_fraction=0.2, seed=0, quiet=True, e
     overwrite : bool
         Replace an existing ``out``.
     **options
-        ``autodecoder.latent.train.LatentOptions`` fields (Python API only; the command line gets --epochs/--seed).
+        ``autodecoder.latent.train.LatentOptions`` fields.
 
     Returns
     -------
-    str : 'cli' or 'api', whichever trained it.
+    autodecoder.latent.model.LatentModel
     """
-    if _cli_ready() and not options:
-        import train_latent
+    from autodecoder.latent.train import train_collection
 
-        argv = ["--data", str(collection), "--out", str(out), "--seed", str(seed),
-                "--calibration-fraction", str(calibration_fraction)]
-        if epochs is not None:
-            argv += ["--epochs", str(epochs)]
-        if quiet:
-            argv.append("--quiet")
-        if overwrite:
-            argv.append("--overwrite")
-        rc = train_latent.main(argv)
-        if rc not in (0, None):
-            raise RuntimeError(f"train_latent.py exited with status {rc}")
-        return "cli"
-    from autodecoder.latent.train import train_latent
-    from datasets import ScanCollection
-
-    with ScanCollection(collection) as c:
-        idx = c.select(split="train", label="good")
-        if len(idx) < 2:
-            raise ValueError(f"{collection}: needs at least 2 good training scans, found {len(idx)}")
-        rng = np.random.default_rng(seed)
-        n_held = int(round(calibration_fraction * len(idx)))
-        held = set(rng.choice(idx, n_held, replace=False).tolist()) if n_held else set()
-        train = [i for i in idx if i not in held]
-        scans = c.read_many(train)
-        names = [c.names[i] for i in train]
-        held_names = [c.names[i] for i in sorted(held)]
-        frame, fp = c.frame, c.fingerprint()
-    extra = {} if epochs is None else {"epochs": int(epochs)}
-    train_latent(scans, out, names=names, frame=frame, fingerprint=fp, calibration_names=held_names, seed=seed,
-                 quiet=quiet, **extra, **options)
-    return "api"
-
+    return train_collection(collection, out, calibration_fraction=calibration_fraction, overwrite=overwrite,
+                            quiet=quiet, seed=seed, epochs=epochs, **options)

@@ -11,11 +11,15 @@ the ranks (rank r owns scans r, r + N, ...); each rank holds and optimises only 
 the two nets are wrapped in one :class:`torch.nn.parallel.DistributedDataParallel` module, so their gradients are
 averaged over the ranks and the weights stay identical. At checkpoint time the codes, their optimiser moments and the
 per-rank random states are gathered and rank 0 writes the file.
+
+:func:`train_latent` trains over scans in memory (or any lazy sequence of them); :func:`train_collection` over a
+collection file, holding scans back for calibration by the one rule :func:`split_training_scans` (what
+``train_latent.py`` runs).
 """
 import math
 import os
 import time
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Optional
 
@@ -23,7 +27,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from autodecoder.latent.model import LATENT_FORMAT, LATENT_VERSION, LatentModel, code_statistics, save_checkpoint
+from autodecoder.latent.model import (LATENT_FORMAT, LATENT_VERSION, LatentModel, code_statistics, read_checkpoint,
+                                      save_checkpoint)
 from autodecoder.field.losses import SCREENING_WEIGHT, covariance_dirichlet_loss_features, mean_dirichlet_loss, screening_loss
 from autodecoder.field.networks import build_networks
 from autodecoder.field.sampling import Box
@@ -222,17 +227,118 @@ def train_latent(scans, out=None, options=None, *, names=None, frame=None, finge
     """
     rank, world, distributed = _dist()
     device = torch.device(device)
+    names = _scan_names(scans, names)
+    n_scans = len(names)
     options = LatentOptions.from_dict({**asdict(options or LatentOptions()), **overrides})
+    options, config = _resolve_options(options, resume, fingerprint, names, world)
+    local = list(range(rank, n_scans, world))  # this rank's scans
+    local_scans = _read_local_scans(scans, names, local, world)
+    if config is None:
+        config = _new_config(options, scans, n_scans, local_scans, world, distributed)
+
+    state = _initial_state(config, options, n_scans, local, rank, device)
+    if resume is not None:
+        _restore(state, resume, local, rank, device)
+    module = state.nets
+    if distributed:
+        from torch.nn.parallel import DistributedDataParallel
+
+        module = DistributedDataParallel(state.nets, device_ids=[device.index] if device.type == "cuda" else None)
+    pools, local_points, state.info["targets_seconds"] = _target_pools(local_scans, local, config, options, device)
+    part_ids = _part_ids({i: str(getattr(s, "part_id", "")) for i, s in local_scans.items()}, n_scans, world)
+    del local_scans
+    scope = _RunScope(names=names, local=local, part_ids=part_ids, calibration_names=[str(c) for c in calibration_names],
+                      frame=_frame_dict(frame), fingerprint=str(fingerprint), rank=rank, world=world,
+                      distributed=distributed, device=device, local_points=local_points)
+
+    end_epoch = options.epochs if stop_after is None else min(options.epochs, int(stop_after))
+    checkpoint = _train_epochs(state, module, pools, scope, options, out, end_epoch, show=not quiet and rank == 0)
+    if checkpoint is None:  # nothing left to train (resumed a finished run)
+        checkpoint = _checkpoint(state, scope)
+    return LatentModel(checkpoint, os.fspath(out) if out is not None else "<trained>")
+
+
+# ---- the steps of train_latent --------------------------------------------------------------------------------------
+@dataclass
+class TrainingState:
+    """What a training run changes, and what its checkpoint saves so that a resumed run continues bit-identically.
+
+    Attributes
+    ----------
+    config : dict
+        The resolved configuration (options, lengthscale, box, world size), stored in the checkpoint.
+    nets : _NetPair
+        The mean and covariance nets.
+    codes : torch.nn.Parameter
+        (T_local, L): the codes of this process's scans.
+    opt_nets, opt_codes : torch.optim.Adam
+    rng : numpy.random.Generator
+        This process's sampling generator (batch order, screening points); torch's global generator is the other
+        random state a checkpoint saves.
+    epoch : int
+        Epochs completed.
+    history : list of dict
+        One log record (``LOG_COLUMNS``) per completed epoch.
+    info : dict
+        Provenance: ``train_seconds``, ``targets_seconds``.
+    """
+
+    config: dict
+    nets: nn.Module
+    codes: nn.Parameter
+    opt_nets: torch.optim.Optimizer
+    opt_codes: torch.optim.Optimizer
+    rng: np.random.Generator
+    epoch: int = 0
+    history: list = field(default_factory=list)
+    info: dict = field(default_factory=dict)
+
+
+@dataclass
+class _RunScope:
+    """What a run is over and never changes: the training scans, this process's share of them and their points
+    (for the noise level), and the provenance the checkpoint records."""
+
+    names: list
+    local: list
+    part_ids: list
+    calibration_names: list
+    frame: dict
+    fingerprint: str
+    rank: int
+    world: int
+    distributed: bool
+    device: torch.device
+    local_points: list
+
+
+def _scan_names(scans, names):
+    """The training scans' names (``names``, else ``scans.names``, else each scan's ``name``), checked unique."""
     if names is None:
         names = list(getattr(scans, "names", None) or [s.name for s in scans])
     names = [str(n) for n in names]
-    n_scans = len(names)
-    if n_scans < 1:
+    if len(names) < 1:
         raise ValueError("no training scans")
-    if len(set(names)) != n_scans:
+    if len(set(names)) != len(names):
         raise ValueError("training scan names must be unique")
-    frame_dict = _frame_dict(frame)
+    return names
 
+
+def _read_local_scans(scans, names, local, world):
+    """{index: Scan} of this rank's scans (``local``), each checked to have at least 10 points."""
+    if not local:
+        raise ValueError(f"{world} processes but only {len(names)} training scans: every process needs one")
+    local_scans = {i: scans[i] for i in local}
+    for i, s in local_scans.items():
+        if len(s.points) < 10:
+            raise ValueError(f"scan {names[i]!r} has {len(s.points)} points; at least 10 needed")
+    return local_scans
+
+
+def _resolve_options(options, resume, fingerprint, names, world):
+    """(options, config): a fresh run's options with the default epoch count resolved and config None (made by
+    :func:`_new_config`), or a resumed run's, whose configuration wins except ``epochs`` and ``checkpoint_every``."""
+    config = None
     if resume is not None:
         if resume.get("fingerprint", "") != fingerprint:
             raise ValueError(f"the checkpoint was trained on another collection (fingerprint "
@@ -247,156 +353,346 @@ def train_latent(scans, out=None, options=None, *, names=None, frame=None, finge
         if config.get("world_size", 1) != world:
             raise ValueError(f"the checkpoint was written by {config.get('world_size', 1)} processes; resume it "
                              f"with the same number (got {world})")
-    else:
-        config = None
-
     if options.epochs is None:
-        options = replace(options, epochs=default_epochs(n_scans, options.batch, world))
-    local = list(range(rank, n_scans, world))
-    if not local:
-        raise ValueError(f"{world} processes but only {n_scans} training scans: every process needs one")
-    local_scans = {i: scans[i] for i in local}
-    for i, s in local_scans.items():
-        if len(s.points) < 10:
-            raise ValueError(f"scan {names[i]!r} has {len(s.points)} points; at least 10 needed")
+        options = replace(options, epochs=default_epochs(len(names), options.batch, world))
+    return options, config
 
-    if config is None:
-        h = options.lengthscale or collection_lengthscale(scans, list(range(n_scans)))
-        lo = np.min([s.points.min(0) for s in local_scans.values()], 0).astype(np.float64)
-        hi = np.max([s.points.max(0) for s in local_scans.values()], 0).astype(np.float64)
-        if distributed:
-            import torch.distributed as dist
 
-            t = torch.tensor(np.concatenate([-lo, hi]), dtype=torch.float64)
-            dist.all_reduce(t, op=dist.ReduceOp.MAX)
-            lo, hi = -t[:3].numpy(), t[3:].numpy()
-        box = Box.around(np.stack([lo, hi]), margin=max(0.1, 4 * h))
-        config = {**asdict(options), "lengthscale": float(h), "covariance": "feature",
-                  "box_lo": box.lo.tolist(), "box_hi": box.hi.tolist(), "world_size": world}
-    box = Box(np.asarray(config["box_lo"]), np.asarray(config["box_hi"]))
-    h = float(config["lengthscale"])
+def _new_config(options, scans, n_scans, local_scans, world, distributed):
+    """A fresh run's configuration: the options, the lengthscale and the box around all ranks' scans."""
+    h = options.lengthscale or collection_lengthscale(scans, list(range(n_scans)))
+    lo = np.min([s.points.min(0) for s in local_scans.values()], 0).astype(np.float64)
+    hi = np.max([s.points.max(0) for s in local_scans.values()], 0).astype(np.float64)
+    if distributed:
+        import torch.distributed as dist
 
-    # ---- state: nets, codes, optimisers, random generators (all seeded, so a run is reproducible) --------------
+        t = torch.tensor(np.concatenate([-lo, hi]), dtype=torch.float64)
+        dist.all_reduce(t, op=dist.ReduceOp.MAX)
+        lo, hi = -t[:3].numpy(), t[3:].numpy()
+    box = Box.around(np.stack([lo, hi]), margin=max(0.1, 4 * h))
+    return {**asdict(options), "lengthscale": float(h), "covariance": "feature",
+            "box_lo": box.lo.tolist(), "box_hi": box.hi.tolist(), "world_size": world}
+
+
+def _box(config):
+    return Box(np.asarray(config["box_lo"]), np.asarray(config["box_hi"]))
+
+
+def _initial_state(config, options, n_scans, local, rank, device):
+    """Nets, codes, optimisers and generators of a fresh run, all seeded (a run is reproducible)."""
     torch.manual_seed(options.seed)
     mean_net, cov_net = build_networks(config)
-    nets = _NetPair(mean_net, cov_net, options.screening_weight, box.volume).to(device)
+    nets = _NetPair(mean_net, cov_net, options.screening_weight, _box(config).volume).to(device)
     gen = torch.Generator().manual_seed(options.seed + 1)
     all_codes = torch.randn(n_scans, options.latent_dim, generator=gen) * options.code_init_std
     codes = nn.Parameter(all_codes[local].clone().to(device))
-    opt_nets = torch.optim.Adam(nets.parameters(), lr=options.lr)
-    opt_codes = torch.optim.Adam([codes], lr=options.code_lr)
-    rng = np.random.default_rng([options.seed, rank])
-    start_epoch, history = 0, []
-    if resume is not None:
-        mean_net.load_state_dict(resume["mean_state"])
-        cov_net.load_state_dict(resume["cov_state"])
-        r = resume["resume"]
-        opt_nets.load_state_dict(r["opt_nets"])
-        with torch.no_grad():
-            codes.copy_(resume["codes"][local].to(device))
-        code_state = r["opt_codes"]
-        code_state = {"state": {0: {"step": code_state["step"], "exp_avg": code_state["exp_avg"][local],
-                                    "exp_avg_sq": code_state["exp_avg_sq"][local]}},
-                      "param_groups": code_state["param_groups"]}
-        opt_codes.load_state_dict(code_state)
-        rng.bit_generator.state = r["numpy_rng"][rank]
-        torch.set_rng_state(r["torch_rng"])
-        start_epoch, history = int(resume["epoch"]), list(resume.get("info", {}).get("history", []))
-    module = nets
-    if distributed:
-        from torch.nn.parallel import DistributedDataParallel
+    return TrainingState(config=config, nets=nets, codes=codes,
+                         opt_nets=torch.optim.Adam(nets.parameters(), lr=options.lr),
+                         opt_codes=torch.optim.Adam([codes], lr=options.code_lr),
+                         rng=np.random.default_rng([options.seed, rank]), info={"train_seconds": 0.0})
 
-        module = DistributedDataParallel(nets, device_ids=[device.index] if device.type == "cuda" else None)
 
-    t_targets = time.perf_counter()
+def _restore(state, checkpoint, local, rank, device):
+    """Continue from ``checkpoint``: weights, this rank's codes and their optimiser moments, random states, epoch,
+    history and provenance."""
+    state.nets.mean_net.load_state_dict(checkpoint["mean_state"])
+    state.nets.cov_net.load_state_dict(checkpoint["cov_state"])
+    r = checkpoint["resume"]
+    state.opt_nets.load_state_dict(r["opt_nets"])
+    with torch.no_grad():
+        state.codes.copy_(checkpoint["codes"][local].to(device))
+    code_state = r["opt_codes"]
+    state.opt_codes.load_state_dict({"state": {0: {"step": code_state["step"], "exp_avg": code_state["exp_avg"][local],
+                                                   "exp_avg_sq": code_state["exp_avg_sq"][local]}},
+                                     "param_groups": code_state["param_groups"]})
+    state.rng.bit_generator.state = r["numpy_rng"][rank]
+    torch.set_rng_state(r["torch_rng"])
+    state.epoch = int(checkpoint["epoch"])
+    state.history = list(checkpoint.get("info", {}).get("history", []))
+    state.info = dict(checkpoint.get("info", {}))
+    state.info.setdefault("train_seconds", 0.0)
+
+
+def _target_pools(local_scans, local, config, options, device):
+    """(pools, points, seconds): this rank's scans' target pools by scan index, their points on ``device`` in
+    ``local`` order, and the seconds the GP targets took to build."""
+    box, h = _box(config), float(config["lengthscale"])
+    t0 = time.perf_counter()
     targets = {i: CloudTargets(np.asarray(s.points, np.float64), np.asarray(s.normals, np.float64), h, box=box)
                for i, s in local_scans.items()}
-    t_targets = time.perf_counter() - t_targets
+    seconds = time.perf_counter() - t0
     pools = {i: ScanTargetPool(t, i, options.seed, options.mean_samples, options.target_refresh,
                                options.target_passes, options.pair_clusters, options.cluster_size)
              for i, t in targets.items()}
-    scans_part_ids = _part_ids({i: str(getattr(s, "part_id", "")) for i, s in local_scans.items()}, n_scans, world)
-    del local_scans
+    return pools, [torch.from_numpy(targets[i].points32).to(device) for i in local], seconds
 
-    batch = min(options.batch, len(local))
-    steps_per_epoch = math.ceil(math.ceil(n_scans / world) / batch)
+
+def _train_epochs(state, module, pools, scope, options, out, end_epoch, show):
+    """Train from ``state.epoch`` to ``end_epoch``, logging every epoch and writing checkpoints (rank 0, when
+    ``out``); returns the last checkpoint dict, None when there was nothing to train."""
+    n_scans = len(scope.names)
+    batch = min(options.batch, len(scope.local))
+    steps_per_epoch = math.ceil(math.ceil(n_scans / scope.world) / batch)
     total_steps = options.epochs * steps_per_epoch
-    info = dict(resume.get("info", {})) if resume is not None else {}
-    info.setdefault("train_seconds", 0.0)
-    info["targets_seconds"] = t_targets
-
-    local_points = [torch.from_numpy(targets[i].points32).to(device) for i in local]
-
-    def checkpoint_state(epoch):
-        return _checkpoint(config, nets, codes, opt_nets, opt_codes, rng, local, local_points, names,
-                           scans_part_ids, calibration_names, frame_dict, fingerprint, epoch, info, history, world)
-
-    end_epoch = options.epochs if stop_after is None else min(options.epochs, int(stop_after))
-    show = not quiet and rank == 0
     bar = None
-    if show and end_epoch > start_epoch:
+    if show and end_epoch > state.epoch:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=end_epoch - start_epoch, desc="training", unit="epoch", dynamic_ncols=True)
-    state = None
-    nets.train()
-    for epoch in range(start_epoch, end_epoch):
-        t0 = time.perf_counter()
-        order = rng.permutation(len(local))
-        order = np.resize(order, steps_per_epoch * batch)  # ranks with fewer scans wrap around
-        sums = torch.zeros(6, dtype=torch.float64)
-        for k in range(steps_per_epoch):
-            step = epoch * steps_per_epoch + k
-            f = cosine_decay(step, total_steps, options.final_lr_fraction)
-            for g in opt_nets.param_groups:
-                g["lr"] = options.lr * f
-            for g in opt_codes.param_groups:
-                g["lr"] = options.code_lr * f
-            pos = order[k * batch:(k + 1) * batch]
-            inputs = stack_inputs([pools[local[p]] for p in pos], epoch, options.screen_samples, rng, device)
-            z = codes[torch.as_tensor(pos, device=device)]  # (S, L)
-            n, m, q = options.mean_samples, inputs["sigma"].shape[1], inputs["screen"].shape[0] // len(pos)
-            terms = module(inputs["x"], z.repeat_interleave(n, 0), inputs["mu"], inputs["omega"], inputs["screen"],
-                           z.repeat_interleave(q, 0), inputs["pair_x"], z.detach().repeat_interleave(m, 0),
-                           inputs["sigma"], inputs["weights"])
-            reg = options.code_reg * z.square().sum(1).mean()
-            loss = terms.sum() + reg
-            opt_nets.zero_grad(set_to_none=True)
-            opt_codes.zero_grad(set_to_none=True)
-            loss.backward()
-            opt_nets.step()
-            opt_codes.step()
-            sums += torch.cat([loss.detach().reshape(1), terms.detach(), reg.detach().reshape(1)]).double().cpu()
-        sums /= steps_per_epoch
-        if distributed:
-            import torch.distributed as dist
-
-            sums = sums.to(device) if device.type == "cuda" else sums
-            dist.all_reduce(sums)
-            sums = sums.cpu() / world
-        seconds = time.perf_counter() - t0
-        info["train_seconds"] += seconds
-        record = dict(zip(LOG_COLUMNS, [epoch + 1, *sums.tolist(), float(codes.detach().square().mean().sqrt()),
-                                        options.lr * f, seconds]))
-        history.append(record)
+        bar = tqdm(total=end_epoch - state.epoch, desc="training", unit="epoch", dynamic_ncols=True)
+    checkpoint = None
+    state.nets.train()
+    for epoch in range(state.epoch, end_epoch):
+        record = _train_epoch(state, module, pools, scope, options, epoch, steps_per_epoch, batch, total_steps)
+        state.history.append(record)
+        state.epoch = epoch + 1
         if bar is not None:
             bar.update(1)
             bar.set_postfix(loss=f"{record['loss']:.4g}", mean=f"{record['mean_dirichlet']:.3g}",
                             screen=f"{record['mean_screening']:.3g}", cov=f"{record['cov_dirichlet']:.3g}")
-        if out is not None and rank == 0:
-            _write_log(out, history)
-        done = epoch + 1
-        if (options.checkpoint_every and done % options.checkpoint_every == 0) or done == end_epoch:
-            state = checkpoint_state(done)
-            if out is not None and rank == 0:
-                save_checkpoint(state, out)
-                _plot_losses(out, history)
+        if out is not None and scope.rank == 0:
+            _write_log(out, state.history)
+        if (options.checkpoint_every and state.epoch % options.checkpoint_every == 0) or state.epoch == end_epoch:
+            checkpoint = _checkpoint(state, scope)
+            if out is not None and scope.rank == 0:
+                save_checkpoint(checkpoint, out)
+                _plot_losses(out, state.history)
     if bar is not None:
         bar.close()
-    nets.eval()
-    if state is None:  # nothing left to train (resumed a finished run)
-        state = checkpoint_state(start_epoch)
-    return LatentModel(state, os.fspath(out) if out is not None else "<trained>")
+    state.nets.eval()
+    return checkpoint
+
+
+def _train_epoch(state, module, pools, scope, options, epoch, steps_per_epoch, batch, total_steps):
+    """One pass over this rank's scans (ranks with fewer scans wrap around); returns the epoch's log record."""
+    t0 = time.perf_counter()
+    order = state.rng.permutation(len(scope.local))
+    order = np.resize(order, steps_per_epoch * batch)
+    sums = torch.zeros(6, dtype=torch.float64)
+    for k in range(steps_per_epoch):
+        f = cosine_decay(epoch * steps_per_epoch + k, total_steps, options.final_lr_fraction)
+        for g in state.opt_nets.param_groups:
+            g["lr"] = options.lr * f
+        for g in state.opt_codes.param_groups:
+            g["lr"] = options.code_lr * f
+        sums += _train_step(state, module, pools, scope, options, epoch, order[k * batch:(k + 1) * batch])
+    sums /= steps_per_epoch
+    if scope.distributed:
+        import torch.distributed as dist
+
+        sums = sums.to(scope.device) if scope.device.type == "cuda" else sums
+        dist.all_reduce(sums)
+        sums = sums.cpu() / scope.world
+    seconds = time.perf_counter() - t0
+    state.info["train_seconds"] += seconds
+    return dict(zip(LOG_COLUMNS, [epoch + 1, *sums.tolist(), float(state.codes.detach().square().mean().sqrt()),
+                                  options.lr * f, seconds]))
+
+
+def _train_step(state, module, pools, scope, options, epoch, pos):
+    """One optimisation step on the scans at local positions ``pos`` (S,); returns (loss, the four NSSPR terms,
+    the code regulariser) (6,) float64."""
+    device = scope.device
+    inputs = stack_inputs([pools[scope.local[p]] for p in pos], epoch, options.screen_samples, state.rng, device)
+    z = state.codes[torch.as_tensor(pos, device=device)]  # (S, L)
+    n, m, q = options.mean_samples, inputs["sigma"].shape[1], inputs["screen"].shape[0] // len(pos)
+    terms = module(inputs["x"], z.repeat_interleave(n, 0), inputs["mu"], inputs["omega"], inputs["screen"],
+                   z.repeat_interleave(q, 0), inputs["pair_x"], z.detach().repeat_interleave(m, 0),
+                   inputs["sigma"], inputs["weights"])
+    reg = options.code_reg * z.square().sum(1).mean()
+    loss = terms.sum() + reg
+    state.opt_nets.zero_grad(set_to_none=True)
+    state.opt_codes.zero_grad(set_to_none=True)
+    loss.backward()
+    state.opt_nets.step()
+    state.opt_codes.step()
+    return torch.cat([loss.detach().reshape(1), terms.detach(), reg.detach().reshape(1)]).double().cpu()
+
+
+# ---- training over a collection file: what ``train_latent.py`` runs ---------------------------------------------
+class TrainingInputError(ValueError):
+    """A problem with what a training run was given (the collection, the checkpoint to write or resume, the device);
+    the message names the file. ``train_latent.py`` prints it as one line and exits with status 2."""
+
+
+def split_training_scans(collection, split="train", calibration_fraction=0.2, seed=0):
+    """(training indices, calibration names) of a collection: the one rule for holding scans back.
+
+    The good (or unlabelled) scans of ``split`` are trained on. Calibration scans: the good scans of the
+    'validation' split when there are any; otherwise ``calibration_fraction`` of the training scans, drawn with
+    ``seed``, held back from training. Every way of training (``train_latent.py``, :func:`train_collection`,
+    ``inspection.training.train_model``) uses this rule, and the checkpoint records its choice
+    (``calibration_names``), which is what inspection calibrates on.
+
+    Parameters
+    ----------
+    collection : datasets.ScanCollection
+        An open collection.
+    split : str
+    calibration_fraction : float in [0, 1)
+    seed : int
+
+    Returns
+    -------
+    train : list of int
+        Collection indices, ascending.
+    calibration : list of str
+        Collection names.
+
+    Raises
+    ------
+    TrainingInputError
+        No good scans in ``split``, or none left to train on.
+    """
+    candidates = collection.select(split=split, label=("good", "unknown"))
+    if not candidates:
+        raise TrainingInputError(f"{collection.path}: no good scans in split {split!r}")
+    names = collection.names
+    validation = collection.select(split="validation", label="good") if split != "validation" else []
+    if validation:
+        return candidates, [names[i] for i in validation]
+    n_hold = int(round(calibration_fraction * len(candidates)))
+    if len(candidates) - n_hold < 1:
+        raise TrainingInputError(f"{collection.path}: {len(candidates)} good scans in split {split!r} leave none to "
+                                 f"train on after holding back {n_hold} for calibration (lower the calibration "
+                                 f"fraction)")
+    order = np.random.default_rng(seed).permutation(len(candidates))
+    held = sorted(candidates[i] for i in order[:n_hold])
+    train = sorted(candidates[i] for i in order[n_hold:])
+    return train, [names[i] for i in held]
+
+
+class _CollectionScans:
+    """A lazy sequence of some scans of an open collection (reads a scan when indexed)."""
+
+    def __init__(self, collection, indices):
+        self.collection, self.indices = collection, list(indices)
+        all_names = collection.names
+        self.names = [all_names[i] for i in self.indices]
+
+    def __len__(self):
+        return len(self.indices)
+
+    def __getitem__(self, k):
+        return self.collection[self.indices[k]]
+
+
+def setup_distributed(device="auto"):
+    """Initialise torch.distributed from torchrun's environment (``WORLD_SIZE`` > 1; gloo on CPU, nccl on CUDA).
+
+    Returns (torch.device, initialised here?): the caller destroys the process group it initialised.
+    ``device``: 'auto' (cuda when available), 'cpu' or 'cuda'.
+    """
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "cuda" and not torch.cuda.is_available():
+        raise TrainingInputError("device cuda: no CUDA device is available")
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return torch.device(device), False
+    import torch.distributed as dist
+
+    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+    if device == "cuda":
+        torch.cuda.set_device(local_rank)
+        device = torch.device("cuda", local_rank)
+    else:
+        device = torch.device("cpu")
+    if not dist.is_initialized():
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+        return device, True
+    return device, False
+
+
+def train_collection(data, out, *, split="train", calibration_fraction=0.2, resume=False, overwrite=False,
+                     device="auto", quiet=False, **options):
+    """Train a latent model over the good scans of a collection file and write its checkpoint (``train_latent.py``).
+
+    The scans to hold back for calibration are chosen by :func:`split_training_scans`; the checkpoint records them.
+    Under torchrun (``WORLD_SIZE`` > 1) each process trains its share (:func:`train_latent`).
+
+    Parameters
+    ----------
+    data : str or Path
+        The scan collection (``datasets`` HDF5 format).
+    out : str or Path
+        The checkpoint to write; the log and loss plot go beside it (:func:`log_paths`).
+    split : str
+        The split whose good scans are trained on.
+    calibration_fraction : float in [0, 1)
+        Held back when the collection has no 'validation' split (see :func:`split_training_scans`).
+    resume : bool
+        Continue the run whose checkpoint is ``out`` (same data, same number of processes; its own settings are
+        kept except ``epochs`` and ``checkpoint_every``); starts afresh when ``out`` does not exist yet.
+    overwrite : bool
+        Replace an existing ``out`` (otherwise refused unless ``resume``).
+    device : {'auto', 'cpu', 'cuda'}
+    quiet : bool
+    **options
+        :class:`LatentOptions` fields (``seed`` also seeds the hold-out).
+
+    Returns
+    -------
+    LatentModel
+
+    Raises
+    ------
+    TrainingInputError
+        Naming the file: no such or unreadable collection, ``out`` exists, a checkpoint of other data, no scans.
+    """
+    from datasets.collection import ScanCollection
+
+    data, out = Path(data), Path(out)
+    if not data.is_file():
+        raise TrainingInputError(f"{data}: no such scan collection")
+    try:
+        collection = ScanCollection(data)
+    except (ValueError, OSError) as exc:
+        raise TrainingInputError(f"{data}: not a readable scan collection ({str(exc).splitlines()[0]})") from None
+    initialised = False
+    try:
+        checkpoint = _checkpoint_to_resume(out, collection, data, resume, overwrite)
+        if checkpoint is not None:
+            index = {n: i for i, n in enumerate(collection.names)}
+            train = [index[n] for n in checkpoint["train_names"]]
+            calibration = list(checkpoint["calibration_names"])
+            options["seed"] = int(checkpoint["config"]["seed"])
+        else:
+            train, calibration = split_training_scans(collection, split, calibration_fraction,
+                                                      options.get("seed", LatentOptions.seed))
+        device, initialised = setup_distributed(device)
+        try:
+            return train_latent(_CollectionScans(collection, train), out, frame=collection.frame,
+                                fingerprint=collection.fingerprint(), calibration_names=calibration,
+                                resume=checkpoint, device=device, quiet=quiet, **options)
+        except TrainingInputError:
+            raise
+        except ValueError as exc:
+            raise TrainingInputError(f"{data}: {exc}") from None
+    finally:
+        collection.close()
+        if initialised:
+            import torch.distributed as dist
+
+            dist.destroy_process_group()
+
+
+def _checkpoint_to_resume(out, collection, data, resume, overwrite):
+    """The checkpoint at ``out`` to continue (``resume``), None to start afresh; refuses to replace ``out`` unless
+    ``overwrite``, and to resume a checkpoint of other data."""
+    if not out.exists():
+        return None
+    if not resume:
+        if overwrite:
+            return None
+        raise TrainingInputError(f"{out}: already exists (pass --resume to continue it or --overwrite to replace it)")
+    try:
+        checkpoint = read_checkpoint(out)
+    except (ValueError, FileNotFoundError) as exc:
+        raise TrainingInputError(str(exc)) from None
+    if checkpoint.get("fingerprint", "") != collection.fingerprint():
+        raise TrainingInputError(f"{out}: this checkpoint was trained on another collection than {data} "
+                                 f"(fingerprints differ); use a new --out or the original data")
+    return checkpoint
 
 
 def _frame_dict(frame):
@@ -416,10 +712,11 @@ def _part_ids(local_ids, n_scans, world):
     return [merged.get(i, "") for i in range(n_scans)]
 
 
-def _checkpoint(config, nets, codes, opt_nets, opt_codes, rng, local, local_points, names, part_ids,
-                calibration_names, frame_dict, fingerprint, epoch, info, history, world):
-    """The full checkpoint dict (codes and per-rank states gathered from all ranks)."""
-    code_state = opt_codes.state_dict()
+def _checkpoint(state, scope):
+    """The full checkpoint dict of ``state`` (codes, optimiser moments and per-rank random states gathered from
+    all ranks; a collective call: every rank makes it)."""
+    codes = state.codes
+    code_state = state.opt_codes.state_dict()
     st = code_state["state"].get(0)
     latent_dim = codes.shape[1]
     if st is None:
@@ -427,13 +724,14 @@ def _checkpoint(config, nets, codes, opt_nets, opt_codes, rng, local, local_poin
     # noise: RMS of the mean at this rank's scans' points
     total, count = 0.0, 0
     with torch.no_grad():
-        for p, pts in enumerate(local_points):
-            total += float(nets.mean_net(pts, codes[p]).double().square().sum())
+        for p, pts in enumerate(scope.local_points):
+            total += float(state.nets.mean_net(pts, codes[p]).double().square().sum())
             count += len(pts)
-    mine = {"local": local, "codes": codes.detach().cpu(), "exp_avg": st["exp_avg"].detach().cpu(),
-            "exp_avg_sq": st["exp_avg_sq"].detach().cpu(), "rng": rng.bit_generator.state, "sq": total, "n": count}
-    gathered = _all_gather(mine, world)
-    n = len(names)
+    mine = {"local": scope.local, "codes": codes.detach().cpu(), "exp_avg": st["exp_avg"].detach().cpu(),
+            "exp_avg_sq": st["exp_avg_sq"].detach().cpu(), "rng": state.rng.bit_generator.state, "sq": total,
+            "n": count}
+    gathered = _all_gather(mine, scope.world)
+    n = len(scope.names)
     full = {k: torch.zeros(n, latent_dim) for k in ("codes", "exp_avg", "exp_avg_sq")}
     for g in gathered:
         for k in full:
@@ -441,32 +739,31 @@ def _checkpoint(config, nets, codes, opt_nets, opt_codes, rng, local, local_poin
     sq, cnt = sum(g["sq"] for g in gathered), sum(g["n"] for g in gathered)
     noise = math.sqrt(sq / cnt) if cnt else 0.0
     mean, std = code_statistics(full["codes"])
-    info = {**info, "history": list(history)}
+    step = st["step"].detach().cpu() if torch.is_tensor(st["step"]) else torch.tensor(float(st["step"]))
     return {
         "format": LATENT_FORMAT,
         "version": LATENT_VERSION,
-        "config": dict(config),
-        "mean_state": {k: v.detach().cpu() for k, v in nets.mean_net.state_dict().items()},
-        "cov_state": {k: v.detach().cpu() for k, v in nets.cov_net.state_dict().items()},
+        "config": dict(state.config),
+        "mean_state": {k: v.detach().cpu() for k, v in state.nets.mean_net.state_dict().items()},
+        "cov_state": {k: v.detach().cpu() for k, v in state.nets.cov_net.state_dict().items()},
         "codes": full["codes"],
         "code_mean": mean,
         "code_std": std,
-        "train_names": list(names),
-        "train_part_ids": list(part_ids),
-        "calibration_names": [str(c) for c in calibration_names],
-        "frame": dict(frame_dict),
+        "train_names": list(scope.names),
+        "train_part_ids": list(scope.part_ids),
+        "calibration_names": list(scope.calibration_names),
+        "frame": dict(scope.frame),
         "noise": float(noise),
-        "fingerprint": str(fingerprint),
-        "epoch": int(epoch),
+        "fingerprint": scope.fingerprint,
+        "epoch": int(state.epoch),
         "resume": {
-            "opt_nets": _to_cpu(opt_nets.state_dict()),
-            "opt_codes": {"step": st["step"].detach().cpu() if torch.is_tensor(st["step"]) else torch.tensor(float(st["step"])),
-                          "exp_avg": full["exp_avg"], "exp_avg_sq": full["exp_avg_sq"],
+            "opt_nets": _to_cpu(state.opt_nets.state_dict()),
+            "opt_codes": {"step": step, "exp_avg": full["exp_avg"], "exp_avg_sq": full["exp_avg_sq"],
                           "param_groups": code_state["param_groups"]},
             "numpy_rng": [g["rng"] for g in gathered],
             "torch_rng": torch.get_rng_state(),
         },
-        "info": info,
+        "info": {**state.info, "history": list(state.history)},
     }
 
 

@@ -287,35 +287,9 @@ def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), 
     -------
     list of ViewCandidate, best first.
     """
-    if starts < 1 or n_views < 1:
-        raise ValueError(f"starts and n_views must be >= 1, got {starts} and {n_views}")
-    candidates = starts if candidates is None else int(candidates)
-    if candidates < starts:
-        raise ValueError(f"candidates must be >= starts ({starts}), got {candidates}")
-    lo_r, hi_r = float(standoff[0]), float(standoff[1])
-    if not 0 < lo_r <= hi_r:
-        raise ValueError(f"standoff must be (min, max) with 0 < min <= max, got {standoff}")
-    if isinstance(observed, str):
-        if observed != "auto":
-            raise ValueError(f"observed must be points, 'auto' or None, got {observed!r}")
-        observed = field.training_points
-    if observed is not None:
-        observed = torch.as_tensor(np.asarray(observed, dtype=np.float32))
-        if observed.ndim != 2 or observed.shape[1] != 3 or len(observed) == 0:
-            raise ValueError(f"observed must be (m, 3) points with m >= 1, got shape {tuple(observed.shape)}")
-        if not torch.isfinite(observed).all():
-            raise ValueError("observed points contain NaN or infinite coordinates")
-        if observed_scale is None:
-            if field.lengthscale is None:
-                raise ValueError("observed_scale is needed for a field without a kernel lengthscale")
-            observed_scale = 2.0 * field.lengthscale
-    if field.bounds is not None:
-        inside = far_field_inside_fraction(field)
-        if inside > HALF_SOLID_FRACTION:
-            warnings.warn(f"{inside:.0%} of the field's box boundary is likely inside the part (P(f <= 0) > 0.25): "
-                          "the far field sits at the surface's own level, as for a partial scan fitted with the "
-                          "paper's loss, so rays 'hit' empty space and the views rank its variance. Fit partial "
-                          "scans with fit_cloud(..., outside_weight=100).", UserWarning, stacklevel=2)
+    candidates, lo_r, hi_r = _check_view_options(n_views, starts, candidates, standoff)
+    observed, observed_scale = _observed_points(field, observed, observed_scale)
+    _warn_if_half_solid(field)
     rng = np.random.default_rng(seed)
     center, radius = part_sphere(field)
     c = torch.as_tensor(center, dtype=torch.float32)
@@ -326,10 +300,80 @@ def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), 
 
     dirs0 = _sphere_starts(candidates, rng)
     if candidates > starts:
-        with torch.no_grad():
-            pool = torch.tensor(dirs0, dtype=torch.float32)
-            first = score_of(pool * (lo_r + hi_r) / 2, -pool).double().numpy()
-        dirs0 = dirs0[np.argsort(-np.nan_to_num(first, nan=-np.inf))[:starts]]
+        dirs0 = _best_starts(score_of, dirs0, starts, (lo_r + hi_r) / 2)
+    q, a = _ascend(score_of, dirs0, steps, lr, (lo_r, hi_r), aim_weight, aim_tolerance)
+    with torch.no_grad():
+        final = score_of(q, a).double().numpy()
+    positions = center + q.detach().double().numpy() * radius
+    directions = a.detach().double().numpy()
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    out = []
+    for i in _separated_best(final, positions - center, n_views, min_separation_deg):
+        p, d = positions[i], directions[i]
+        look_at = p + np.dot(center - p, d) * d
+        out.append(ViewCandidate(position=p, direction=d, score=float(final[i]), look_at=look_at))
+    return out
+
+
+def _check_view_options(n_views, starts, candidates, standoff):
+    """(candidates, min stand-off, max stand-off) of :func:`next_best_views`, checked."""
+    if starts < 1 or n_views < 1:
+        raise ValueError(f"starts and n_views must be >= 1, got {starts} and {n_views}")
+    candidates = starts if candidates is None else int(candidates)
+    if candidates < starts:
+        raise ValueError(f"candidates must be >= starts ({starts}), got {candidates}")
+    lo_r, hi_r = float(standoff[0]), float(standoff[1])
+    if not 0 < lo_r <= hi_r:
+        raise ValueError(f"standoff must be (min, max) with 0 < min <= max, got {standoff}")
+    return candidates, lo_r, hi_r
+
+
+def _observed_points(field, observed, observed_scale):
+    """(observed (m, 3) float32 tensor or None, novelty scale s) of :func:`next_best_views`: 'auto' takes the field's
+    training points; the scale defaults to one kernel support in world units."""
+    if isinstance(observed, str):
+        if observed != "auto":
+            raise ValueError(f"observed must be points, 'auto' or None, got {observed!r}")
+        observed = field.training_points
+    if observed is None:
+        return None, observed_scale
+    observed = torch.as_tensor(np.asarray(observed, dtype=np.float32))
+    if observed.ndim != 2 or observed.shape[1] != 3 or len(observed) == 0:
+        raise ValueError(f"observed must be (m, 3) points with m >= 1, got shape {tuple(observed.shape)}")
+    if not torch.isfinite(observed).all():
+        raise ValueError("observed points contain NaN or infinite coordinates")
+    if observed_scale is None:
+        if field.lengthscale is None:
+            raise ValueError("observed_scale is needed for a field without a kernel lengthscale")
+        observed_scale = 2.0 * field.lengthscale
+    return observed, observed_scale
+
+
+def _warn_if_half_solid(field):
+    """Warn (at the caller of :func:`next_best_views`) when much of the field's box boundary is likely inside."""
+    if field.bounds is not None:
+        inside = far_field_inside_fraction(field)
+        if inside > HALF_SOLID_FRACTION:
+            warnings.warn(f"{inside:.0%} of the field's box boundary is likely inside the part (P(f <= 0) > 0.25): "
+                          "the far field sits at the surface's own level, as for a partial scan fitted with the "
+                          "paper's loss, so rays 'hit' empty space and the views rank its variance. Fit partial "
+                          "scans with fit_cloud(..., outside_weight=100).", UserWarning, stacklevel=3)
+
+
+def _best_starts(score_of, dirs, starts, mid):
+    """The ``starts`` of the candidate directions (k, 3) whose cameras (at stand-off ``mid``, aimed at the centre)
+    score best, in one pass without gradients."""
+    with torch.no_grad():
+        pool = torch.tensor(dirs, dtype=torch.float32)
+        first = score_of(pool * mid, -pool).double().numpy()
+    return dirs[np.argsort(-np.nan_to_num(first, nan=-np.inf))[:starts]]
+
+
+def _ascend(score_of, dirs0, steps, lr, standoff, aim_weight, aim_tolerance):
+    """Adam ascent of the normalised score minus the aim penalty from cameras at ``dirs0`` (k, 3) x mid stand-off,
+    aimed at the centre; positions q (in radii around the centre) and directions a are projected back onto the
+    stand-off shell and the aim cone after every step. Returns (q (k, 3), a (k, 3)) tensors."""
+    lo_r, hi_r = standoff
     # optimise in units of the radius around the centre, so one learning rate fits parts of any size
     q = torch.tensor(dirs0 * (lo_r + hi_r) / 2, dtype=torch.float32, requires_grad=True)
     a = torch.tensor(-dirs0, dtype=torch.float32, requires_grad=True)
@@ -359,23 +403,18 @@ def next_best_views(field, n_views=5, starts=16, steps=60, standoff=(1.5, 2.5), 
             broken = ~(torch.isfinite(q).all(1) & torch.isfinite(a).all(1))
             if bool(broken.any()):
                 q[broken], a[broken] = before[0][broken], before[1][broken]
-    with torch.no_grad():
-        final = score_of(q, a).double().numpy()
-    positions = center + q.detach().double().numpy() * radius
-    directions = a.detach().double().numpy()
-    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-    order = np.argsort(-final)
+    return q, a
+
+
+def _separated_best(scores, offsets, n_views, min_separation_deg):
+    """Indices of up to ``n_views`` cameras, best ``scores`` (k,) first, each at least ``min_separation_deg`` in angle
+    around the centre from those chosen before it (greedy); ``offsets`` (k, 3) are positions minus the centre."""
     chosen = []
     cos_sep = np.cos(np.radians(min_separation_deg))
-    for i in order:
-        u = (positions[i] - center) / np.linalg.norm(positions[i] - center)
-        if all(np.dot(u, (positions[j] - center) / np.linalg.norm(positions[j] - center)) < cos_sep for j in chosen):
+    for i in np.argsort(-scores):
+        u = offsets[i] / np.linalg.norm(offsets[i])
+        if all(np.dot(u, offsets[j] / np.linalg.norm(offsets[j])) < cos_sep for j in chosen):
             chosen.append(i)
         if len(chosen) == n_views:
             break
-    out = []
-    for i in chosen:
-        p, d = positions[i], directions[i]
-        look_at = p + np.dot(center - p, d) * d
-        out.append(ViewCandidate(position=p, direction=d, score=float(final[i]), look_at=look_at))
-    return out
+    return chosen

@@ -313,7 +313,8 @@ def test_iteration_streams_in_batches(tmp_path, monkeypatch):
 
 
 def test_scan_dataset(tmp_path):
-    torch = pytest.importorskip("torch")
+    import torch
+
     from datasets import ScanDataset
 
     path = tmp_path / "c.h5"

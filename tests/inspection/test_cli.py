@@ -196,7 +196,6 @@ def test_scanner_file_in_model_frame(workdir, tmp_path, capsys):
 def test_latent_model_end_to_end(tmp_path, capsys):
     """A tiny latent model trained on half-spheres: calibrated on its held-back scans, it scores a dented one worse
     than good ones, and the score command writes its outputs."""
-    pytest.importorskip("autodecoder.latent.train")
     from inspection.training import train_model
 
     scans = [_scan(f"train/good/{i:03d}", "train", "good", seed=i, n=200) for i in range(6)]

@@ -178,6 +178,23 @@ def test_foreign_and_other_version_files_are_rejected(trained, tmp_path):
         load_model(newer)
     with pytest.raises(FileNotFoundError, match="missing.pt"):
         load_model(tmp_path / "missing.pt")
+    # inspection reads model files through the same format check: one error naming the file
+    from inspection.model_io import load_model as load_for_inspection
+
+    with pytest.raises(ValueError, match="other.pt.*not a model file"):
+        load_for_inspection(other)
+    with pytest.raises(ValueError, match="newer.pt.*version 99"):
+        load_for_inspection(newer)
+    del state["noise"]
+    state["version"] = 1
+    damaged = tmp_path / "damaged.pt"
+    torch.save(state, damaged)
+    with pytest.raises(ValueError, match="damaged.pt.*missing noise"):
+        load_for_inspection(damaged)
+    handle = load_for_inspection(out)
+    model = load_model(out)
+    assert handle.kind == "latent" and handle.heldback_names == model.calibration_names
+    assert handle.train_names == model.train_names and handle.frame == model.frame
 
 
 # ---- the command line ------------------------------------------------------------------------------------------
@@ -234,6 +251,32 @@ def test_cli_holds_back_a_calibration_fraction_without_validation_split(tmp_path
     model = load_model(out)
     assert len(model.calibration_names) == 2 and len(model.train_names) == 3
     assert not set(model.calibration_names) & set(model.train_names)
+
+
+def test_cli_and_api_hold_back_the_same_scans(tmp_path):
+    """train_latent.py and inspection's train_model choose the calibration scans by the one rule: the same seed and
+    fraction hold back the same scans of the same collection (a fraction without a validation split, the
+    validation split's good scans with one)."""
+    from train_latent import main
+
+    from autodecoder.latent.train import split_training_scans
+    from datasets.collection import ScanCollection
+    from inspection.training import train_model
+
+    tiny = ["--latent-dim", "2", "--width", "16", "--depth", "1", "--epochs", "1", "--quiet"]
+    scans = sphere_scans(radii=(0.15, 0.2, 0.25, 0.3, 0.35)) + [sphere_scan("train/005", 0.32, seed=42)]
+    for name, extra in (("plain", []), ("val", [sphere_scan("val/000", 0.22, seed=40, split="validation")])):
+        data = _collection(tmp_path / f"{name}.h5", scans + extra)
+        cli, api = tmp_path / f"{name}_cli.pt", tmp_path / f"{name}_api.pt"
+        assert main(["--data", str(data), "--out", str(cli), "--seed", "3", "--calibration-fraction", "0.5",
+                     *tiny]) == 0
+        train_model(data, api, calibration_fraction=0.5, seed=3, epochs=1, latent_dim=2, width=16, depth=1)
+        a, b = load_model(cli), load_model(api)
+        assert a.calibration_names == b.calibration_names and a.train_names == b.train_names
+        with ScanCollection(data) as c:
+            train, held = split_training_scans(c, calibration_fraction=0.5, seed=3)
+            assert a.train_names == [c.names[i] for i in train] and a.calibration_names == held
+        assert len(held) == (1 if extra else 3) and not set(held) & set(a.train_names)
 
 
 def test_trimmed_mean_matches_numpy_and_trim_is_validated(trained):
