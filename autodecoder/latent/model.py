@@ -35,7 +35,6 @@ from autodecoder.field.networks import build_networks
 from datasets.frame import Frame
 from autodecoder.field.stochastic_field import StochasticField
 from autodecoder.latent.projection import project, project_many
-from datasets.frame import Frame
 
 LATENT_FORMAT = "nsspr-latent-model"
 LATENT_VERSION = 1
