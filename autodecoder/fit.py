@@ -328,7 +328,8 @@ def _pair_subset(m, cluster_size, rng):
 
 
 def fit_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, width=64, depth=3,
-              covariance="feature", features=128, omega0=30.0, options=None, quiet=False, **option_overrides):
+              covariance="feature", features=128, omega0=30.0, options=None, quiet=False, representation="siren",
+              **option_overrides):
     """Fit a stochastic implicit surface f ~ N(g, c) to an oriented point cloud (NSSPR).
 
     The cloud is normalised into the unit cube (the transform is kept in the field), the GP posterior targets are
@@ -361,6 +362,10 @@ def fit_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, width=64
     options : FitOptions, optional
     quiet : bool
         No progress bar.
+    representation : {'siren', 'grid'}
+        'grid': :func:`autodecoder.grid_fit.fit_grid_cloud` (B-spline grids, the mean solved on its grid; its own
+        lengthscale default and options, :class:`autodecoder.grid_fit.GridFitOptions`, given as ``options`` or
+        ``option_overrides``; the SIREN arguments do not apply).
     **option_overrides
         Any :class:`FitOptions` field (e.g. ``steps=500``).
 
@@ -368,6 +373,13 @@ def fit_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, width=64
     -------
     StochasticField
     """
+    if representation == "grid":
+        from .grid_fit import fit_grid_cloud
+
+        return fit_grid_cloud(points, normals, seed=seed, lengthscale=lengthscale, noise=noise, options=options,
+                              **option_overrides)
+    if representation != "siren":
+        raise ValueError(f"representation must be 'siren' or 'grid', got {representation!r}")
     points, normals = check_oriented_cloud(points, normals)
     options = FitOptions(**{**asdict(options or FitOptions()), **option_overrides})
     t0 = time.perf_counter()

@@ -7,8 +7,9 @@ Run by hand (not a test):
 
 Variants are separated by ``;``, each a ``,``-separated list of ``key=value`` settings (empty: the defaults):
 :class:`GridFitOptions` fields (``cov_steps``, ``mean_steps``, ``solve=0``, ...), ``h`` (kernel lengthscale in
-point spacings) and ``mean.<key>`` / ``cov.<key>`` (settings of :class:`GridMeanNet` / :class:`GridCovarianceNet`,
-e.g. ``mean.finest=96``, ``cov.channels=16``). open3d's screened Poisson (depth 8) of the same cloud is measured
+point spacings), ``seed`` (of the fit alone; ``--seed`` also draws the points) and ``mean.<key>`` /
+``cov.<key>`` (settings of :class:`GridMeanNet` / :class:`GridCovarianceNet`, e.g. ``mean.finest=96``,
+``cov.channels=16``). open3d's screened Poisson (depth 8) of the same cloud is measured
 once in the same run; the Chamfer distance is ``fandisk.chamfer`` for both, of the mean surface marched at 192^3.
 
 The variance is compared by Spearman rank correlation on gpytoolbox's 20^3 SPSR grid over the field's box: with
@@ -48,7 +49,7 @@ def parse_variant(text):
             mean[key[5:]] = value
         elif key.startswith("cov."):
             cov[key[4:]] = value
-        elif key == "h":
+        elif key in ("h", "seed"):
             extra[key] = value
         else:
             options[key] = value
@@ -101,8 +102,8 @@ def main(argv=None):
         options, mean, cov, extra = parse_variant(text)
         lengthscale = extra.get("h", None)
         lengthscale = None if lengthscale is None else float(lengthscale) * spacing
-        field = fit_grid_cloud(points, normals, seed=args.seed, lengthscale=lengthscale, grid_mean=mean,
-                               grid_cov=cov, **options)
+        field = fit_grid_cloud(points, normals, seed=extra.get("seed", args.seed), lengthscale=lengthscale,
+                               grid_mean=mean, grid_cov=cov, **options)
         info = field.info
         cd = chamfer(field.mesh(args.resolution), mesh)
         rho = variance_correlation(field, points, normals, reference, args.out)

@@ -146,19 +146,41 @@ def test_state_dict_round_trip_rebuilds_the_same_functions():
         assert torch.equal(cov_net.variance(x), cov2.variance(x))
 
 
-def test_fitted_sphere_mean_surface_is_the_sphere():
-    from autodecoder.grid_fit import fit_grid_cloud
+CENTRE, RADIUS = np.array([1.0, -3.0, 0.5]), 2.0
+
+
+@pytest.fixture(scope="module")
+def sphere_field():
+    from autodecoder import fit_cloud
 
     rng = np.random.default_rng(0)
     normals = rng.normal(size=(3000, 3))
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    radius = 2.0
-    points = radius * normals + np.array([1.0, -3.0, 0.5])
-    field = fit_grid_cloud(points, normals, grid_mean={"finest": 48}, grid_cov={"finest": 8, "channels": 4},
-                           cov_steps=20, mean_steps=20)
-    surface = field.mesh(64)
-    distance = np.abs(np.linalg.norm(surface.vertices - [1.0, -3.0, 0.5], axis=1) - radius)
-    assert distance.mean() < 0.01 * radius and distance.max() < 0.04 * radius, (distance.mean(), distance.max())
-    inside, outside = np.array([[1.0, -3.0, 0.5]]), np.array([[1.0, -3.0, 0.5 + 1.5 * radius]])
-    assert field.mean(inside)[0] < 0 < field.mean(outside)[0]
-    assert np.all(np.isfinite(field.variance(surface.vertices[:100])))
+    field = fit_cloud(RADIUS * normals + CENTRE, normals, representation="grid", grid_mean={"finest": 48},
+                      grid_cov={"finest": 8, "levels": 2, "channels": 4}, cov_steps=20, mean_steps=20)
+    return field
+
+
+def test_fitted_sphere_mean_surface_is_the_sphere(sphere_field):
+    surface = sphere_field.mesh(64)
+    distance = np.abs(np.linalg.norm(surface.vertices - CENTRE, axis=1) - RADIUS)
+    assert distance.mean() < 0.01 * RADIUS and distance.max() < 0.04 * RADIUS, (distance.mean(), distance.max())
+    assert sphere_field.mean(CENTRE[None])[0] < 0 < sphere_field.mean((CENTRE + [0, 0, 1.5 * RADIUS])[None])[0]
+    assert np.all(np.isfinite(sphere_field.variance(surface.vertices[:100])))
+
+
+def test_grid_field_file_round_trip(sphere_field, tmp_path):
+    from autodecoder import StochasticField
+
+    sphere_field.save(tmp_path / "grid.pt")
+    loaded = StochasticField.load(tmp_path / "grid.pt")
+    x = CENTRE + np.random.default_rng(1).uniform(-1.2 * RADIUS, 1.2 * RADIUS, (50, 3))
+    assert loaded.config["representation"] == "grid"
+    assert np.array_equal(loaded.mean(x), sphere_field.mean(x))
+    assert np.array_equal(loaded.variance(x), sphere_field.variance(x))
+    assert np.array_equal(loaded.mean_gradient(x), sphere_field.mean_gradient(x))
+
+
+def test_update_refuses_grid_fields(sphere_field):
+    with pytest.raises(ValueError, match="refit a grid field"):
+        sphere_field.update(CENTRE[None] + [RADIUS, 0, 0], np.array([[1.0, 0, 0]]))
