@@ -276,7 +276,7 @@ class GridMeanNet(nn.Module):
     seed : int
     """
 
-    def __init__(self, lo, hi, finest=128, levels=4, channels=1, base=None, hidden=0, depth=1, latent_dim=0,
+    def __init__(self, lo, hi, finest=128, levels=1, channels=1, base=None, hidden=0, depth=1, latent_dim=0,
                  init_std=0.1, seed=0):
         super().__init__()
         self.summed = hidden == 0 and latent_dim == 0
@@ -324,7 +324,7 @@ class GridCovarianceNet(nn.Module):
 
     kind = "feature"
 
-    def __init__(self, lo, hi, finest=32, levels=2, channels=32, base=None, features=64, hidden=0, depth=1,
+    def __init__(self, lo, hi, finest=16, levels=3, channels=32, base=None, features=64, hidden=0, depth=1,
                  latent_dim=0, init_std=0.1, seed=1):
         super().__init__()
         self.encoder = GridEncoder(lo, hi, finest, levels, channels, base, init_std, seed)
@@ -363,7 +363,7 @@ class GridCovarianceNet(nn.Module):
 
 
 MEAN_DEFAULTS = {"finest": 128, "levels": 1, "channels": 1, "hidden": 0, "depth": 1}
-COV_DEFAULTS = {"finest": 32, "levels": 2, "channels": 32, "hidden": 0, "depth": 1, "features": 64}
+COV_DEFAULTS = {"finest": 16, "levels": 3, "channels": 32, "hidden": 0, "depth": 1, "features": 64}
 
 
 def build_grid_networks(config):
