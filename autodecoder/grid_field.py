@@ -16,14 +16,17 @@ forward-carried SIREN jets of :mod:`autodecoder.siren`.
 * :class:`GridCovarianceNet`: c(a, b, z) = phi(a, z) . phi(b, z) / K with phi the features (or a decoder of them),
   so D c(a, b) = J_phi(a)^T J_phi(b) / K as for :class:`autodecoder.networks.FeatureCovarianceNet`.
 
-Both nets expose the methods of their SIREN counterparts in :mod:`autodecoder.networks`, so the training loop,
-the losses and :class:`autodecoder.field.StochasticField` use them unchanged. Coordinates are in the model
+Both nets expose the methods of their SIREN counterparts in :mod:`autodecoder.networks`, so the losses, the
+step functions of :mod:`autodecoder.fit` and :class:`autodecoder.field.StochasticField` use them unchanged (train
+them with :mod:`autodecoder.grid_fit`: no weight decay on control values). Coordinates are in the model
 (unit-cube) frame; the grids cover the box ``[lo, hi]`` given at construction (stored as buffers, so a state dict
 rebuilds the same function); outside the box the field is continued by its value on the box's surface (the
 coordinates are clamped, so the gradient there is zero across the clamped axes).
 
-Why levels: the mean loss is a Poisson problem, whose low frequencies a single fine grid trained by stochastic
-gradients reaches only slowly (information travels one cell per step); coarse levels carry them, as in multigrid.
+Why levels: a function on a fine grid trained by stochastic gradients gets its low frequencies only slowly
+(information travels a few cells per step); coarse levels carry them, as in multigrid. The single-cloud mean does
+not need them (it is solved on one level, :func:`autodecoder.grid_fit.solve_mean`); the covariance does: its
+variance grows smoothly away from the data over the whole box.
 """
 import numpy as np
 import torch

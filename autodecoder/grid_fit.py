@@ -40,7 +40,9 @@ class GridFitOptions:
     solve_tol : float
         Relative residual of the conjugate gradients.
     mean_steps : int
-        Adam steps of the mean on the paper's Monte-Carlo loss after the solve (0: none).
+        Adam steps of the mean on the paper's Monte-Carlo loss after the solve (0: none). A few hundred small
+        steps bring the surface slightly closer; many more, or larger ones, take it further away again, as the
+        stochastic gradients' noise on control values that samples rarely visit accumulates (docs/results.md).
     mean_lr : float
         Their peak learning rate.
     cov_steps : int
@@ -58,7 +60,7 @@ class GridFitOptions:
 
     solve: bool = True
     solve_tol: float = 1e-6
-    mean_steps: int = 0
+    mean_steps: int = 300
     mean_lr: float = 1e-5
     cov_steps: int = 250
     cov_lr: float = 1e-3
