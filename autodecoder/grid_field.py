@@ -57,6 +57,22 @@ def cubic_bspline_weights(t):
     return w, dw
 
 
+class _Gather(torch.autograd.Function):
+    """table[index] for a flat index; backward by ``index_add_`` (2-3x faster on CPU than ``F.embedding``'s)."""
+
+    @staticmethod
+    def forward(ctx, table, index):
+        ctx.save_for_backward(index)
+        ctx.rows = table.shape[0]
+        return table.index_select(0, index)
+
+    @staticmethod
+    def backward(ctx, grad):
+        (index,) = ctx.saved_tensors
+        table_grad = torch.zeros(ctx.rows, grad.shape[1], dtype=grad.dtype, device=grad.device)
+        return table_grad.index_add_(0, index, grad), None
+
+
 class BSplineGrid(nn.Module):
     """One level: ``channels`` tricubic B-spline functions on ``cells`` cells per side of the box [lo, hi].
 
@@ -145,7 +161,7 @@ class BSplineGrid(nn.Module):
         idx, weights = self._taps(x)
         if not jacobian:
             weights = weights[:, :1]
-        taps = F.embedding(idx, self.values)  # (B, 64, C)
+        taps = _Gather.apply(self.values, idx.reshape(-1)).reshape(len(x), 64, self.channels)
         out = torch.bmm(weights.to(taps.dtype), taps)  # (B, 1 or 4, C)
         return out[:, 0], (out[:, 1:] if jacobian else None)
 

@@ -18,9 +18,11 @@ variance of ``--reference-field`` (a field written by ``benchmarks/fandisk.py``,
 correlation with gpytoolbox is in docs/results.md).
 """
 import argparse
+import os
 import time
 from pathlib import Path
 
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch: spinning OpenMP threads crawl on a shared CPU
 import numpy as np
 import torch
 import trimesh
