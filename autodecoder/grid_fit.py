@@ -211,6 +211,8 @@ def fit_grid_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, gri
         Its ``config["representation"]`` is ``"grid"``; ``info`` holds the fit time and the solver's figures.
     """
     points, normals = check_oriented_cloud(points, normals)
+    if options is not None and not isinstance(options, GridFitOptions):
+        raise TypeError(f"options of a grid fit must be GridFitOptions, got {type(options).__name__}")
     options = GridFitOptions(**{**asdict(options or GridFitOptions()), **option_overrides})
     t0 = time.perf_counter()
     normalization = Normalization.fit(points)
