@@ -62,6 +62,9 @@ def update_field(field, points, normals, epochs=50, steps=None, lr_fraction=0.3,
     """
     if field.code is not None:
         raise ValueError("update_field fine-tunes single-cloud fields; this field has a latent code")
+    if field.config.get("representation", "siren") != "siren":
+        raise ValueError("update_field fine-tunes SIREN fields; refit a grid field to the old and new points "
+                         "(fit_cloud(..., representation='grid'))")
     points, normals = check_oriented_cloud(points, normals)
     if old_points is None:
         if field.training_points is None:
