@@ -10,11 +10,12 @@ used without an orientation: the second term becomes min(|grad g - n|^2, |grad g
 
 Robust starts: every candidate (the mean code and up to ``max_candidates`` training codes) is scored by this loss on
 a small subset of the points; the ``starts`` best are optimised together for a short while and the best one goes on
-alone. Several scans are optimised in one batched forward pass (Adam acts elementwise, so each scan's code follows
+alone. A model trained on several part types records each training scan's part id; a scan of known part starts from
+that part's codes only (and from their mean instead of the mean of all codes), see :func:`part_codes`. Several scans are optimised in one batched forward pass (Adam acts elementwise, so each scan's code follows
 exactly the path it would follow alone).
 """
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Optional
 
 import numpy as np
@@ -61,6 +62,11 @@ class ProjectionOptions:
     exclude : tuple of int
         Training-code indices left out of the candidate starts: a training scan projected as if it were new
         (cross-fitted calibration), without starting from the code it was trained with.
+    part_id : str, optional
+        The part type of the scan(s): the candidate starts are that part's training codes and their mean
+        (:func:`part_codes`). None or '': every training code (also what a model without part ids always does);
+        a part id the model was not trained on is a ValueError. :func:`project_many` takes it per scan from the
+        scans' ``part_id`` when this is None.
     """
 
     steps: int = 60
@@ -75,6 +81,7 @@ class ProjectionOptions:
     finetune_steps: int = 0
     finetune_lr: float = 1e-4
     exclude: tuple = ()
+    part_id: Optional[str] = None
 
 
 @dataclass
@@ -147,7 +154,9 @@ def project_many(model, scans, *, seed=0, batch=16, workers=None, quiet=True, **
     ----------
     model : LatentModel
     scans : list of Scan, (points, normals) pairs or (n, 3) point arrays
-        In the model's collection frame (map scanner-file coordinates with ``model.frame.to_collection``).
+        In the model's collection frame (map scanner-file coordinates with ``model.frame.to_collection``). A scan's
+        ``part_id`` (Scan objects), when the ``part_id`` option is not given, restricts its starts to its part's
+        training codes (:func:`part_codes`); scans of different parts are projected in separate batches.
     seed : int
         Seeds the point subsets (scan k uses ``seed + k``'s subsets only through the shared generator: the same
         call gives the same codes).
@@ -174,9 +183,21 @@ def project_many(model, scans, *, seed=0, batch=16, workers=None, quiet=True, **
         torch.set_num_threads(int(workers))
     try:
         prepared = [_prepare(s, i) for i, s in enumerate(scans)]
-        out = []
-        for start in range(0, len(prepared), batch):
-            out.extend(_project_batch(model, prepared[start:start + batch], opts, seed + start))
+        parts = [opts.part_id if opts.part_id is not None else getattr(s, "part_id", None) for s in scans]
+        groups = {}
+        for i, part in enumerate(parts):
+            groups.setdefault(part or None, []).append(i)
+        for part in groups:  # an unknown part fails before any work
+            part_codes(model, part)
+        out = [None] * len(prepared)
+        for part, members in groups.items():
+            group_opts = replace(opts, part_id=part)
+            for start in range(0, len(members), batch):
+                chunk = members[start:start + batch]
+                # seed: as before for one group (the batch's first scan's position)
+                done = _project_batch(model, [prepared[i] for i in chunk], group_opts, seed + chunk[0])
+                for i, p in zip(chunk, done):
+                    out[i] = p
         if opts.finetune_steps > 0:
             out = [_finetune(model, p, prepared[i], opts, seed + i, quiet) for i, p in enumerate(out)]
         return out
@@ -205,13 +226,48 @@ def project(model, points, normals=None, *, seed=0, quiet=True, **options):
     return project_many(model, [(points, normals)], seed=seed, batch=1, quiet=quiet, **options)[0]
 
 
-def _candidates(model, max_candidates, exclude=()):
+def part_codes(model, part_id=None):
+    """The training codes a scan of part type ``part_id`` may start from, and their mean.
+
+    Parameters
+    ----------
+    model : LatentModel
+        Its ``train_part_ids`` (one per training code; all '' in a model trained without part ids).
+    part_id : str, optional
+        None or '': every training code and the model's mean code. A model without part ids ignores ``part_id``
+        (all its scans were of one, unnamed, part).
+
+    Returns
+    -------
+    index : (C,) int array
+        Training-code indices, ascending.
+    mean : (L,) float32 tensor
+
+    Raises
+    ------
+    ValueError
+        ``part_id`` is not among the model's training part ids (naming them).
+    """
+    ids = list(getattr(model, "train_part_ids", None) or [""] * len(model.codes))
+    known = sorted({p for p in ids if p})
+    if not part_id or not known:
+        return np.arange(len(model.codes)), model.code_mean
+    if part_id not in known:
+        raise ValueError(f"part_id {part_id!r}: the model was trained on part(s) {known}, not on this one (project "
+                         f"without a part id to start from every training code)")
+    index = np.flatnonzero(np.asarray(ids) == part_id)
+    return index, model.codes[index].mean(0)
+
+
+def _candidates(model, max_candidates, exclude=(), part_id=None):
     """Candidate starts: the mean code and up to ``max_candidates`` training codes (evenly spread), none of the
-    ``exclude``d ones. Returns ((C, L) codes, (C,) training-code index, -1 for the mean code)."""
-    index = np.setdiff1d(np.arange(len(model.codes)), np.asarray(exclude, dtype=int))
+    ``exclude``d ones; of part ``part_id`` only when given (:func:`part_codes`). Returns ((C, L) codes, (C,)
+    training-code index, -1 for the mean code)."""
+    index, mean = part_codes(model, part_id)
+    index = np.setdiff1d(index, np.asarray(exclude, dtype=int))
     if len(index) > max_candidates:
         index = index[np.linspace(0, len(index) - 1, max_candidates).round().astype(int)]
-    return torch.cat([model.code_mean[None], model.codes[index]]), np.concatenate([[-1], index])
+    return torch.cat([mean[None], model.codes[index]]), np.concatenate([[-1], index])
 
 
 def _project_batch(model, prepared, opts, seed):
@@ -230,7 +286,7 @@ def _project_batch(model, prepared, opts, seed):
         idx = [torch.from_numpy(rng.integers(0, n, k)) for n in sizes]
         return (torch.stack([p[i] for p, i in zip(pts, idx)]), torch.stack([q[i] for q, i in zip(nrm, idx)]))
 
-    cand, cand_index = _candidates(model, opts.max_candidates, opts.exclude)  # (C, L)
+    cand, cand_index = _candidates(model, opts.max_candidates, opts.exclude, opts.part_id)  # (C, L)
     c, latent = cand.shape
     starts = min(opts.starts, c)
     with torch.no_grad():

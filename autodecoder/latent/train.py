@@ -64,7 +64,7 @@ class LatentOptions:
         SIREN first-layer frequency.
     epochs : int, optional
         Passes over the training scans. Default (None): :func:`default_epochs`, enough for ``DEFAULT_STEPS``
-        optimisation steps, between 150 and 600 epochs.
+        optimisation steps per part type among the training scans (their ``part_id``), between 150 and 600 epochs.
     batch : int
         Scans per step (per process under DDP).
     lr, code_lr : float
@@ -174,12 +174,26 @@ def _all_gather(obj, world):
     return out
 
 
-def default_epochs(n_scans, batch, world=1):
-    """Epochs for ~``DEFAULT_STEPS`` steps with ``n_scans`` scans, ``batch`` per step and process, ``world``
-    processes; at least ``MIN_DEFAULT_EPOCHS`` (every code needs updates: it moves only when its scan is in a batch)
-    and at most ``MAX_DEFAULT_EPOCHS``."""
+def default_epochs(n_scans, batch, world=1, n_parts=1):
+    """Epochs for ~``DEFAULT_STEPS`` steps per part type with ``n_scans`` scans of ``n_parts`` part types,
+    ``batch`` per step and process, ``world`` processes; at least ``MIN_DEFAULT_EPOCHS`` (every code needs updates:
+    it moves only when its scan is in a batch) and at most ``MAX_DEFAULT_EPOCHS``.
+
+    The budget follows the collection: a collection of several part types gets each part's single-part budget
+    (``n_parts`` x ``DEFAULT_STEPS``), within the same epoch bounds, so that every code is updated about as often as
+    in a single-part run of the same number of scans per part (one model trained on two parts with one part's budget
+    ranked each part's defects far worse than the part's own model; docs/results.md#one-model-for-several-parts-issue-19).
+    With one part type this is the single-part rule unchanged."""
+    if int(n_parts) < 1:
+        raise ValueError(f"n_parts must be >= 1, got {n_parts}")
     steps_per_epoch = math.ceil(math.ceil(n_scans / world) / max(1, min(batch, math.ceil(n_scans / world))))
-    return int(min(MAX_DEFAULT_EPOCHS, max(MIN_DEFAULT_EPOCHS, math.ceil(DEFAULT_STEPS / steps_per_epoch))))
+    steps = DEFAULT_STEPS * int(n_parts)
+    return int(min(MAX_DEFAULT_EPOCHS, max(MIN_DEFAULT_EPOCHS, math.ceil(steps / steps_per_epoch))))
+
+
+def count_parts(part_ids):
+    """The number of part types among training scans' part ids (scans without one, '', count as one type)."""
+    return max(1, len({str(p) for p in part_ids}))
 
 
 def collection_lengthscale(scans, indices, factor=DEFAULT_LENGTHSCALE_FACTOR, max_scans=16):
@@ -230,9 +244,10 @@ def train_latent(scans, out=None, options=None, *, names=None, frame=None, finge
     names = _scan_names(scans, names)
     n_scans = len(names)
     options = LatentOptions.from_dict({**asdict(options or LatentOptions()), **overrides})
-    options, config = _resolve_options(options, resume, fingerprint, names, world)
     local = list(range(rank, n_scans, world))  # this rank's scans
     local_scans = _read_local_scans(scans, names, local, world)
+    part_ids = _part_ids({i: str(getattr(s, "part_id", "")) for i, s in local_scans.items()}, n_scans, world)
+    options, config = _resolve_options(options, resume, fingerprint, names, world, count_parts(part_ids))
     if config is None:
         config = _new_config(options, scans, n_scans, local_scans, world, distributed)
 
@@ -245,7 +260,6 @@ def train_latent(scans, out=None, options=None, *, names=None, frame=None, finge
 
         module = DistributedDataParallel(state.nets, device_ids=[device.index] if device.type == "cuda" else None)
     pools, local_points, state.info["targets_seconds"] = _target_pools(local_scans, local, config, options, device)
-    part_ids = _part_ids({i: str(getattr(s, "part_id", "")) for i, s in local_scans.items()}, n_scans, world)
     del local_scans
     scope = _RunScope(names=names, local=local, part_ids=part_ids, calibration_names=[str(c) for c in calibration_names],
                       frame=_frame_dict(frame), fingerprint=str(fingerprint), rank=rank, world=world,
@@ -335,7 +349,7 @@ def _read_local_scans(scans, names, local, world):
     return local_scans
 
 
-def _resolve_options(options, resume, fingerprint, names, world):
+def _resolve_options(options, resume, fingerprint, names, world, n_parts=1):
     """(options, config): a fresh run's options with the default epoch count resolved and config None (made by
     :func:`_new_config`), or a resumed run's, whose configuration wins except ``epochs`` and ``checkpoint_every``."""
     config = None
@@ -354,7 +368,7 @@ def _resolve_options(options, resume, fingerprint, names, world):
             raise ValueError(f"the checkpoint was written by {config.get('world_size', 1)} processes; resume it "
                              f"with the same number (got {world})")
     if options.epochs is None:
-        options = replace(options, epochs=default_epochs(len(names), options.batch, world))
+        options = replace(options, epochs=default_epochs(len(names), options.batch, world, n_parts))
     return options, config
 
 
@@ -519,7 +533,9 @@ def split_training_scans(collection, split="train", calibration_fraction=0.2, se
 
     The good (or unlabelled) scans of ``split`` are trained on. Calibration scans: the good scans of the
     'validation' split when there are any; otherwise ``calibration_fraction`` of the training scans, drawn with
-    ``seed``, held back from training. Every way of training (``train_latent.py``, :func:`train_collection`,
+    ``seed``, held back from training; in a collection of several part types (``part_id``) that fraction of each
+    part's scans, drawn as in a collection of that part alone (so each part's held-back and training scans are
+    those of its single-part collection, and every part can be calibrated on its own scans). Every way of training (``train_latent.py``, :func:`train_collection`,
     ``inspection.training.train_model``) uses this rule, and the checkpoint records its choice
     (``calibration_names``), which is what inspection calibrates on.
 
@@ -550,15 +566,21 @@ def split_training_scans(collection, split="train", calibration_fraction=0.2, se
     validation = collection.select(split="validation", label="good") if split != "validation" else []
     if validation:
         return candidates, [names[i] for i in validation]
-    n_hold = int(round(calibration_fraction * len(candidates)))
-    if len(candidates) - n_hold < 1:
-        raise TrainingInputError(f"{collection.path}: {len(candidates)} good scans in split {split!r} leave none to "
-                                 f"train on after holding back {n_hold} for calibration (lower the calibration "
-                                 f"fraction)")
-    order = np.random.default_rng(seed).permutation(len(candidates))
-    held = sorted(candidates[i] for i in order[:n_hold])
-    train = sorted(candidates[i] for i in order[n_hold:])
-    return train, [names[i] for i in held]
+    parts = [m["part_id"] for m in collection.metadata()]
+    groups = {}
+    for i in candidates:
+        groups.setdefault(parts[i], []).append(i)
+    train, held = [], []
+    for part, members in groups.items():
+        n_hold = int(round(calibration_fraction * len(members)))
+        if len(members) - n_hold < 1:
+            what = f"good scans in split {split!r}" + (f" of part {part!r}" if len(groups) > 1 else "")
+            raise TrainingInputError(f"{collection.path}: {len(members)} {what} leave none to train on after holding "
+                                     f"back {n_hold} for calibration (lower the calibration fraction)")
+        order = np.random.default_rng(seed).permutation(len(members))
+        held += [members[i] for i in order[:n_hold]]
+        train += [members[i] for i in order[n_hold:]]
+    return sorted(train), [names[i] for i in sorted(held)]
 
 
 class _CollectionScans:
