@@ -185,6 +185,11 @@ class Inspector(BaseEstimator):
                                  "set_calibration(...) before scoring against a threshold")
 
     # ------------------------------------------------------------------------------------------------ scoring
+    def for_scan(self, scan):
+        """The inspector whose threshold applies to ``scan``: this one (see :class:`inspection.parts.PartInspector`
+        for a model of several part types)."""
+        return self
+
     def inspect(self, scan):
         """Project one scan and score it. Returns a :class:`ScanResult` (score, per-point scores, field,
         components, ray evidence). With ``rays=True`` the score is the combination, which needs calibration."""
@@ -217,6 +222,9 @@ class Inspector(BaseEstimator):
         train_names = getattr(self.model, "train_names", None)
         if exclude_own_code and train_names and name in train_names:
             options = {**(options or {}), "exclude": (train_names.index(name),)}
+        part = getattr(scan, "part_id", "")
+        if part and getattr(self.model, "train_part_ids", None):  # a latent model: start from the part's codes
+            options = {**(options or {}), "part_id": part}
         field = field_for(self.model, points, normals, options)
         value = variance = grazing = None
         if self.point_score in REFERENCE_QUANTITY:
@@ -409,7 +417,11 @@ class Inspector(BaseEstimator):
 
     def set_calibration(self, calibration):
         """Use a stored :class:`~inspection.calibration.Calibration` (its aggregate, point score and noise floor
-        replace this inspector's; ``alpha`` stays). Returns self."""
+        replace this inspector's; ``alpha`` stays). Returns self. A per-part calibration (a model of several part
+        types) is a :class:`inspection.parts.PartInspector`'s, not one inspector's: ValueError."""
+        if (calibration.extra or {}).get("parts"):
+            raise ValueError("this calibration holds one per part type (the model was trained on several); load it "
+                             "with inspection.parts.PartInspector.from_calibration(model, calibration)")
         self.aggregate = calibration.aggregate
         self.point_score = calibration.point_score
         self.noise = calibration.noise

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .parts import PartInspector, model_parts
 from .threshold import DEFAULT_ALPHA
 
 log = logging.getLogger(__name__)
@@ -172,16 +173,17 @@ def calibration_scans(handle, data, split=None, frame_check=True):
     return scans, info, how
 
 
-def reference_scans(handle, data, info, max_scans=32):
-    """Up to ``max_scans`` of the model's training scans (evenly spread), read from ``data`` when it is the model's
-    training collection; None otherwise."""
+def reference_scans(handle, data, info, max_scans=32, part=None):
+    """Up to ``max_scans`` of the model's training scans (evenly spread; of part ``part`` only when given), read from
+    ``data`` when it is the model's training collection; None otherwise."""
     if not info.get("same_as_training") or not handle.train_names:
         return None
     from datasets import ScanCollection
 
+    part_ids = list(getattr(handle.model, "train_part_ids", None) or [""] * len(handle.train_names))
     with ScanCollection(data) as c:
         names = set(c.names)
-        present = [n for n in handle.train_names if n in names]
+        present = [n for n, p in zip(handle.train_names, part_ids) if n in names and (part is None or p == part)]
         if not present:
             return None
         pick = np.unique(np.linspace(0, len(present) - 1, min(max_scans, len(present))).round().astype(int))
@@ -229,19 +231,42 @@ def calibrate(model, data, alpha=DEFAULT_ALPHA, aggregate=None, point_score=None
         rays = all(s.sensor_origin is not None for s in [*scans, *(reference or [])])
     if point_score is None:
         point_score = "distance" if reference else DEFAULT_POINT_SCORE
-    insp = Inspector(handle.model, alpha=alpha, aggregate=aggregate or DEFAULT_AGGREGATE,
-                     point_score=point_score, noise=noise,
-                     projection=(DEFAULT_PROJECTION if projection == "default" else projection)
-                     if handle.kind == "latent" else None, rays=bool(rays), ray_options=ray_options)
-    insp._check_params()  # bad ray options fail before any work
-    if point_score in REFERENCE_QUANTITY:
-        insp.fit_reference(tqdm(reference, desc="reference", unit="scan", disable=not progress))
-    insp.fit(tqdm(scans, desc="calibrate", unit="scan", disable=not progress), names=[s.name for s in scans])
-    crossed = insp.calibration_roles_.count("cross-fitted")
+
+    def make():
+        return Inspector(handle.model, alpha=alpha, aggregate=aggregate or DEFAULT_AGGREGATE,
+                         point_score=point_score, noise=noise,
+                         projection=(DEFAULT_PROJECTION if projection == "default" else projection)
+                         if handle.kind == "latent" else None, rays=bool(rays), ray_options=ray_options)
+
+    def fit(insp, scans, reference, desc=""):
+        insp._check_params()  # bad ray options fail before any work
+        if point_score in REFERENCE_QUANTITY:
+            insp.fit_reference(tqdm(reference, desc=f"reference{desc}", unit="scan", disable=not progress))
+        insp.fit(tqdm(scans, desc=f"calibrate{desc}", unit="scan", disable=not progress),
+                 names=[s.name for s in scans])
+        return insp
+
+    parts = model_parts(handle.model) if handle.kind == "latent" else []
+    if parts:  # several part types: each part calibrated on its own good scans (inspection.parts)
+        by_part = {p: [s for s in scans if s.part_id == p] for p in parts}
+        empty = [p for p, v in by_part.items() if not v]
+        if empty:
+            raise InspectionError(f"{data}: no good calibration scans of part(s) {empty} (the model was trained on "
+                                  f"parts {parts} and calibrates each on its own scans)")
+        insp = PartInspector({p: fit(make(), by_part[p], reference_scans(handle, data, info, part=p)
+                                     if point_score in REFERENCE_QUANTITY else None, f" {p}") for p in parts})
+        roles = [r for p in parts for r in insp.inspectors[p].calibration_roles_]
+        how += f", per part ({', '.join(parts)})"
+    else:
+        insp = fit(make(), scans, reference)
+        roles = insp.calibration_roles_
+    crossed = roles.count("cross-fitted")
     if crossed:
         how += f" and {crossed} training scans cross-fitted"
     if write:
         write_calibration(handle.path, insp.calibration(source=f"{how}", fingerprint=info.get("fingerprint", "")))
+    if parts:
+        return insp, {"n": insp.n_calibration_, "how": how, "parts": insp.summary()}
     return insp, {"n": insp.n_calibration_, "how": how, "threshold": insp.threshold_,
                   "decision": insp.decision_threshold_}
 
@@ -249,6 +274,16 @@ def calibrate(model, data, alpha=DEFAULT_ALPHA, aggregate=None, point_score=None
 def describe_calibration(insp, info):
     """The lines the command line prints after calibrating: what it did and, when the threshold is extrapolated or
     coarser than asked, the one line that says so."""
+    if "parts" in info:
+        lines = [f"calibrated on {info['n']} scans ({info['how']}): aggregate {insp.aggregate}, point score "
+                 f"{insp.point_score}{' + ray score' if insp.rays else ''}"]
+        for part, one in sorted(insp.inspectors.items()):
+            t = one.decision_threshold_
+            lines.append(f"part {part}: threshold {t.value:.4g} at alpha={t.alpha:g} ({t.basis}) on "
+                         f"{one.n_calibration_} scans")
+            if t.note:
+                lines.append(f"note: part {part}: {t.note}")
+        return lines
     t = insp.decision_threshold_
     lines = [f"calibrated on {info['n']} scans ({info['how']}): aggregate {insp.aggregate}, point score "
              f"{insp.point_score}{' + ray score' if insp.rays else ''}; threshold {t.value:.4g} at alpha={t.alpha:g} "
@@ -324,6 +359,8 @@ def _calibrated_inspector(handle, data, alpha, progress, echo):
 
     if handle.calibration is None:
         return _calibrate_for_scoring(handle, data, alpha, progress, echo)
+    if (handle.calibration.extra or {}).get("parts"):
+        return PartInspector.from_calibration(handle.model, handle.calibration, alpha)
     insp = Inspector(handle.model, alpha=handle.calibration.alpha if alpha is None else alpha)
     insp.set_calibration(handle.calibration)
     return insp
@@ -341,11 +378,15 @@ def _inspect_scans(insp, scans, aligner, maps, maps_dir, progress):
         t0 = time.perf_counter()
         if aligner is not None:
             scan = aligner.align_scan(scan)
-        res = insp.inspect(scan)
+        try:
+            one = insp.for_scan(scan)  # the scan's part's inspector (a model of several part types), else insp
+        except ValueError as exc:
+            raise InspectionError(str(exc)) from None
+        res = one.inspect(scan)
         results["seconds"].append(time.perf_counter() - t0)
-        verdict = "defective" if insp.predict_from_scores([res.score])[0] == -1 else "good"
+        verdict = "defective" if one.predict_from_scores([res.score])[0] == -1 else "good"
         row = {"name": scan.name, "split": scan.split, "label": scan.label, "defect": scan.defect,
-               "score": res.score, "p_value": float(insp.p_values_from_scores([res.score])[0]), "verdict": verdict}
+               "score": res.score, "p_value": float(one.p_values_from_scores([res.score])[0]), "verdict": verdict}
         if insp.rays:
             row.update(score_points=res.components["points"], score_rays=res.components["rays"])
         results["rows"].append(row)
@@ -379,17 +420,20 @@ def _summarize(handle, insp, data, split, align, results):
     from .report import summarize
 
     cal = handle.calibration
+    parted = isinstance(insp, PartInspector)
     extra = {"model": str(handle.path), "model_kind": handle.kind, "data": str(data), "split": split,
              "aggregate": insp.aggregate, "point_score": insp.point_score, "noise": insp.noise,
              "projection": insp.projection, "n_calibration": insp.n_calibration_,
              "calibration_source": cal.source if cal is not None else "held-back scans, calibrated by score",
-             "decision": insp.decision_threshold_.as_dict(), "aligned": bool(align),
+             "decision": None if parted else insp.decision_threshold_.as_dict(), "aligned": bool(align),
              "seconds_per_scan": float(np.mean(results["seconds"])), "maps": results["maps"],
              "higher_score_means": "more anomalous",
              "rays": None if not insp.rays else {
                  "options": insp._ray_record()["options"],
                  "score": "max of the point and ray scores, each standardized on the calibration scans"}}
-    summary = summarize(results["rows"], insp.threshold_, insp.alpha, results["point_labels"],
+    if parted:  # thresholds per part: summary['parts']; scores compare within a part only
+        extra["parts"] = insp.summary()
+    summary = summarize(results["rows"], None if parted else insp.threshold_, insp.alpha, results["point_labels"],
                         results["point_scores"], extra)
     if results["ray_maps"]:
         from sklearn.metrics import roc_auc_score
@@ -414,7 +458,8 @@ def _write_results(out, insp, results, summary):
     known = labels != "unknown"
     plot_roc(out / "roc.png", (labels[known] == "defective").astype(int), sc[known],
              np.array([r["defect"] for r in rows])[known])
-    plot_score_histograms(out / "scores.png", sc, labels, insp.decision_threshold_, insp.calibration_scores_)
+    plot_score_histograms(out / "scores.png", sc, labels, getattr(insp, "decision_threshold_", None),
+                          insp.calibration_scores_)
     if results["maps"]:
         write_legend(out / "maps" / "legend.png")
         if insp.rays:

@@ -1,0 +1,106 @@
+"""Inspection of a model trained on several part types: each part calibrated on its own good scans, with its own
+threshold; a scan of a part the model does not know is refused with a message naming the parts it knows."""
+import numpy as np
+import pytest
+
+from datasets.scan import Scan
+
+TINY = dict(latent_dim=2, width=16, depth=1, features=8, mean_samples=128, screen_samples=64, pair_clusters=4,
+            batch=4, epochs=3)
+
+
+def _sphere(name, radius, part, seed, split="train", label="good", defect=""):
+    rng = np.random.default_rng(seed)
+    v = rng.normal(size=(300, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    return Scan(points=(radius * v).astype(np.float32), normals=v.astype(np.float32), name=name, split=split,
+                label=label, defect=defect, part_id=part)
+
+
+@pytest.fixture(scope="module")
+def two_part_run(tmp_path_factory, one_torch_thread):
+    from autodecoder.latent.train import train_collection
+    from datasets.collection import ScanCollection
+
+    tmp = tmp_path_factory.mktemp("parts")
+    scans = []
+    for i, (part, r) in enumerate((("a", 0.15), ("b", 0.3))):
+        scans += [_sphere(f"{part}/train/{k:03d}", r, part, 100 * i + k) for k in range(6)]
+        scans += [_sphere(f"{part}/test/good", r, part, 100 * i + 50, split="test"),
+                  _sphere(f"{part}/test/bad", 1.3 * r, part, 100 * i + 51, split="test", label="defective",
+                          defect="dent")]
+    data = ScanCollection.create(tmp / "ab.h5", scans)
+    model = tmp / "model.pt"
+    train_collection(data, model, calibration_fraction=0.34, quiet=True, **TINY)
+    from inspection.run import calibrate
+
+    insp, info = calibrate(model, data, progress=False)  # stored in the model file
+    return data, model, tmp, insp, info
+
+
+def test_calibration_and_thresholds_are_per_part(two_part_run):
+    from inspection.parts import PartInspector
+    from inspection.run import describe_calibration
+
+    insp, info = two_part_run[3:]
+    assert isinstance(insp, PartInspector) and insp.parts == ["a", "b"]
+    for part, one in insp.inspectors.items():  # each part: its own held-back scans, cross-fitted training scans
+        assert one.calibration_names_ and all(n.startswith(f"{part}/") for n in one.calibration_names_)
+        assert one.calibration_roles_.count("held-back") == 2
+    assert set(info["parts"]) == {"a", "b"}
+    lines = describe_calibration(insp, info)
+    assert any(line.startswith("part a: threshold") for line in lines)
+    assert any(line.startswith("part b: threshold") for line in lines)
+
+
+def test_scoring_uses_each_parts_threshold_and_stored_calibration(two_part_run):
+    from inspection.model_io import load_model
+    from inspection.parts import PartInspector
+    from inspection.run import score
+
+    data, model, tmp = two_part_run[:3]
+    summary = score(model, data, tmp / "results", progress=False, maps="none", echo=lambda *_: None)
+    assert set(summary["parts"]) == {"a", "b"} and summary["decision"] is None
+    handle = load_model(model)
+    loaded = PartInspector.from_calibration(handle.model, handle.calibration)
+    rows = {r["name"]: r for r in _read_csv(tmp / "results" / "scores.csv")}
+    for part in ("a", "b"):
+        t = loaded.inspectors[part].threshold_
+        assert summary["parts"][part]["threshold"] == pytest.approx(t)
+        for name in (f"{part}/test/good", f"{part}/test/bad"):
+            verdict = "defective" if float(rows[name]["score"]) > t else "good"
+            assert rows[name]["verdict"] == verdict
+
+
+def test_a_scan_of_an_unknown_part_is_refused(two_part_run):
+    from inspection.estimator import Inspector
+    from inspection.model_io import load_model
+    from inspection.parts import PartInspector
+
+    handle = load_model(two_part_run[1])
+    insp = PartInspector.from_calibration(handle.model, handle.calibration)
+    for part, match in (("c", r"part_id 'c'.*\['a', 'b'\]"), ("", "no part_id")):
+        with pytest.raises(ValueError, match=match):
+            insp.inspect(_sphere("x", 0.2, part, 1))
+    with pytest.raises(ValueError, match="one per part type"):
+        Inspector(handle.model).set_calibration(handle.calibration)
+
+
+def test_a_single_part_model_keeps_one_inspector(tmp_path, one_torch_thread):
+    from autodecoder.latent.train import train_collection
+    from datasets.collection import ScanCollection
+    from inspection.estimator import Inspector
+    from inspection.run import calibrate
+
+    scans = [_sphere(f"train/{k:03d}", 0.2, "a", k) for k in range(5)]
+    data = ScanCollection.create(tmp_path / "a.h5", scans)
+    train_collection(data, tmp_path / "m.pt", calibration_fraction=0.4, quiet=True, **TINY)
+    insp, info = calibrate(tmp_path / "m.pt", data, progress=False)
+    assert type(insp) is Inspector and "threshold" in info and insp.for_scan(scans[0]) is insp
+
+
+def _read_csv(path):
+    import csv
+
+    with open(path) as fh:
+        return list(csv.DictReader(fh))
