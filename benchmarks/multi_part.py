@@ -121,6 +121,8 @@ def main(argv=None):
                                                                 "collections and default models; read only)")
     p.add_argument("--work", default="results/multi_part")
     p.add_argument("--tag", default="defaults", help="names the model and the scoring run (model_<tag>.pt)")
+    p.add_argument("--run", default=None, help="names the scoring run's folder (default: the tag); another name "
+                                                "re-scores a cached model with the current code")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
@@ -139,7 +141,7 @@ def main(argv=None):
     info = torch.load(model, map_location="cpu", weights_only=False)
     print(f"two-part model {model}: {info['epoch']} epochs, train_seconds {info['info']['train_seconds']:.0f}"
           + (f", wall {seconds:.0f} s" if seconds is not None else " (cached)"))
-    summary, results, score_seconds = score(data, model, args.tag, args.quiet)
+    summary, results, score_seconds = score(data, model, args.run or args.tag, args.quiet)
     print(f"scored in {score_seconds:.0f} s")
     rows, kinds = [], set()
     for part in names:
@@ -153,7 +155,7 @@ def main(argv=None):
         r_one = per_part(single_summary.parent / "scores.csv")
         r_nn, _, _ = baseline(sources[part], single_model, s_summary["alpha"])
         kinds |= {k for k in r_one if k not in ("auroc", "flag_def", "flag_good", "n_good")}
-        rows += [(part, f"two-part ({args.tag})", r_two, info["info"]["train_seconds"]),
+        rows += [(part, f"two-part ({args.run or args.tag})", r_two, info["info"]["train_seconds"]),
                  (part, "single-part", r_one, s_info["info"]["train_seconds"]),
                  (part, "nearest-neighbour top5%", r_nn, 0.0)]
     kinds = sorted(kinds)
