@@ -131,8 +131,11 @@ def format_table(rows, summary, max_rows=60):
     if len(rows) > max_rows:
         lines.append(f"... {len(rows) - max_rows} more in scores.csv")
     t = summary.get("threshold")
+    parts = summary.get("parts")  # a model of several part types: a threshold per part
+    where = ("thresholds per part: " + ", ".join(f"{p} {v['threshold']:.4g}" for p, v in parts.items())) if parts \
+        else f"threshold {'none' if t is None else f'{t:.4g}'}"
     lines.append(f"{summary['n_flagged']} of {summary['n_scans']} scans flagged at alpha={summary['alpha']:g} "
-                 f"(threshold {'none' if t is None else f'{t:.4g}'})")
+                 f"({where})")
     decision = summary.get("decision")
     if decision:
         from .threshold import format_rate

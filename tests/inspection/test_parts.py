@@ -59,7 +59,9 @@ def test_scoring_uses_each_parts_threshold_and_stored_calibration(two_part_run):
     from inspection.run import score
 
     data, model, tmp = two_part_run[:3]
-    summary = score(model, data, tmp / "results", progress=False, maps="none", echo=lambda *_: None)
+    lines = []
+    summary = score(model, data, tmp / "results", progress=False, maps="none", echo=lines.append)
+    assert "thresholds per part: a " in lines[0]
     assert set(summary["parts"]) == {"a", "b"} and summary["decision"] is None
     handle = load_model(model)
     loaded = PartInspector.from_calibration(handle.model, handle.calibration)
