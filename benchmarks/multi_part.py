@@ -64,15 +64,16 @@ def merge(parts, work):
     return path
 
 
-def train(data, tag, seed, quiet):
-    """train_collection with its defaults (cached as ``model_<tag>.pt`` beside the data). Returns (path, seconds)."""
+def train(data, tag, seed, quiet, epochs=None):
+    """train_collection with its defaults (``epochs`` None: its own; cached as ``model_<tag>.pt`` beside the data).
+    Returns (path, seconds)."""
     from autodecoder.latent.train import train_collection
 
     model = data.parent / f"model_{tag}.pt"
     if model.is_file():
         return model, None
     t0 = time.perf_counter()
-    train_collection(data, model, seed=seed, quiet=quiet)
+    train_collection(data, model, seed=seed, quiet=quiet, **({} if epochs is None else {"epochs": epochs}))
     return model, time.perf_counter() - t0
 
 
@@ -123,6 +124,7 @@ def main(argv=None):
     p.add_argument("--tag", default="defaults", help="names the model and the scoring run (model_<tag>.pt)")
     p.add_argument("--run", default=None, help="names the scoring run's folder (default: the tag); another name "
                                                 "re-scores a cached model with the current code")
+    p.add_argument("--epochs", type=int, default=None, help="training epochs (default: train_collection's own)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
@@ -135,7 +137,7 @@ def main(argv=None):
     names = args.parts.split(",")
     sources = {part: synth(part, vargs, single) for part in names}
     data = merge(sources, work)
-    model, seconds = train(data, args.tag, args.seed, args.quiet)
+    model, seconds = train(data, args.tag, args.seed, args.quiet, args.epochs)
     import torch
 
     info = torch.load(model, map_location="cpu", weights_only=False)
