@@ -11,7 +11,7 @@ from datasets.validation import points_and_normals
 from .calibration import Calibration
 from .threshold import DEFAULT_ALPHA, check_alpha, fit_threshold
 from .scores import (POINT_SCORES, REFERENCE_QUANTITY, LocalReference, aggregate as aggregate_scores, check_aggregate,
-                     field_quantity, grazing_factor, point_scores)
+                     field_quantity, grazing_factor, point_scores, view_origin_from_normals)
 
 log = logging.getLogger(__name__)
 
@@ -221,8 +221,11 @@ class Inspector(BaseEstimator):
         value = variance = grazing = None
         if self.point_score in REFERENCE_QUANTITY:
             value, variance = field_quantity(field, points, REFERENCE_QUANTITY[self.point_score], with_variance=True)
-            if origin is not None and normals is not None:
-                grazing = grazing_factor(points, normals, origin)
+            if normals is not None:
+                # no sensor origin (a public layout's test scan): the view estimated from the normals, for the
+                # grazing term alone
+                seen_from = origin if origin is not None else view_origin_from_normals(points, normals)
+                grazing = grazing_factor(points, normals, seen_from)
         from datasets.outliers import stray_points
 
         points = np.asarray(points, dtype=np.float64)
