@@ -47,7 +47,7 @@ from .scores import aggregate as aggregate_values, check_aggregate
 log = logging.getLogger(__name__)
 
 RAY_DEFAULTS = {"n_rays": 384, "n_empty": 128, "gap": 2.0, "aggregate": "top1", "seed": 0, "clearance": None,
-                "own_depth": "auto"}
+                "own_depth": "auto", "band": 0.5}
 _MAX_OFF_AXIS_COS = 0.087  # cos 85 deg: wider views are not one pinhole image
 _MAX_GRID_CELLS = 400_000
 
@@ -207,6 +207,10 @@ def check_ray_options(options):
         if not float(opts["clearance"]) >= 0:
             raise ValueError(f"ray option clearance must be None or >= 0 (world units), got {opts['clearance']!r}")
         opts["clearance"] = float(opts["clearance"])
+    if opts["band"] is not None:
+        if not float(opts["band"]) > 0:
+            raise ValueError(f"ray option band must be None or > 0 (kernel lengthscales), got {opts['band']!r}")
+        opts["band"] = float(opts["band"])
     if opts["own_depth"] not in (None, "auto"):
         if not float(opts["own_depth"]) > 0:
             raise ValueError(f"ray option own_depth must be None, 'auto' or > 0 (world units), got "
@@ -305,7 +309,7 @@ def image_holes(points, origin, gap=RAY_DEFAULTS["gap"]):
 def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=RAY_DEFAULTS["n_empty"],
                  gap=RAY_DEFAULTS["gap"], aggregate=RAY_DEFAULTS["aggregate"], seed=RAY_DEFAULTS["seed"],
                  clearance=RAY_DEFAULTS["clearance"], own_depth=RAY_DEFAULTS["own_depth"], reference=None,
-                 **check_options):
+                 band=RAY_DEFAULTS["band"], surface=None, **check_options):
     """The ray score of one scan under its projected field.
 
     Parameters
@@ -332,11 +336,17 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
     own_depth : float, 'auto' or None
         How far before a point its own surface may lie (world units; None: no limit); material farther back on its
         ray is tested (:func:`autodecoder.scanning.free_space.blocked_probability`). 'auto': 3 kernel lengthscales when a
-        ``reference`` is given, else no limit. Without a reference, the rays of good scans through an open part's
+        ``reference`` or a ``surface`` band is given, else no limit. Without a reference, the rays of good scans through an open part's
         openings enter the field's "solid" cavity as a hole's do, and testing deep material only adds their noise
         (benchmarks/thin_walled.py, enclosure).
     reference : RayReference, optional
         Rays entering the expected material near where good scans' rays do count as free (surprisal 0, P 0).
+    band : float or None
+        With ``surface``: only ray samples within ``band`` kernel lengthscales of a good scan's point are tested
+        (:class:`autodecoder.scanning.free_space.SurfaceBand`): the rays show a wall missing where good parts have
+        one, not the field's extrapolation where they have none. None: every sample.
+    surface : (n, 3) array, optional
+        Points of good scans of the part (the model's training scans), the scan's frame.
     **check_options
         Passed to :func:`autodecoder.scanning.free_space.blocked_probability` (``outside_sigma``, ``step``, ...).
 
@@ -353,9 +363,16 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
     rng = np.random.default_rng(seed)
     m = len(points)
     index = np.arange(m) if m <= n_rays else np.sort(rng.choice(m, n_rays, replace=False))
-    check_options = dict(check_options, observed=points, clearance=clearance, seed=seed)
-    if own_depth == "auto" and reference is None:
+    surface_band = None
+    if surface is not None and band is not None:
+        from autodecoder.scanning.free_space import SurfaceBand
+
+        if field.lengthscale is None:
+            raise ValueError("ray_evidence: band is in kernel lengthscales, and the field does not say its own")
+        surface_band = SurfaceBand(surface, band * field.lengthscale)
+    if own_depth == "auto" and reference is None and surface_band is None:
         own_depth = None
+    check_options = dict(check_options, observed=points, clearance=clearance, seed=seed, band=surface_band)
     check = blocked_probability(field, origin, points[index], own_depth=own_depth, **check_options)
     values, surprisal = check.p_blocked, -check.log_free
     d_rays = points[index] - origin

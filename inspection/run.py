@@ -198,14 +198,14 @@ def check_sensor_origins(scans, data):
 
 
 def calibrate(model, data, alpha=DEFAULT_ALPHA, aggregate=None, point_score=None, noise=None, split=None, progress=True,
-              write=True, projection="default", rays=False, ray_options=None):
+              write=True, projection="default", rays="auto", ray_options=None):
     """Calibrate ``model`` on good scans and store the calibration in the model file. Returns (Inspector, info).
 
     ``rays=True`` adds the ray score (:mod:`inspection.ray_evidence`, settings ``ray_options``, with a reference of
     where the training scans' rays enter material) and calibrates its combination with the point score; every
-    calibration scan then needs a sensor origin. ``rays='auto'``: on when every calibration and reference scan has
-    one. Off by default: on benchmarks/verdicts.py's sheet-metal enclosure the rays added nothing to the point
-    score (docs/results.md)."""
+    calibration scan then needs a sensor origin. ``rays='auto'`` (the default): on when every calibration and
+    reference scan has one (benchmarks/verdicts.py's parts and benchmarks/real_bunny.py: missing material found
+    through thin walls, no defect type worse; docs/results.md#thin-walled-and-open-parts-issue-18)."""
     from tqdm import tqdm
 
     from .calibration import write_calibration
@@ -388,7 +388,8 @@ def _summarize(handle, insp, data, split, align, results):
              "higher_score_means": "more anomalous",
              "rays": None if not insp.rays else {
                  "options": insp._ray_record()["options"],
-                 "score": "max of the point and ray scores, each standardized on the calibration scans"}}
+                 "score": "the point score plus what the ray score shows beyond the good calibration scans' "
+                          "(inspection.combine, rule " + insp._combination().rule + ")"}}
     summary = summarize(results["rows"], insp.threshold_, insp.alpha, results["point_labels"],
                         results["point_scores"], extra)
     if results["ray_maps"]:
