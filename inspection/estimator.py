@@ -127,12 +127,15 @@ class Inspector(BaseEstimator):
         Scores depend on them, so the calibration stores them and :meth:`set_calibration` restores them.
     rays : bool
         Also score the sensor's rays (:mod:`inspection.ray_evidence`: material the field expects where the
-        sensor saw free space, e.g. a hole in a thin wall) and combine that score with the point score
-        (:mod:`inspection.combine`: the larger of the two, each standardized on the calibration scans). Scans
-        need a ``sensor_origin``; the combined score needs calibration (:meth:`fit`) before it can be computed.
+        sensor saw free space, e.g. a hole in a thin wall; with a per-location reference, only where its good
+        scans have a surface) and combine that score with the point score (:mod:`inspection.combine`, rule
+        ``COMBINATION_RULE``: the point score plus what the ray score shows beyond the good calibration scans).
+        Scans need a ``sensor_origin``; the combined score needs calibration (:meth:`fit`) before it can be
+        computed.
     ray_options : dict, optional
         Settings of the ray score (keys of ``inspection.ray_evidence.RAY_DEFAULTS``: ``n_rays``, ``n_empty``,
-        ``gap``, ``aggregate``, ``seed``, ``clearance``); stored with the calibration like ``projection``.
+        ``gap``, ``aggregate``, ``seed``, ``clearance``, ``own_depth``, ``band``); stored with the calibration like
+        ``projection``.
 
     Attributes (after :meth:`fit`)
     ------------------------------

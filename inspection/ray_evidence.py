@@ -24,10 +24,14 @@ On open and thin-walled parts the projected field of a partial scan is one-sided
 surface the scan saw, the cavity behind a sheet included (benchmarks/thin_walled.py, figures in
 ``results/thin_walled/``). A point seen through a hole in the sheet then lies deep inside that "solid", and so do
 the rays of good scans through the part's real openings. Two things make the rays work there: ``own_depth`` (a
-point's own surface lies at most that far before it; material farther back is tested) and a :class:`RayReference`
-of where good scans' rays enter expected material: a ray that enters it where good rays do (an opening) is
-explained; a ray through a hole enters at the sheet, where good rays end on the surface. Without a reference,
-``own_depth='auto'`` tests no deep material (the rule before; it keeps the rays' noise on good scans low).
+point's own surface lies at most that far before it; material farther back is tested) and the ``band``: only
+samples within ``band`` kernel lengthscales of the good (training) scans' points are tested
+(:class:`autodecoder.scanning.free_space.SurfaceBand`). A ray through a hole crosses the sheet where good scans
+returned points; a good ray through an opening crosses only material the field extrapolated where no good part has
+a surface. Without a band (``band=None``) a :class:`RayReference` of where good scans' rays enter expected material
+explains a tested ray entering near such a place (the rule before; on benchmarks/verdicts.py's parts it left good
+scans with up to hundreds of nats: docs/results.md#thin-walled-and-open-parts-issue-18). With neither,
+``own_depth='auto'`` tests no deep material (the rule before that).
 
 The scan's ray score aggregates the surprisals -log P(free) = -log(1 - P) of both kinds of ray together, in nats
 (the rays' negative log likelihood, as the NLL is the points'; ``aggregate`` as for point scores: ``'top1'`` is the

@@ -201,11 +201,12 @@ def calibrate(model, data, alpha=DEFAULT_ALPHA, aggregate=None, point_score=None
               write=True, projection="default", rays="auto", ray_options=None):
     """Calibrate ``model`` on good scans and store the calibration in the model file. Returns (Inspector, info).
 
-    ``rays=True`` adds the ray score (:mod:`inspection.ray_evidence`, settings ``ray_options``, with a reference of
-    where the training scans' rays enter material) and calibrates its combination with the point score; every
-    calibration scan then needs a sensor origin. ``rays='auto'`` (the default): on when every calibration and
-    reference scan has one (benchmarks/verdicts.py's parts and benchmarks/real_bunny.py: missing material found
-    through thin walls, no defect type worse; docs/results.md#thin-walled-and-open-parts-issue-18)."""
+    ``rays=True`` adds the ray score (:mod:`inspection.ray_evidence`, settings ``ray_options``; with the point
+    score ``'distance'`` it is tested only where the training scans have a surface) and calibrates its combination
+    with the point score; every calibration scan then needs a sensor origin. ``rays='auto'`` (the default): on when
+    ``data`` is the model's training collection (its training scans give that band) and every calibration and
+    training scan has a sensor origin (benchmarks/verdicts.py's parts and benchmarks/real_bunny.py:
+    docs/results.md#thin-walled-and-open-parts-issue-18)."""
     from tqdm import tqdm
 
     from .calibration import write_calibration
@@ -225,8 +226,8 @@ def calibrate(model, data, alpha=DEFAULT_ALPHA, aggregate=None, point_score=None
         if reference is None and point_score is not None:
             raise InspectionError(f"{data}: point score {point_score!r} needs the model's training scans, and this "
                                   f"is not its training collection (or the model records no training scan names)")
-    if rays == "auto":
-        rays = all(s.sensor_origin is not None for s in [*scans, *(reference or [])])
+    if rays == "auto":  # the configuration measured: the band of the training scans' surfaces needs them
+        rays = reference is not None and all(s.sensor_origin is not None for s in [*scans, *reference])
     if point_score is None:
         point_score = "distance" if reference else DEFAULT_POINT_SCORE
     insp = Inspector(handle.model, alpha=alpha, aggregate=aggregate or DEFAULT_AGGREGATE,
