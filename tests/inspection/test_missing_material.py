@@ -495,3 +495,19 @@ def test_log_gated_combination_by_hand():
     assert again.rule == "gated-log" and again.score(new).tolist() == comb.score(new).tolist()
     with pytest.raises(ValueError, match=">= 0"):
         Combination({"points": points, "rays": rays - 1.0}, rule="gated-log")
+
+
+def test_grazing_rays_are_not_tested():
+    """Rays to points whose |cos| of incidence is below min_cos are left out (grazing = 1 / cos^2 - 1)."""
+    field = WallField()
+    points, _ = wall_scan(n=300)
+    cos = np.linspace(0.01, 1.0, len(points))
+    grazing = 1.0 / cos**2 - 1.0
+    ev = ray_evidence(field, points, SENSOR, n_rays=len(points), n_empty=0, grazing=grazing, min_cos=0.2)
+    np.testing.assert_array_equal(ev.ray_index, np.flatnonzero(cos >= 0.2))
+    sub = ray_evidence(field, points, SENSOR, n_rays=50, n_empty=0, grazing=grazing, min_cos=0.2)
+    assert len(sub.ray_index) == 50 and (cos[sub.ray_index] >= 0.2).all()
+    assert len(ray_evidence(field, points, SENSOR, n_rays=len(points), n_empty=0, grazing=grazing,
+                            min_cos=0.0).ray_index) == len(points)
+    with pytest.raises(ValueError, match="min_cos"):
+        check_ray_options({"min_cos": 1.0})
