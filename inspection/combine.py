@@ -19,7 +19,7 @@ z_j = (s_j - mean_j) / sd_j. Two rules make one score of them:
   pulled down by ray noise of the good scans it is ranked against (unless a good scan's rays beat every
   calibration scan's by ``GATE_MARGIN`` (2) of their standard deviations: the largest of a few dozen good scans is
   a noisy estimate of how far good scans go, and on benchmarks/thin_walled.py's enclosure good test scans went
-  beyond it: docs/results.md#thin-walled-and-open-parts-issue-18-2026-11-23).
+  beyond it: docs/results.md#the-thin_walledpy-benchmark-2026-11-23).
 * ``'gated-log'`` (what :class:`inspection.estimator.Inspector` uses): the gated rule on a log scale, with a
   gate that one outlier cannot move. The other components are taken as log(1 + s_j) (a ray score is a sum of
   surprisals in nats, >= 0, and heavy-tailed on good scans: most score ~0, a few tens of nats), tau_j is the
