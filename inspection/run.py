@@ -198,14 +198,15 @@ def check_sensor_origins(scans, data):
 
 
 def calibrate(model, data, alpha=DEFAULT_ALPHA, aggregate=None, point_score=None, noise=None, split=None, progress=True,
-              write=True, projection="default", rays=False, ray_options=None):
+              write=True, projection="default", rays="auto", ray_options=None):
     """Calibrate ``model`` on good scans and store the calibration in the model file. Returns (Inspector, info).
 
-    ``rays=True`` adds the ray score (:mod:`inspection.ray_evidence`, settings ``ray_options``, with a reference of
-    where the training scans' rays enter material) and calibrates its combination with the point score; every
-    calibration scan then needs a sensor origin. ``rays='auto'``: on when every calibration and reference scan has
-    one. Off by default: on benchmarks/verdicts.py's sheet-metal enclosure the rays added nothing to the point
-    score (docs/results.md)."""
+    ``rays=True`` adds the ray score (:mod:`inspection.ray_evidence`, settings ``ray_options``; with the point
+    score ``'distance'`` it is tested only where the training scans have a surface) and calibrates its combination
+    with the point score; every calibration scan then needs a sensor origin. ``rays='auto'`` (the default): on when
+    ``data`` is the model's training collection (its training scans give that band) and every calibration and
+    training scan has a sensor origin (benchmarks/verdicts.py's parts and benchmarks/real_bunny.py:
+    docs/results.md#thin-walled-and-open-parts-issue-18)."""
     from tqdm import tqdm
 
     from .calibration import write_calibration
@@ -225,8 +226,8 @@ def calibrate(model, data, alpha=DEFAULT_ALPHA, aggregate=None, point_score=None
         if reference is None and point_score is not None:
             raise InspectionError(f"{data}: point score {point_score!r} needs the model's training scans, and this "
                                   f"is not its training collection (or the model records no training scan names)")
-    if rays == "auto":
-        rays = all(s.sensor_origin is not None for s in [*scans, *(reference or [])])
+    if rays == "auto":  # the configuration measured: the band of the training scans' surfaces needs them
+        rays = reference is not None and all(s.sensor_origin is not None for s in [*scans, *reference])
     if point_score is None:
         point_score = "distance" if reference else DEFAULT_POINT_SCORE
     insp = Inspector(handle.model, alpha=alpha, aggregate=aggregate or DEFAULT_AGGREGATE,
@@ -388,7 +389,8 @@ def _summarize(handle, insp, data, split, align, results):
              "higher_score_means": "more anomalous",
              "rays": None if not insp.rays else {
                  "options": insp._ray_record()["options"],
-                 "score": "max of the point and ray scores, each standardized on the calibration scans"}}
+                 "score": "the point score plus what the ray score shows beyond the good calibration scans' "
+                          "(inspection.combine, rule " + insp._combination().rule + ")"}}
     summary = summarize(results["rows"], insp.threshold_, insp.alpha, results["point_labels"],
                         results["point_scores"], extra)
     if results["ray_maps"]:

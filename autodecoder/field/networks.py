@@ -13,6 +13,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from autodecoder.field.grid_networks import build_grid_networks
 from autodecoder.field.siren import Siren
 
 
@@ -143,12 +144,15 @@ def build_networks(config):
     """Mean and covariance nets from a configuration dict.
 
     Keys: ``width``, ``depth``, ``latent_dim``, ``covariance`` ('feature' or 'pair'), ``features`` (feature net),
-    ``omega0``; optional ``cov_width``/``cov_depth`` (default: the mean net's).
+    ``omega0``; optional ``cov_width``/``cov_depth`` (default: the mean net's). With ``representation: 'grid'``
+    the B-spline grid nets of :func:`autodecoder.field.grid_networks.build_grid_networks` instead.
 
     Returns
     -------
     (MeanNet, FeatureCovarianceNet or PairCovarianceNet)
     """
+    if config.get("representation", "siren") == "grid":
+        return build_grid_networks(config)
     width, depth, latent = int(config["width"]), int(config["depth"]), int(config.get("latent_dim", 0))
     omega0 = float(config.get("omega0", 30.0))
     cov_width, cov_depth = int(config.get("cov_width", width)), int(config.get("cov_depth", depth))

@@ -147,7 +147,7 @@ def test_bad_input_gives_one_clear_error(points, normals, message):
 
 
 def test_pair_subset_estimates_the_sum_over_all_ordered_pairs():
-    from autodecoder.field.fit import _pair_subset
+    from autodecoder.field.steps import _pair_subset
 
     m, cluster_size = 24, 4
     rng = np.random.default_rng(7)
@@ -193,7 +193,7 @@ def test_mean_gradient_matches_finite_differences(sphere_field):
 def test_even_pool_size_uses_every_pool_to_the_end(steps):
     """The mean-sample pools of a run are all served to the end: as few pools as the size cap allows, none with more
     minibatches than the run still needs (counted by serving a MeanPool for `steps` steps)."""
-    from autodecoder.field.fit import MeanPool, even_pool_size
+    from autodecoder.field.steps import MeanPool, even_pool_size
 
     size, passes = 32, 4
     refresh = even_pool_size(steps, size, passes)
@@ -263,7 +263,7 @@ def test_bad_fit_options_give_one_clear_error(override, message):
 def test_mean_averager_matches_a_hand_computed_moving_average():
     """MeanAverager against the closed form: from step `start`, a0 = w_start, a_k = d_k a_{k-1} + (1 - d_k) w,
     d_k = min(decay, (1 + k) / (10 + k)) when k steps have been averaged already; earlier steps ignored."""
-    from autodecoder.field.fit import MeanAverager
+    from autodecoder.field.steps import MeanAverager
 
     net = torch.nn.Linear(2, 1, bias=False)
     weights = [torch.tensor([[float(i), -2.0 * i]]) for i in range(12)]
@@ -282,7 +282,7 @@ def test_mean_averager_matches_a_hand_computed_moving_average():
 
 
 def test_average_decay_zero_keeps_the_last_iterate():
-    from autodecoder.field.fit import MeanAverager
+    from autodecoder.field.steps import MeanAverager
 
     net = torch.nn.Linear(2, 1)
     before = [p.clone() for p in net.parameters()]
@@ -399,7 +399,7 @@ def test_cosine_decay_closed_form():
 def test_mean_averager_is_the_warmed_up_exponential_average_of_the_late_iterates():
     """MeanAverager against the recursion written out by hand: nothing before ``start``, the first averaged iterate
     copied, then a <- d_k a + (1 - d_k) p with d_k = min(decay, (1 + k) / (10 + k)) after k averaged steps."""
-    from autodecoder.field.fit import MeanAverager
+    from autodecoder.field.steps import MeanAverager
 
     net = torch.nn.Linear(2, 1)
     averager = MeanAverager(net, decay=0.5, start=3)

@@ -1,0 +1,243 @@
+"""fit_grid_cloud: neural stochastic screened Poisson reconstruction of one oriented cloud on B-spline grids.
+
+The targets, losses and field are those of :func:`autodecoder.field.fit.fit_cloud`; the networks are the grid networks
+of :mod:`autodecoder.field.grid_networks`. The mean loss is a quadratic in the grid mean's control values, so the mean is
+started at the loss's exact minimiser on a grid (:func:`autodecoder.field.grid_minimiser.grid_minimiser`, conjugate
+gradients), interpolated by the finest level's cubic B-spline; optional Adam steps then fine-tune it on the
+paper's Monte-Carlo loss. The covariance's feature grids are trained by Adam on the paper's covariance loss.
+"""
+import math
+import time
+from dataclasses import asdict, dataclass
+from typing import Optional
+
+import numpy as np
+import torch
+
+from autodecoder.field.stochastic_field import StochasticField
+from autodecoder.field.steps import MeanAverager, MeanPool, PairPool, covariance_step_loss, even_pool_size, mean_step_loss
+from autodecoder.field.grid_minimiser import grid_minimiser
+from autodecoder.field.grid_networks import GRID_REPRESENTATION, BSplineGrid, build_grid_networks
+from autodecoder.field.losses import SCREENING_WEIGHT
+from autodecoder.field.schedule import cosine_decay
+from autodecoder.field.targets import CloudTargets, default_lengthscale
+from datasets.frame import Frame
+from datasets.validation import check_oriented_cloud
+
+# Kernel lengthscale / point spacing of the grid fit. The grid mean follows the sharper posterior mean of a
+# smaller kernel, which the SIREN's 4000 steps could not (fit_cloud uses 1.5); see docs/results.md.
+GRID_LENGTHSCALE_FACTOR = 1.0
+
+
+@dataclass
+class GridFitOptions:
+    """Settings of :func:`fit_grid_cloud` (field names shared with :class:`autodecoder.field.fit.FitOptions` mean the
+    same; the step helpers of :mod:`autodecoder.field.steps` read them).
+
+    Attributes
+    ----------
+    solve : bool
+        Start the mean at the loss's grid minimiser (else at 0).
+    solve_tol : float
+        Relative residual of the conjugate gradients.
+    mean_steps : int
+        Adam steps of the mean on the paper's Monte-Carlo loss after the solve (0: none). A few hundred small
+        steps bring the surface slightly closer; many more, or larger ones, take it further away again, as the
+        stochastic gradients' noise on control values that samples rarely visit accumulates (docs/results.md).
+    mean_lr : float
+        Their peak learning rate.
+    cov_steps : int
+        Adam steps of the covariance.
+    cov_lr : float
+        Their peak learning rate.
+    final_lr_fraction : float
+        Cosine decay of both learning rates to this fraction.
+    weight_decay : float
+        Adam weight decay of decoder weights (never of grid control values, see :func:`_optimisers`).
+    mean_batch, screen_batch, pair_clusters, cluster_size, screening_weight, covariance_screening_weight, refresh,
+    pool_passes, pair_pool, pair_reuse, average_decay, outside_weight
+        As in :class:`autodecoder.field.fit.FitOptions`.
+    """
+
+    solve: bool = True
+    solve_tol: float = 1e-6
+    mean_steps: int = 300
+    mean_lr: float = 1e-5
+    cov_steps: int = 250
+    cov_lr: float = 1e-3
+    final_lr_fraction: float = 0.05
+    weight_decay: float = 0.0
+    mean_batch: int = 256
+    screen_batch: int = 256
+    pair_clusters: int = 128
+    cluster_size: int = 4
+    screening_weight: float = SCREENING_WEIGHT
+    covariance_screening_weight: Optional[float] = None
+    refresh: int = 32
+    pool_passes: int = 8
+    pair_pool: int = 8
+    pair_reuse: int = 4
+    average_decay: float = 0.99
+    outside_weight: float = 0.0
+
+    def __post_init__(self):
+        for name, least in {"mean_steps": 0, "cov_steps": 0, "mean_batch": 1, "screen_batch": 1, "pair_clusters": 1,
+                            "cluster_size": 2, "refresh": 1, "pool_passes": 1, "pair_pool": 1,
+                            "pair_reuse": 1}.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+                raise ValueError(f"GridFitOptions.{name} must be an integer >= {least}, got {value!r}")
+        for name in ("mean_lr", "cov_lr", "final_lr_fraction", "weight_decay", "screening_weight", "solve_tol"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float, np.number)) and np.isfinite(value) and value >= 0):
+                raise ValueError(f"GridFitOptions.{name} must be a finite number >= 0, got {value!r}")
+
+
+def _optimisers(net, lr, weight_decay):
+    """Adam over the grid control values (no weight decay) and over the rest (decoder weights).
+
+    No weight decay on control values: Adam normalises every gradient, so the decay's gradient on a control value
+    that no sample touched would become a full-size step toward 0 at every step, erasing the fine levels between
+    visits.
+    """
+    grids = [m.values for m in net.modules() if isinstance(m, BSplineGrid)]
+    ids = {id(p) for p in grids}
+    others = [p for p in net.parameters() if id(p) not in ids]
+    groups = [{"params": grids, "weight_decay": 0.0}]
+    if others:
+        groups.append({"params": others, "weight_decay": weight_decay})
+    return torch.optim.Adam(groups, lr=lr, fused=True)
+
+
+def _run_adam(net, steps, peak_lr, options, loss_fn, averager=None):
+    """``steps`` Adam steps of ``loss_fn()`` (returns total, dirichlet, screening); returns the logged losses."""
+    if steps == 0 or peak_lr == 0:
+        return []
+    net.train()
+    opt = _optimisers(net, peak_lr, options.weight_decay)
+    history = []
+    for step in range(steps):
+        for group in opt.param_groups:
+            group["lr"] = peak_lr * cosine_decay(step, steps, options.final_lr_fraction)
+        total, dirichlet, screening = loss_fn()
+        opt.zero_grad(set_to_none=True)
+        total.backward()
+        opt.step()
+        if averager is not None:
+            averager.update(step)
+        if step % 10 == 0 or step == steps - 1:
+            history.append({"step": step, "dirichlet": dirichlet.item(), "screening": screening.item()})
+    if averager is not None:
+        averager.apply()
+    net.eval()
+    return history
+
+
+def train_grid(mean_net, cov_net, targets, options, rng, code=None):
+    """The mean's fine-tuning steps, then the covariance's, on one cloud's targets.
+
+    Parameters
+    ----------
+    mean_net : GridMeanNet
+    cov_net : GridCovarianceNet
+    targets : CloudTargets
+    options : GridFitOptions
+    rng : numpy.random.Generator
+    code : tensor, optional
+
+    Returns
+    -------
+    dict
+        ``mean`` and ``cov``: lists of logged losses.
+    """
+    refresh = even_pool_size(max(options.mean_steps, 1), options.refresh, options.pool_passes)
+    pool = MeanPool(targets, options.mean_batch, refresh, rng, passes=options.pool_passes)
+    averager = MeanAverager(mean_net, options.average_decay, start=options.mean_steps // 2)
+    mean_history = _run_adam(mean_net, options.mean_steps, options.mean_lr, options,
+                             lambda: mean_step_loss(mean_net, targets, pool, options, rng, code), averager)
+    slots = max(1, min(options.pair_pool, math.ceil(options.cov_steps / options.pair_reuse)))
+    pairs = PairPool(targets, options.pair_clusters, options.cluster_size, rng, slots, options.pair_reuse)
+    cov_history = _run_adam(cov_net, options.cov_steps, options.cov_lr, options,
+                            lambda: covariance_step_loss(cov_net, targets, options, rng, code, pairs))
+    mean_net.eval(), cov_net.eval()
+    return {"mean": mean_history, "cov": cov_history}
+
+
+def solve_mean(mean_net, targets, tol=1e-6):
+    """Set the grid mean to the mean loss's minimiser on its finest level's nodes; returns the solver's info.
+
+    The minimiser is computed on the (cells + 1)^3 nodes of the finest level (:func:`grid_minimiser`), and that
+    level's B-spline is made to interpolate it (:meth:`BSplineGrid.set_from_nodes`); the other levels are zeroed.
+    Only for a mean without decoder (``mean_net.decoder is None``) over a cubic box.
+    """
+    if mean_net.decoder is not None:
+        raise ValueError("solve_mean needs a summed grid mean (no decoder): a decoded mean is not linear in the grids")
+    finest = mean_net.encoder.levels[-1]
+    extent = targets.box.hi - targets.box.lo
+    if not np.allclose(extent, extent[0], rtol=1e-6):
+        raise ValueError(f"solve_mean needs a cubic box, got extents {extent.tolist()}")
+    nodes, lo, _, info = grid_minimiser(targets, finest.cells + 1, tol=tol)
+    if not np.allclose(lo, finest.lo.double().numpy(), atol=1e-6):
+        raise ValueError("the grid mean's box is not the targets' box")
+    with torch.no_grad():
+        for level in mean_net.encoder.levels:
+            level.values.zero_()
+    finest.set_from_nodes(nodes)
+    return info
+
+
+def fit_grid_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, grid_mean=None, grid_cov=None,
+                   options=None, **option_overrides):
+    """Fit a stochastic implicit surface f ~ N(g, c) to an oriented point cloud with grid networks.
+
+    Parameters
+    ----------
+    points, normals : (n, 3) arrays
+        The oriented cloud (any units; normals outward, normalised here).
+    seed : int
+        Seeds every random draw and the initial grids.
+    lengthscale : float, optional
+        Kernel lengthscale in the cloud's units (default: ``GRID_LENGTHSCALE_FACTOR`` point spacings).
+    noise : float, optional
+        Default measurement noise of :meth:`StochasticField.nll` (default: the RMS of the mean at the points).
+    grid_mean, grid_cov : dict, optional
+        Overrides of :data:`autodecoder.field.grid_networks.MEAN_DEFAULTS` / ``COV_DEFAULTS``.
+    options : GridFitOptions, optional
+    **option_overrides
+        Any :class:`GridFitOptions` field.
+
+    Returns
+    -------
+    StochasticField
+        Its ``config["representation"]`` is ``"grid"``; ``info`` holds the fit time and the solver's figures.
+    """
+    points, normals = check_oriented_cloud(points, normals)
+    if options is not None and not isinstance(options, GridFitOptions):
+        raise TypeError(f"options of a grid fit must be GridFitOptions, got {type(options).__name__}")
+    options = GridFitOptions(**{**asdict(options or GridFitOptions()), **option_overrides})
+    t0 = time.perf_counter()
+    frame = Frame.fit(points)
+    model_points = frame.to_collection(points)
+    h = (default_lengthscale(model_points, GRID_LENGTHSCALE_FACTOR) if lengthscale is None
+         else float(lengthscale) * frame.scale)
+    targets = CloudTargets(model_points, normals, h)
+    config = {"representation": GRID_REPRESENTATION, "latent_dim": 0, "covariance": "feature",
+              "grid_mean": dict(grid_mean or {}), "grid_cov": dict(grid_cov or {}), "lengthscale": h,
+              "box_lo": targets.box.lo.tolist(), "box_hi": targets.box.hi.tolist()}
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    mean_net, cov_net = build_grid_networks({**config, "grid_mean": {"seed": seed, **config["grid_mean"]},
+                                             "grid_cov": {"seed": seed + 1, **config["grid_cov"]}})
+    t1 = time.perf_counter()
+    solve_info = solve_mean(mean_net, targets, options.solve_tol) if options.solve else {}
+    t2 = time.perf_counter()
+    history = train_grid(mean_net, cov_net, targets, options, rng)
+    with torch.no_grad():
+        residual = mean_net(torch.from_numpy(targets.points32)).double().numpy() / frame.scale
+    if noise is None:
+        noise = float(np.sqrt(np.mean(residual**2)))
+    info = {"fit_seconds": time.perf_counter() - t0, "solve_seconds": t2 - t1,
+            "train_seconds": time.perf_counter() - t2, "solve": solve_info, "n_points": len(points),
+            "steps": options.mean_steps + options.cov_steps, "options": asdict(options), "history": history}
+    return StochasticField(mean_net, cov_net, frame, config, noise=noise, info=info,
+                           training_points=points, training_normals=normals)

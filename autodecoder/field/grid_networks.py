@@ -1,0 +1,403 @@
+"""Grid networks: the mean g(x, z) and the covariance feature map phi(x, z) on multi-resolution B-spline grids.
+
+A level is a dense grid of control values over the training box, interpolated by the uniform tricubic B-spline
+(C2, so the gradient the Dirichlet loss sees is continuous, and the B-spline matches the paper's kernel). Its
+value at x is a weighted sum of the 4 x 4 x 4 control values around x, the weights products of the cubic B-spline
+basis along each axis; the spatial gradient is the same sum with one factor replaced by the basis' derivative.
+Both come from ONE gather of the 64 control values: the gradient is a second interpolation, not a derivative of the
+computation graph, so the Dirichlet loss costs one ordinary backward pass (no double backward), as with the
+forward-carried SIREN jets of :mod:`autodecoder.siren`.
+
+* :class:`GridEncoder`: ``levels`` grids from coarse to fine, their interpolated values concatenated into
+  features (B, F) with their Jacobian (B, 3, F).
+* :class:`JetMLP`: a small decoder of ``[features(x), z]`` that carries the Jacobian forward through its layers.
+* :class:`GridMeanNet`: g = the sum of the levels' values (a hierarchical B-spline, no decoder) or a decoder of the
+  features and the code.
+* :class:`GridCovarianceNet`: c(a, b, z) = phi(a, z) . phi(b, z) / K with phi the features (or a decoder of them),
+  so D c(a, b) = J_phi(a)^T J_phi(b) / K as for :class:`autodecoder.field.networks.FeatureCovarianceNet`.
+
+Both nets expose the methods of their SIREN counterparts in :mod:`autodecoder.field.networks`, so the losses, the
+step functions of :mod:`autodecoder.field.steps` and :class:`autodecoder.field.stochastic_field.StochasticField` use them unchanged (train
+them with :mod:`autodecoder.field.grid_fit`: no weight decay on control values). Coordinates are in the model
+(unit-cube) frame; the grids cover the box ``[lo, hi]`` given at construction (stored as buffers, so a state dict
+rebuilds the same function); outside the box the field is continued by its value on the box's surface (the
+coordinates are clamped, so the gradient there is zero across the clamped axes).
+
+Why levels: a function on a fine grid trained by stochastic gradients gets its low frequencies only slowly
+(information travels a few cells per step); coarse levels carry them, as in multigrid. The single-cloud mean does
+not need them (it is solved on one level, :func:`autodecoder.field.grid_fit.solve_mean`); the covariance does: its
+variance grows smoothly away from the data over the whole box.
+"""
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+GRID_REPRESENTATION = "grid"
+
+
+def cubic_bspline_weights(t):
+    """The four uniform cubic B-spline basis values and derivatives at fractional positions t in [0, 1].
+
+    Parameters
+    ----------
+    t : (..., ) tensor
+
+    Returns
+    -------
+    w, dw : (..., 4) tensors
+        Weights of the control values at offsets -1, 0, 1, 2 from the cell's first node, and their derivatives
+        with respect to t. The weights sum to 1 and the derivatives to 0.
+    """
+    t2 = t * t
+    t3 = t2 * t
+    s = 1 - t
+    w = torch.stack([s * s * s, 3 * t3 - 6 * t2 + 4, -3 * t3 + 3 * t2 + 3 * t + 1, t3], -1) / 6
+    dw = torch.stack([-0.5 * s * s, 1.5 * t2 - 2 * t, -1.5 * t2 + t + 0.5, 0.5 * t2], -1)
+    return w, dw
+
+
+class _Gather(torch.autograd.Function):
+    """table[index] for a flat index; backward by ``index_add_`` (2-3x faster on CPU than ``F.embedding``'s)."""
+
+    @staticmethod
+    def forward(ctx, table, index):
+        ctx.save_for_backward(index)
+        ctx.rows = table.shape[0]
+        return table.index_select(0, index)
+
+    @staticmethod
+    def backward(ctx, grad):
+        (index,) = ctx.saved_tensors
+        table_grad = torch.zeros(ctx.rows, grad.shape[1], dtype=grad.dtype, device=grad.device)
+        return table_grad.index_add_(0, index, grad), None
+
+
+class BSplineGrid(nn.Module):
+    """One level: ``channels`` tricubic B-spline functions on ``cells`` cells per side of the box [lo, hi].
+
+    Control value (i, j, k) sits at lo + (i - 1, j - 1, k - 1) * cell, so (cells + 3)^3 of them cover the box;
+    they are stored flat, ``values`` ((cells + 3)^3, channels) in C order of (i, j, k).
+
+    Parameters
+    ----------
+    cells : int
+        Cells along each side (>= 1).
+    channels : int
+        Functions interpolated at once.
+    lo, hi : (3,) array-likes
+        The box (model frame).
+    init_std : float
+        Standard deviation of the initial control values (0: all zero).
+    generator : torch.Generator, optional
+    """
+
+    def __init__(self, cells, channels, lo, hi, init_std=0.0, generator=None):
+        super().__init__()
+        if int(cells) < 1 or int(channels) < 1:
+            raise ValueError(f"cells and channels must be >= 1, got cells={cells}, channels={channels}")
+        self.cells, self.channels = int(cells), int(channels)
+        lo = torch.as_tensor(np.asarray(lo, dtype=np.float64), dtype=torch.float32).reshape(3)
+        hi = torch.as_tensor(np.asarray(hi, dtype=np.float64), dtype=torch.float32).reshape(3)
+        if not bool((hi > lo).all()):
+            raise ValueError(f"the box must have hi > lo on every axis, got lo={lo.tolist()}, hi={hi.tolist()}")
+        self.register_buffer("lo", lo)
+        self.register_buffer("cell", (hi - lo) / self.cells)
+        side = self.cells + 3
+        values = torch.zeros(side, side, side, self.channels)
+        if init_std > 0:
+            values.normal_(0.0, float(init_std), generator=generator)
+        self.values = nn.Parameter(values.reshape(side**3, self.channels))
+
+    @torch.no_grad()
+    def set_from_nodes(self, nodes, channel=0):
+        """Make ``channel`` interpolate ``nodes`` (cells + 1 per side, node i at lo + i * cell) at the nodes.
+
+        The control values are the nodes' cubic B-spline coefficients (``scipy.ndimage.spline_filter``, mirror
+        boundary), extended by one mirrored value beyond each side, so the result reproduces ``nodes`` exactly at
+        the nodes and interpolates them with C2 continuity in between.
+
+        Parameters
+        ----------
+        nodes : (cells + 1, cells + 1, cells + 1) array
+        channel : int
+        """
+        from scipy.ndimage import spline_filter
+
+        nodes = np.asarray(nodes, dtype=np.float64)
+        if nodes.shape != (self.cells + 1,) * 3:
+            raise ValueError(f"nodes must have shape {(self.cells + 1,) * 3}, got {nodes.shape}")
+        coef = np.pad(spline_filter(nodes, order=3, mode="mirror"), 1, mode="reflect")
+        self.values[:, channel] = torch.from_numpy(coef).reshape(-1).to(self.values.dtype)
+
+    def _taps(self, x):
+        """Flat control-value indices (B, 64), interpolation weights (B, 4, 64): value, d/dx, d/dy, d/dz."""
+        u = (x - self.lo.to(x.dtype)) / self.cell.to(x.dtype)  # (B, 3) in cells
+        u = u.clamp(0.0, float(self.cells))
+        base = u.detach().floor().clamp_(max=self.cells - 1)
+        t = u - base  # (B, 3) in [0, 1]; differentiable in x
+        base = base.long()
+        w, dw = cubic_bspline_weights(t)  # (B, 3, 4)
+        dw = dw / self.cell.to(x.dtype)[:, None]
+        side = self.cells + 3
+        offs = torch.arange(4, device=x.device)
+        ix, iy, iz = (base[:, a, None] + offs for a in range(3))  # (B, 4) each
+        idx = ((ix[:, :, None, None] * side + iy[:, None, :, None]) * side + iz[:, None, None, :]).reshape(-1, 64)
+        wx, wy, wz = w[:, 0], w[:, 1], w[:, 2]
+        dx, dy, dz = dw[:, 0], dw[:, 1], dw[:, 2]
+
+        def outer(a, b, c):
+            return (a[:, :, None, None] * b[:, None, :, None] * c[:, None, None, :]).reshape(-1, 64)
+
+        weights = torch.stack([outer(wx, wy, wz), outer(dx, wy, wz), outer(wx, dy, wz), outer(wx, wy, dz)], 1)
+        return idx, weights
+
+    def forward(self, x):
+        """Values at x (B, 3) -> (B, channels)."""
+        return self.value_and_jacobian(x, jacobian=False)[0]
+
+    def value_and_jacobian(self, x, jacobian=True):
+        """Values and their spatial Jacobian at x (B, 3) -> (B, C), (B, 3, C) (None without ``jacobian``)."""
+        idx, weights = self._taps(x)
+        if not jacobian:
+            weights = weights[:, :1]
+        taps = _Gather.apply(self.values, idx.reshape(-1)).reshape(len(x), 64, self.channels)
+        out = torch.bmm(weights.to(taps.dtype), taps)  # (B, 1 or 4, C)
+        return out[:, 0], (out[:, 1:] if jacobian else None)
+
+
+def level_cells(finest, levels, base=None):
+    """Cells per side of each level, coarse to fine: a geometric sequence from ``base`` to ``finest``.
+
+    Parameters
+    ----------
+    finest : int
+    levels : int
+    base : int, optional
+        Cells of the coarsest level (default ``finest / 2^(levels - 1)``, at least 2).
+
+    Returns
+    -------
+    list of int
+    """
+    finest, levels = int(finest), int(levels)
+    if levels < 1 or finest < 1:
+        raise ValueError(f"levels and finest must be >= 1, got levels={levels}, finest={finest}")
+    if levels == 1:
+        return [finest]
+    base = max(2, round(finest / 2 ** (levels - 1))) if base is None else int(base)
+    ratio = (finest / base) ** (1.0 / (levels - 1))
+    return [max(1, round(base * ratio**level)) for level in range(levels - 1)] + [finest]
+
+
+class GridEncoder(nn.Module):
+    """Multi-resolution B-spline features: ``levels`` grids of ``channels`` channels, concatenated coarse to fine.
+
+    Parameters
+    ----------
+    lo, hi : (3,) array-likes
+        The box (model frame).
+    finest : int
+        Cells per side of the finest level.
+    levels : int
+    channels : int
+        Channels per level (the feature dimension is ``levels * channels``).
+    base : int, optional
+        Cells per side of the coarsest level (see :func:`level_cells`).
+    init_std : float
+        Initial control values ~ N(0, (init_std * cell)^2) per level, cell the level's cell size: features whose
+        gradients are of the same order at every level.
+    seed : int
+    """
+
+    def __init__(self, lo, hi, finest=128, levels=4, channels=1, base=None, init_std=0.0, seed=0):
+        super().__init__()
+        generator = torch.Generator().manual_seed(int(seed))
+        cells = level_cells(finest, levels, base)
+        extent = float(np.max(np.asarray(hi, dtype=np.float64) - np.asarray(lo, dtype=np.float64)))
+        self.levels = nn.ModuleList(BSplineGrid(n, channels, lo, hi, init_std * extent / n, generator)
+                                    for n in cells)
+        self.out_dim = len(cells) * int(channels)
+
+    def forward(self, x):
+        """Features at x (B, 3) -> (B, F)."""
+        return torch.cat([level(x) for level in self.levels], -1)
+
+    def value_and_jacobian(self, x):
+        """Features and their Jacobian at x (B, 3) -> (B, F), (B, 3, F)."""
+        pairs = [level.value_and_jacobian(x) for level in self.levels]
+        return torch.cat([p[0] for p in pairs], -1), torch.cat([p[1] for p in pairs], -1)
+
+
+class JetMLP(nn.Module):
+    """A small MLP on ``[features, z]`` that carries the features' spatial Jacobian through its layers.
+
+    Hidden layers are affine maps followed by SiLU (smooth, so the carried Jacobian is continuous); the last layer
+    is affine. The code z enters the first layer only; it has no spatial derivative.
+
+    Parameters
+    ----------
+    in_dim : int
+        Feature dimension F.
+    out_dim : int
+    hidden : int
+        Hidden width (0: one affine map).
+    depth : int
+        Hidden layers (ignored when ``hidden`` is 0).
+    latent_dim : int
+    """
+
+    def __init__(self, in_dim, out_dim, hidden=64, depth=1, latent_dim=0):
+        super().__init__()
+        widths = [in_dim] + ([int(hidden)] * int(depth) if hidden > 0 else []) + [out_dim]
+        self.latent_dim = int(latent_dim)
+        self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(widths[:-1], widths[1:]))
+        self.code_in = nn.Linear(self.latent_dim, widths[1], bias=False) if self.latent_dim > 0 else None
+
+    def _code_term(self, z, batch):
+        if self.code_in is None:
+            return 0.0
+        if z is None:
+            raise ValueError(f"this decoder takes a latent code of dimension {self.latent_dim}; got z=None")
+        z = z.reshape(1, -1) if z.dim() == 1 else z
+        return self.code_in(z.to(self.code_in.weight.dtype)).expand(batch, -1)
+
+    def forward(self, f, z=None, jac=None):
+        """Outputs (B, out) and, given the features' Jacobian ``jac`` (B, 3, F), theirs (B, 3, out)."""
+        h = self.layers[0](f) + self._code_term(z, len(f))
+        j = None if jac is None else jac @ self.layers[0].weight.T
+        for layer in self.layers[1:]:
+            if j is not None:
+                s = torch.sigmoid(h)
+                j = j * (s * (1 + h * (1 - s))).unsqueeze(1)  # SiLU'(h) = s (1 + h (1 - s))
+            h = F.silu(h)
+            h = layer(h)
+            if j is not None:
+                j = j @ layer.weight.T
+        return h, j
+
+
+class GridMeanNet(nn.Module):
+    """g(x, z): the mean on multi-resolution B-spline grids, summed (no decoder) or decoded by a :class:`JetMLP`.
+
+    Parameters
+    ----------
+    lo, hi : (3,) array-likes
+        The box (model frame).
+    finest, levels, channels, base : int
+        The grids (see :class:`GridEncoder`); without a decoder, ``channels`` must be 1 and g is the sum of the
+        levels' B-splines (linear in its parameters: the paper's loss is then a quadratic in them).
+    hidden, depth : int
+        Decoder width and hidden layers; ``hidden=0`` and no latent code: no decoder.
+    latent_dim : int
+    init_std : float
+        Initial feature scale (see :class:`GridEncoder`; the summed grids start at 0 whatever it is).
+    seed : int
+    """
+
+    def __init__(self, lo, hi, finest=128, levels=1, channels=1, base=None, hidden=0, depth=1, latent_dim=0,
+                 init_std=0.1, seed=0):
+        super().__init__()
+        self.summed = hidden == 0 and latent_dim == 0
+        if self.summed and channels != 1:
+            raise ValueError(f"a mean without a decoder sums one channel per level, got channels={channels}")
+        self.encoder = GridEncoder(lo, hi, finest, levels, channels, base, 0.0 if self.summed else init_std, seed)
+        self.decoder = None if self.summed else JetMLP(self.encoder.out_dim, 1, hidden, depth, latent_dim)
+
+    def forward(self, x, z=None):
+        """g at x (B, 3) -> (B,)."""
+        f = self.encoder(x)
+        if self.decoder is None:
+            return f.sum(-1)
+        return self.decoder(f, z)[0][:, 0]
+
+    def value_and_gradient(self, x, z=None):
+        """g and grad_x g at x (B, 3) -> (B,), (B, 3)."""
+        f, jac = self.encoder.value_and_jacobian(x)
+        if self.decoder is None:
+            return f.sum(-1), jac.sum(-1)
+        value, grad = self.decoder(f, z, jac)
+        return value[:, 0], grad[:, :, 0]
+
+
+class GridCovarianceNet(nn.Module):
+    """c(a, b, z) = phi(a, z) . phi(b, z) / K with phi multi-resolution B-spline features (optionally decoded).
+
+    Positive semi-definite and symmetric by construction; D c(a, b) = J_phi(a)^T J_phi(b) / K.
+
+    Parameters
+    ----------
+    lo, hi : (3,) array-likes
+        The box (model frame).
+    finest, levels, channels, base : int
+        The grids (see :class:`GridEncoder`); without a decoder phi is the features, K = ``levels * channels``.
+    features : int
+        K when there is a decoder.
+    hidden, depth : int
+        Decoder width and hidden layers; ``hidden=0`` and no latent code: no decoder.
+    latent_dim : int
+    init_std : float
+        Initial feature scale (see :class:`GridEncoder`).
+    seed : int
+    """
+
+    kind = "feature"
+
+    def __init__(self, lo, hi, finest=16, levels=3, channels=32, base=None, features=64, hidden=0, depth=1,
+                 latent_dim=0, init_std=0.1, seed=1):
+        super().__init__()
+        self.encoder = GridEncoder(lo, hi, finest, levels, channels, base, init_std, seed)
+        direct = hidden == 0 and latent_dim == 0
+        self.decoder = None if direct else JetMLP(self.encoder.out_dim, features, hidden, depth, latent_dim)
+        self.features = self.encoder.out_dim if direct else int(features)
+
+    def _phi(self, x, z, jacobian):
+        if jacobian:
+            f, jac = self.encoder.value_and_jacobian(x)
+        else:
+            f, jac = self.encoder(x), None
+        if self.decoder is not None:
+            f, jac = self.decoder(f, z, jac)
+        return f, jac
+
+    def features_and_jacobian(self, x, z=None):
+        """phi / sqrt(K) and its Jacobian at x (B, 3) -> (B, K), (B, 3, K)."""
+        f, jac = self._phi(x, z, True)
+        scale = self.features**-0.5
+        return f * scale, jac * scale
+
+    def covariance(self, a, b, z=None):
+        """c(a_i, b_i) for pairs taken row by row: (B, 3), (B, 3) -> (B,)."""
+        return (self._phi(a, z, False)[0] * self._phi(b, z, False)[0]).sum(-1) / self.features
+
+    def variance(self, x, z=None):
+        """c(x, x) = |phi(x)|^2 / K: (B, 3) -> (B,)."""
+        return self._phi(x, z, False)[0].square().sum(-1) / self.features
+
+    def d_operator(self, a, b, z=None):
+        """D c(a_i, b_i) = d2 c / da_k db_l for pairs row by row: (B, 3), (B, 3) -> (B, 3, 3)."""
+        _, ja = self.features_and_jacobian(a, z)
+        _, jb = self.features_and_jacobian(b, z)
+        return ja @ jb.transpose(1, 2)
+
+
+MEAN_DEFAULTS = {"finest": 128, "levels": 1, "channels": 1, "hidden": 0, "depth": 1}
+COV_DEFAULTS = {"finest": 16, "levels": 3, "channels": 32, "hidden": 0, "depth": 1, "features": 64}
+
+
+def build_grid_networks(config):
+    """Grid mean and covariance nets from a configuration dict (``config["representation"] == "grid"``).
+
+    Keys: ``box_lo``, ``box_hi`` (the model-frame box), ``latent_dim``; optional ``grid_mean`` and ``grid_cov``,
+    dicts overriding :data:`MEAN_DEFAULTS` / :data:`COV_DEFAULTS` (keys of :class:`GridMeanNet` /
+    :class:`GridCovarianceNet`).
+
+    Returns
+    -------
+    (GridMeanNet, GridCovarianceNet)
+    """
+    lo, hi, latent = config["box_lo"], config["box_hi"], int(config.get("latent_dim", 0))
+    mean_kw = {**MEAN_DEFAULTS, **dict(config.get("grid_mean") or {})}
+    cov_kw = {**COV_DEFAULTS, **dict(config.get("grid_cov") or {})}
+    return (GridMeanNet(lo, hi, latent_dim=latent, **mean_kw),
+            GridCovarianceNet(lo, hi, latent_dim=latent, **cov_kw))
