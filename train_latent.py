@@ -32,7 +32,7 @@ def build_parser():
     p.add_argument("--latent-dim", type=int, default=DEFAULTS["latent_dim"],
                    help="dimension of each scan's latent code (default: %(default)s)")
     p.add_argument("--epochs", type=int, default=DEFAULTS["epochs"],
-                   help="passes over the training scans (default: enough for ~2400 steps per part type among the "
+                   help="passes over the training scans (default: enough for ~4800 steps per part type among the "
                         "scans' part ids, between 150 and 600 epochs); with --resume, the new total (default: the "
                         "checkpoint's)")
     p.add_argument("--width", type=int, default=DEFAULTS["width"], help="SIREN hidden width (default: %(default)s)")

@@ -365,7 +365,8 @@ def run(args):
     if not model.is_file():
         t_train = _cli(["train_latent.py", "--data", data, "--out", model, "--quiet"]
                        + (["--epochs", args.epochs] if args.epochs else []), log)
-    t_cal = _cli(["-m", "inspection", "calibrate", "--model", model, "--data", data, "--quiet"], log)
+    t_cal = _cli(["-m", "inspection", "calibrate", "--model", model, "--data", data, "--quiet"]
+                 + (["--no-rays"] if args.no_rays else []), log)
     t_score = _cli(["-m", "inspection", "score", "--model", model, "--data", data, "--out", out, "--maps", "all",
                     "--overwrite", "--quiet"], log)
     summary = json.loads((out / "summary.json").read_text())
@@ -623,6 +624,8 @@ def main(argv=None):
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--epochs", type=int, default=None, help="train_latent.py --epochs (default: its own)")
     parser.add_argument("--tag", default="", help="suffix of the model / results names of a run")
+    parser.add_argument("--no-rays", action="store_true", help="calibrate without the ray score (default: with it, "
+                                                               "the scans have sensor origins)")
     args = parser.parse_args(argv)
     if not (args.build or args.run or args.diagnose):
         parser.error("give --build, --run and/or --diagnose")

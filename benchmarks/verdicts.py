@@ -100,12 +100,13 @@ def default_pipeline(part, data, model, args, work):
     """The README's shortest path on an uncalibrated copy: ``python -m inspection score``. Returns the summary."""
     from inspection.run import calibrate, score
 
-    run = work / ("defaults" + ("_aligned" if args.align else "") + ("_rays" if args.rays else ""))
+    run = work / ("defaults" + ("_aligned" if args.align else "") + ("_rays" if args.rays else "")
+                  + ("_norays" if args.no_rays else ""))
     run.mkdir(parents=True, exist_ok=True)
     copy = run / "model.pt"
     shutil.copyfile(model, copy)  # uncalibrated: score calibrates on the held-back scans by itself
-    if args.rays:  # `python -m inspection calibrate --rays` first: the ray score needs its reference
-        calibrate(copy, data, rays=True, progress=not args.quiet)
+    if args.rays or args.no_rays:  # `python -m inspection calibrate --rays / --no-rays` first (default: auto)
+        calibrate(copy, data, rays=bool(args.rays), progress=not args.quiet)
     lines = []
     summary = score(copy, data, run / "results", split="test", progress=not args.quiet, maps="flagged",
                     echo=lines.append, overwrite=True, align=args.align)
@@ -169,7 +170,11 @@ def main(argv=None):
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--jitter", type=float, default=0.0, help="pose jitter in degrees on every scan")
     p.add_argument("--align", action="store_true", help="score with --align (ICP onto the training scans first)")
-    p.add_argument("--rays", action="store_true", help="calibrate with the ray score (sensor origins) first")
+    rays = p.add_mutually_exclusive_group()
+    rays.add_argument("--rays", action="store_true", help="calibrate with the ray score (sensor origins) first")
+    rays.add_argument("--no-rays", action="store_true", help="calibrate without the ray score first (default: "
+                                                             "score's own, the rays when every scan has a sensor "
+                                                             "origin)")
     p.add_argument("--epochs", type=int, default=None, help="train_latent epochs (default: its own)")
     p.add_argument("--variants", action="store_true", help="also the score study (point scores x aggregates)")
     p.add_argument("--work", default="results/verdicts")
@@ -194,7 +199,8 @@ def main(argv=None):
         r = {"auroc": metrics["auroc"], **metrics["auroc_per_defect"], "flag_def": metrics["detection_rate"],
              "flag_good": metrics["false_alarm_rate"], "n_good": n_good}
         kinds |= set(metrics["auroc_per_defect"])
-        rows.append((part, f"toolkit {summary['point_score']}/{summary['aggregate']}" + (" +rays" if args.rays else ""), r, decision,
+        rays = summary.get("rays") is not None
+        rows.append((part, f"toolkit {summary['point_score']}/{summary['aggregate']}" + (" +rays" if rays else ""), r, decision,
                      summary["seconds_per_scan"]))
         nn, nn_decision, nn_sec = baseline(data, model, summary["alpha"])
         rows.append((part, "nearest-neighbour top5%", nn, nn_decision, nn_sec))

@@ -52,6 +52,8 @@ DEFAULT_VIEWS = 16
 DEFAULT_VALIDATION_VIEWS = 4
 DEFAULT_MAX_POINTS = 20000
 _SPACING_SAMPLE = 4000  # points whose nearest-neighbour distance estimates a cloud's spacing
+# template normals that vote on the sign of each test point's normal (orient_like_templates)
+TEMPLATE_NORMAL_VOTES = 8
 _VOXEL_SAMPLE_FILES = 8  # training files (evenly spread) whose spacing sets the voxel size
 
 
@@ -384,14 +386,19 @@ def auto_voxel(sources, max_points, keep_plane=False, seed=0):
     return voxel or None
 
 
-def orient_like_templates(points, normals, templates, max_offset=3.0):
-    """The normals of a scan without a sensor origin, flipped as a whole when most disagree with the templates'.
+def orient_like_templates(points, normals, templates, max_offset=3.0, votes=TEMPLATE_NORMAL_VOTES):
+    """The normals of a scan without a sensor origin, oriented like the templates' where the scan lies on them.
 
     A partial scan's normals can be oriented consistently with one another, but their global sign is a guess without
-    the sensor (pointing away from the scan's own centroid fails for about half the views of an open, flat part);
-    the complete templates' normals are reliable. When the scan lies on the templates (its median distance to them is
-    at most ``max_offset`` template spacings: it is in their frame), the sign that agrees with the nearest template
-    normal at most points is kept. A scan in another pose is left as it is.
+    the sensor (pointing away from the scan's own centroid fails for about half the views of an open, flat part),
+    and the propagation along the scan (``estimate_normals``) flips whole patches beyond a crease or a gap (up to 15 %
+    of a built-in bracket's test scan, docs/results.md#training-from-4-complete-templates); the complete templates'
+    normals are reliable. When the scan lies on the templates (its median distance to them is at most
+    ``max_offset`` template spacings: it is in their frame), the sign that agrees with the nearest template normal at
+    most points is applied to the whole scan first; then each point within ``max_offset`` spacings of the templates
+    takes the sign of the sum of its ``votes`` nearest template normals (projected on its own normal), so a flipped
+    patch is turned back. Points farther off (a foreign object, the floor of a deep pit) keep the scan's sign. A scan
+    in another pose is left as it is.
 
     Parameters
     ----------
@@ -399,19 +406,29 @@ def orient_like_templates(points, normals, templates, max_offset=3.0):
         The scan, file units; unit normals.
     templates : (cKDTree, (M, 3) float array, float)
         KD-tree over the templates' points, their unit normals, their median point spacing.
+    max_offset : float
+        In template spacings.
+    votes : int >= 1
+        Template normals that decide a point's sign.
 
     Returns
     -------
     normals : (N, 3) float array
     on_templates : bool
-        Whether the scan lay on the templates (and its sign was decided by them).
+        Whether the scan lay on the templates (and its signs were decided by them).
     """
     tree, template_normals, spacing = templates
-    d, j = tree.query(points, k=1)
-    if not np.median(d) <= max_offset * spacing:
+    votes = min(int(votes), tree.n)
+    d, j = tree.query(points, k=votes)
+    d, j = d.reshape(len(points), votes), j.reshape(len(points), votes)
+    if not np.median(d[:, 0]) <= max_offset * spacing:
         return normals, False
-    agree = np.einsum("ij,ij->i", normals, template_normals[j]) > 0
-    return (normals if agree.mean() >= 0.5 else -normals), True
+    normals = np.asarray(normals, dtype=np.float64)
+    agree = np.einsum("ij,ij->i", normals, template_normals[j[:, 0]]) > 0
+    normals = normals if agree.mean() >= 0.5 else -normals
+    vote = np.einsum("ij,ikj->i", normals, template_normals[j])
+    flip = (d[:, 0] <= max_offset * spacing) & (vote < 0)
+    return np.where(flip[:, None], -normals, normals), True
 
 
 def import_public(root, out, layout, views=DEFAULT_VIEWS, validation_views=DEFAULT_VALIDATION_VIEWS,

@@ -1,6 +1,6 @@
 """Command line of the inspection package: calibrate a model on good scans, score scans, run the demo.
 
-    python -m inspection calibrate --model model.pt --data good.h5 [--alpha 0.02] [--aggregate top1] [--rays]
+    python -m inspection calibrate --model model.pt --data good.h5 [--alpha 0.02] [--aggregate top1] [--no-rays]
     python -m inspection score --model model.pt --data tree.h5 --out results/ [--split test] [--align]
     python -m inspection demo --out demo_output
 
@@ -41,16 +41,17 @@ def _parser():
                                                            "(inspection's: steps=60,starts=2,explore=20,"
                                                            "max_candidates=16) or 'model' (the projector's own)")
     rays = c.add_mutually_exclusive_group()
-    rays.add_argument("--rays", dest="rays", action="store_const", const=True, default=False,
+    rays.add_argument("--rays", dest="rays", action="store_const", const=True, default="auto",
                       help="add the ray score (material the model expects where the sensor saw free space, e.g. a "
-                           "hole in a thin wall), combined with the point score; scans need a sensor origin")
+                           "hole in a thin wall), combined with the point score; every scan needs a sensor origin")
     rays.add_argument("--rays-auto", dest="rays", action="store_const", const="auto",
-                      help="the ray score when every scan has a sensor origin")
+                      help="the ray score when every scan has a sensor origin (the default)")
     rays.add_argument("--no-rays", dest="rays", action="store_const", const=False,
-                      help="point score only (the default)")
+                      help="point score only")
     c.add_argument("--ray-options", default="", help="ray score settings as KEY=VALUE,... (n_rays=384, "
-                                                      "n_empty=128, gap=2.0, aggregate=top1, seed=0, clearance=WORLD "
-                                                      "UNITS; default: the field's lengthscale)")
+                                                      "n_empty=128, gap=2.0, aggregate=top1, seed=0, band=0.5 (kernel "
+                                                      "lengthscales), clearance=WORLD UNITS; default: the field's "
+                                                      "lengthscale)")
     c.add_argument("--quiet", action="store_true")
 
     s = sub.add_parser("score", help="score scans, write scores.csv, summary.json, roc.png, scores.png, maps/")
@@ -125,7 +126,7 @@ def main(argv=None):
                 _projection(args.projection)  # validate before any work
             ray_options = _ray_options(args.ray_options)
             if ray_options and args.rays is False:
-                raise ValueError("--ray-options needs --rays (or --rays-auto)")
+                raise ValueError("--ray-options needs --rays (or --rays-auto, the default), not --no-rays")
             if args.rays is not False:
                 from .ray_evidence import check_ray_options
 

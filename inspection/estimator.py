@@ -11,7 +11,7 @@ from datasets.validation import points_and_normals
 from .calibration import Calibration
 from .threshold import DEFAULT_ALPHA, check_alpha, fit_threshold
 from .scores import (POINT_SCORES, REFERENCE_QUANTITY, LocalReference, aggregate as aggregate_scores, check_aggregate,
-                     field_quantity, grazing_factor, point_scores)
+                     field_quantity, grazing_factor, point_scores, view_origin_from_normals)
 
 log = logging.getLogger(__name__)
 
@@ -21,6 +21,8 @@ DEFAULT_POINT_SCORE = "residual"
 # starts than the trainer's defaults that reaches the same projection loss at a fraction of the time
 # (docs/results.md#latent-training-and-projection-cost).
 DEFAULT_PROJECTION = {"steps": 60, "starts": 2, "explore": 20, "max_candidates": 16}
+# how the point and ray scores combine (inspection.combine: the ray score on a log scale, gated robustly)
+COMBINATION_RULE = "gated-log"
 # rays per good scan of the ray reference (denser than a scan's inspection, which tests RAY_DEFAULTS["n_rays"])
 REFERENCE_RAYS = 1536
 
@@ -125,12 +127,15 @@ class Inspector(BaseEstimator):
         Scores depend on them, so the calibration stores them and :meth:`set_calibration` restores them.
     rays : bool
         Also score the sensor's rays (:mod:`inspection.ray_evidence`: material the field expects where the
-        sensor saw free space, e.g. a hole in a thin wall) and combine that score with the point score
-        (:mod:`inspection.combine`: the larger of the two, each standardized on the calibration scans). Scans
-        need a ``sensor_origin``; the combined score needs calibration (:meth:`fit`) before it can be computed.
+        sensor saw free space, e.g. a hole in a thin wall; with a per-location reference, only where its good
+        scans have a surface) and combine that score with the point score (:mod:`inspection.combine`, rule
+        ``COMBINATION_RULE``: the point score plus what the ray score shows beyond the good calibration scans).
+        Scans need a ``sensor_origin``; the combined score needs calibration (:meth:`fit`) before it can be
+        computed.
     ray_options : dict, optional
         Settings of the ray score (keys of ``inspection.ray_evidence.RAY_DEFAULTS``: ``n_rays``, ``n_empty``,
-        ``gap``, ``aggregate``, ``seed``, ``clearance``); stored with the calibration like ``projection``.
+        ``gap``, ``aggregate``, ``seed``, ``clearance``, ``own_depth``, ``band``); stored with the calibration like
+        ``projection``.
 
     Attributes (after :meth:`fit`)
     ------------------------------
@@ -229,8 +234,11 @@ class Inspector(BaseEstimator):
         value = variance = grazing = None
         if self.point_score in REFERENCE_QUANTITY:
             value, variance = field_quantity(field, points, REFERENCE_QUANTITY[self.point_score], with_variance=True)
-            if origin is not None and normals is not None:
-                grazing = grazing_factor(points, normals, origin)
+            if normals is not None:
+                # no sensor origin (a public layout's test scan): the view estimated from the normals, for the
+                # grazing term alone
+                seen_from = origin if origin is not None else view_origin_from_normals(points, normals)
+                grazing = grazing_factor(points, normals, seen_from)
         from datasets.outliers import stray_points
 
         points = np.asarray(points, dtype=np.float64)
@@ -255,6 +263,8 @@ class Inspector(BaseEstimator):
             if ray_reference is None:
                 ray_reference = getattr(self, "ray_reference_", None)
             result.rays = ray_evidence(good.field, good.points, good.origin, reference=ray_reference,
+                                       surface=None if reference is None else reference.points,
+                                       grazing=good.grazing,
                                        **check_ray_options(self.ray_options))
             result.components["rays"] = result.rays.score
         return result
@@ -300,6 +310,11 @@ class Inspector(BaseEstimator):
             from .ray_evidence import RayReference, check_ray_options
 
             options = dict(check_ray_options(self.ray_options), n_rays=REFERENCE_RAYS)
+            if options["band"] is not None:
+                # the band of good surfaces (these scans' points, ray option band) leaves out what a one-sided
+                # field extrapolates through an open part's openings; without it, good rays through them are
+                # explained by where good scans' rays enter the field's material (docs/inspection.md)
+                return self
             self.ray_reference_ = RayReference.build(((g.points, g.origin, g.field) for g in goods), **options)
         return self
 
@@ -398,7 +413,7 @@ class Inspector(BaseEstimator):
         if missing:
             raise ValueError(f"rays=True: {len(missing)} calibration scan(s) have no ray score (inspect them with "
                              f"this Inspector)")
-        self.combination_ = Combination(components, names=("points", "rays"))
+        self.combination_ = Combination(components, names=("points", "rays"), rule=COMBINATION_RULE)
         return self._set(self.combination_.calibration_scores(), names)
 
     def _set(self, scores, names):

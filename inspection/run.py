@@ -199,15 +199,29 @@ def check_sensor_origins(scans, data):
                               f"<stem>.json sidecar {{\"sensor_origin\": [x, y, z]}}); calibrate without --rays")
 
 
+def _every_scan_has_an_origin(data):
+    """Whether every scan of a collection records a sensor origin (True for anything else). A public layout's
+    collection has rendered template views with origins and test scans without: rays calibrated on the views could
+    not score its test scans (``score`` refuses a scan without an origin), so ``rays='auto'`` stays off there."""
+    data = Path(data)
+    if data.suffix.lower() not in COLLECTION_SUFFIXES or not data.is_file():
+        return True
+    from datasets import ScanCollection
+
+    with ScanCollection(data) as c:
+        return all(m["sensor_origin"] is not None for m in c.metadata())
+
+
 def calibrate(model, data, alpha=DEFAULT_ALPHA, aggregate=None, point_score=None, noise=None, split=None, progress=True,
-              write=True, projection="default", rays=False, ray_options=None):
+              write=True, projection="default", rays="auto", ray_options=None):
     """Calibrate ``model`` on good scans and store the calibration in the model file. Returns (Inspector, info).
 
-    ``rays=True`` adds the ray score (:mod:`inspection.ray_evidence`, settings ``ray_options``, with a reference of
-    where the training scans' rays enter material) and calibrates its combination with the point score; every
-    calibration scan then needs a sensor origin. ``rays='auto'``: on when every calibration and reference scan has
-    one. Off by default: on benchmarks/verdicts.py's sheet-metal enclosure the rays added nothing to the point
-    score (docs/results.md)."""
+    ``rays=True`` adds the ray score (:mod:`inspection.ray_evidence`, settings ``ray_options``; with the point
+    score ``'distance'`` it is tested only where the training scans have a surface) and calibrates its combination
+    with the point score; every calibration scan then needs a sensor origin. ``rays='auto'`` (the default): on when
+    ``data`` is the model's training collection (its training scans give that band) and every scan in it has a sensor
+    origin (not a public layout's, whose test scans have none) (benchmarks/verdicts.py's parts and benchmarks/real_bunny.py:
+    docs/results.md#thin-walled-and-open-parts-issue-18)."""
     from tqdm import tqdm
 
     from .calibration import write_calibration
@@ -227,8 +241,9 @@ def calibrate(model, data, alpha=DEFAULT_ALPHA, aggregate=None, point_score=None
         if reference is None and point_score is not None:
             raise InspectionError(f"{data}: point score {point_score!r} needs the model's training scans, and this "
                                   f"is not its training collection (or the model records no training scan names)")
-    if rays == "auto":
-        rays = all(s.sensor_origin is not None for s in [*scans, *(reference or [])])
+    if rays == "auto":  # the configuration measured: the band of the training scans' surfaces needs them
+        rays = reference is not None and all(s.sensor_origin is not None for s in [*scans, *reference]) \
+            and _every_scan_has_an_origin(data)
     if point_score is None:
         point_score = "distance" if reference else DEFAULT_POINT_SCORE
 
@@ -430,7 +445,8 @@ def _summarize(handle, insp, data, split, align, results):
              "higher_score_means": "more anomalous",
              "rays": None if not insp.rays else {
                  "options": insp._ray_record()["options"],
-                 "score": "max of the point and ray scores, each standardized on the calibration scans"}}
+                 "score": "the point score plus what the ray score shows beyond the good calibration scans' "
+                          "(inspection.combine, rule " + insp._combination().rule + ")"}}
     if parted:  # thresholds per part: summary['parts']; scores compare within a part only
         extra["parts"] = insp.summary()
     summary = summarize(results["rows"], None if parted else insp.threshold_, insp.alpha, results["point_labels"],

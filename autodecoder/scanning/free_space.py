@@ -36,6 +36,13 @@ Which samples of a ray are tested
   lengthscale) of any of them are left out: material next to a surface the scan saw is that surface, blurred by the
   field's resolution. Rays that graze the rim of a wall on their way to the far wall pass through the field's
   rounded rim, many sd deep, on good scans; a hole's middle is more than a lengthscale from its rim.
+* **Where good parts have a surface** (``band``, a :class:`SurfaceBand` of good scans' points): only samples
+  within its radius of a good scan's point are tested. A partial scan's Poisson field is one-sided: it is negative
+  everywhere behind the surface the scan saw, so on an open or thin-walled part it fills the cavity behind a sheet
+  and the part's real openings too, and the rays of good scans through an opening cross that extrapolated
+  "material" (a ray through a wall 5 sd deep costs ~15 nats). What the sensor can show missing is a wall that good
+  parts have: a ray through a hole in a sheet crosses the sheet where good scans returned points. Material the
+  field extrapolated where no good scan ever saw a surface is the field's business, not evidence of a defect.
 
 How the probability is computed
 -------------------------------
@@ -131,6 +138,7 @@ class _Options:
     observed: np.ndarray = None
     clearance: float = None
     own_depth: float = None
+    band: object = None
 
     def check(self, field):
         if not (int(self.max_samples) >= 3 and int(self.n_select) >= 1 and self.q_floor >= 0):
@@ -164,7 +172,7 @@ def _check_origin(origin):
 
 def blocked_probability(field, origin, points, outside_sigma=DEFAULT_OUTSIDE_SIGMA, observed=None, clearance=None,
                         step=None, max_samples=DEFAULT_MAX_SAMPLES, n_select=DEFAULT_SELECT,
-                        q_floor=DEFAULT_Q_FLOOR, qmc_samples=256, seed=0, chunk=256, own_depth="auto"):
+                        q_floor=DEFAULT_Q_FLOOR, qmc_samples=256, seed=0, chunk=256, own_depth="auto", band=None):
     """Probability that the field puts solid material on the sensor's rays to observed points, apart from the
     surface the points lie on (see the module docstring for which part of each ray is tested).
 
@@ -201,6 +209,8 @@ def blocked_probability(field, origin, points, outside_sigma=DEFAULT_OUTSIDE_SIG
         when no clearly outside sample separates it from the point. 'auto': ``OWN_DEPTH_FACTOR`` x the field's
         kernel lengthscale (None when the field does not say it); None: no limit (only material separated from
         the point by a clearly outside sample is tested).
+    band : SurfaceBand, optional
+        Where good parts have a surface (field frame): only samples inside it are tested. None: every sample.
 
     Returns
     -------
@@ -216,7 +226,7 @@ def blocked_probability(field, origin, points, outside_sigma=DEFAULT_OUTSIDE_SIG
     if not outside_sigma >= 0:
         raise ValueError(f"outside_sigma must be >= 0, got {outside_sigma}")
     opts = _Options(step, max_samples, n_select, q_floor, qmc_samples, seed, chunk, observed, clearance,
-                    own_depth).check(field)
+                    own_depth, band).check(field)
     offsets = points - origin
     t_obs = np.linalg.norm(offsets, axis=1)
     if (t_obs <= 0).any():
@@ -230,7 +240,7 @@ def blocked_probability(field, origin, points, outside_sigma=DEFAULT_OUTSIDE_SIG
 
 def missing_return_probability(field, origin, directions, t_far=None, observed=None, clearance=None, step=None,
                                max_samples=DEFAULT_MAX_SAMPLES, n_select=DEFAULT_SELECT, q_floor=DEFAULT_Q_FLOOR,
-                               qmc_samples=256, seed=0, chunk=256):
+                               qmc_samples=256, seed=0, chunk=256, band=None):
     """Probability that rays which returned nothing should have hit solid material under the field.
 
     Parameters
@@ -244,7 +254,7 @@ def missing_return_probability(field, origin, directions, t_far=None, observed=N
         Where the rays end when the field has no ``bounds``; with bounds, each ray is tested through the box
         (rays that miss the box get 0). The whole range is tested: a ray that returned nothing has no surface of
         its own to leave out.
-    observed, clearance, step, max_samples, n_select, q_floor, qmc_samples, seed, chunk
+    observed, clearance, step, max_samples, n_select, q_floor, qmc_samples, seed, chunk, band
         As in :func:`blocked_probability`.
 
     Returns
@@ -254,7 +264,8 @@ def missing_return_probability(field, origin, directions, t_far=None, observed=N
     """
     d = check_points(directions, "directions")
     origin = _check_origin(origin)
-    opts = _Options(step, max_samples, n_select, q_floor, qmc_samples, seed, chunk, observed, clearance).check(field)
+    opts = _Options(step, max_samples, n_select, q_floor, qmc_samples, seed, chunk, observed, clearance,
+                    band=band).check(field)
     length = np.linalg.norm(d, axis=1)
     if (length <= 0).any():
         raise ValueError(f"{int((length <= 0).sum())} ray directions have zero length")
@@ -327,6 +338,9 @@ def _check_segments(field, origin, d, t_near, t_stop, step, q_out, tree, opts):
         # grazes an observed edge is not evidence of anything missing
         keep &= ~np.isfinite(tree.query(x.reshape(-1, 3), k=1, distance_upper_bound=opts.clearance)[0]).reshape(
             t.shape)
+    if opts.band is not None:
+        # only where good parts have a surface: elsewhere the field's material is its own extrapolation
+        keep &= opts.band.contains(x.reshape(-1, 3)).reshape(t.shape)
     q = np.where(keep, q, 0.0)
     log_p_out = np.where(keep, log_p_out, 0.0)
     rows = np.flatnonzero(has_out)
@@ -354,3 +368,30 @@ def _check_segments(field, origin, d, t_near, t_stop, step, q_out, tree, opts):
         # the orthant estimate carries QMC error: it never goes above the exact single-sample bound
         log_free[hot] = np.maximum(np.minimum(log_s, log_free[hot]), _LOG_FLOOR)
     return {"log_free": log_free, "max_marginal": max_q, "t_end": t_end, "t_block": t_block, "t_enter": t_enter}
+
+
+class SurfaceBand:
+    """Where good parts have a surface: the points within ``radius`` of good scans' points (see the module
+    docstring, "Where good parts have a surface").
+
+    Parameters
+    ----------
+    points : (n, 3) array
+        Points of good scans of the part (e.g. the model's training scans), the field's frame.
+    radius : float
+        World units (> 0).
+    """
+
+    def __init__(self, points, radius):
+        from scipy.spatial import cKDTree
+
+        self.points = check_points(points, "surface points")
+        if not float(radius) > 0:
+            raise ValueError(f"SurfaceBand radius must be > 0 (world units), got {radius!r}")
+        self.radius = float(radius)
+        self._tree = cKDTree(self.points)
+
+    def contains(self, x):
+        """(k, 3) points -> (k,) bool: within ``radius`` of a good scan's point."""
+        x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
+        return np.isfinite(self._tree.query(x, k=1, distance_upper_bound=self.radius)[0])

@@ -25,6 +25,8 @@ import numpy as np
 import torch
 
 from autodecoder.field.fit import FitOptions, train_single
+from autodecoder.field.grid_fit import GridFitOptions, fit_grid_cloud
+from autodecoder.field.grid_networks import GRID_REPRESENTATION
 from autodecoder.field.sampling import Box
 from autodecoder.field.stochastic_field import StochasticField
 from autodecoder.field.targets import CloudTargets, default_box
@@ -59,12 +61,14 @@ def update_field(field, points, normals, epochs=50, steps=None, lr_fraction=0.3,
     Returns
     -------
     StochasticField, with ``training_points``/``training_normals`` the union and ``info['updates']`` extended.
+
+    A grid field (``fit_cloud(..., representation='grid')``) is refitted on the union instead, with its own grid
+    settings and options (``options`` / ``option_overrides`` are then :class:`GridFitOptions` fields; ``epochs``,
+    ``steps`` and ``lr_fraction`` do not apply): its mean is the exact minimiser of the loss on its grid, solved in
+    seconds, so there is nothing to fine-tune from, and the union's box and frame replace the old ones.
     """
     if field.code is not None:
         raise ValueError("update_field fine-tunes single-cloud fields; this field has a latent code")
-    if field.config.get("representation", "siren") != "siren":
-        raise ValueError("update_field fine-tunes SIREN fields; refit a grid field to the old and new points "
-                         "(fit_cloud(..., representation='grid'))")
     points, normals = check_oriented_cloud(points, normals)
     if old_points is None:
         if field.training_points is None:
@@ -74,6 +78,8 @@ def update_field(field, points, normals, epochs=50, steps=None, lr_fraction=0.3,
     old_points, old_normals = check_oriented_cloud(old_points, old_normals)
     all_points = np.concatenate([old_points, points]).astype(np.float64)
     all_normals = np.concatenate([old_normals, normals]).astype(np.float64)
+    if field.config.get("representation", "siren") == GRID_REPRESENTATION:
+        return _refit_grid(field, all_points, all_normals, len(points), seed, quiet, options, option_overrides)
     saved = field.info.get("options")
     # a field saved before covariance_every / average_decay existed took a covariance step with every mean step
     # and kept its last iterate
@@ -104,3 +110,14 @@ def update_field(field, points, normals, epochs=50, steps=None, lr_fraction=0.3,
                                            "final_losses": history[-1] if history else {}})
     return StochasticField(mean_net, cov_net, norm, config, noise=float(np.sqrt(np.mean(residual**2))), info=info,
                            training_points=all_points, training_normals=all_normals)
+
+
+def _refit_grid(field, all_points, all_normals, n_new, seed, quiet, options, option_overrides):
+    """:func:`update_field` for a grid field: a fit of the union with the field's grid settings and options."""
+    saved = dict(field.info.get("options") or {})
+    base = options or GridFitOptions(**{k: v for k, v in saved.items() if k in GridFitOptions.__dataclass_fields__})
+    new = fit_grid_cloud(all_points, all_normals, seed=seed, grid_mean=field.config.get("grid_mean"),
+                         grid_cov=field.config.get("grid_cov"), options=base, **option_overrides)
+    new.info["updates"] = copy.deepcopy(field.info.get("updates", [])) + [
+        {"n_new": int(n_new), "n_total": len(all_points), "refit": True, "seconds": new.info["fit_seconds"]}]
+    return new

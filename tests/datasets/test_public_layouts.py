@@ -188,6 +188,31 @@ def test_test_scans_without_origin_are_oriented_like_the_templates(tmp_path):
     assert not on and np.array_equal(moved, inward)
 
 
+def test_a_flipped_patch_of_a_test_scan_takes_the_templates_sign():
+    # the propagation along a partial scan can flip a patch beyond a crease: each point on the templates then takes
+    # the sign of its nearest template normals; a point off the templates (a foreign object) keeps the scan's sign
+    from scipy.spatial import cKDTree
+
+    from datasets.layouts import orient_like_templates
+
+    tp, tn = sphere(3000, radius=R3D_RADIUS, turn=0.3)
+    templates = (cKDTree(tp), tn, 0.5)
+    cap = tp[tp[:, 2] > 2.0][::2] * 1.001  # not the template points themselves
+    outward = cap / np.linalg.norm(cap, axis=1, keepdims=True)  # the truth, independent of the templates' normals
+    patch = cap[:, 0] > 3.0
+    assert 0.1 < patch.mean() < 0.4
+    normals = np.where(patch[:, None], -outward, outward)
+    foreign = np.array([[0.0, 0.0, 2.0 * R3D_RADIUS]])  # far above the cap; its normal points down, as the scan gave it
+    pts = np.vstack([cap, foreign])
+    fixed, on = orient_like_templates(pts, np.vstack([normals, [[0.0, 0.0, -1.0]]]), templates)
+    assert on
+    np.testing.assert_allclose(fixed[:-1], outward)
+    np.testing.assert_allclose(fixed[-1], [0.0, 0.0, -1.0])
+    # the whole-scan sign comes first: the same scan with every normal inverted gives the same result
+    fixed2, _ = orient_like_templates(pts, -np.vstack([normals, [[0.0, 0.0, 1.0]]]), templates)
+    np.testing.assert_allclose(fixed2[:-1], outward)
+
+
 def test_real3d_missing_ground_truth_names_the_file(tmp_path):
     root = tmp_path / "car"
     make_real3d(root)

@@ -181,8 +181,25 @@ def test_grid_field_file_round_trip(sphere_field, tmp_path):
     assert np.array_equal(loaded.mean_gradient(x), sphere_field.mean_gradient(x))
 
 
-def test_update_refuses_grid_fields(sphere_field):
-    from autodecoder.scanning.update import update_field
+def test_update_refits_a_grid_field_on_old_and_new_points():
+    """update_field on a grid field: refitted on the union with the field's own grid settings. A half sphere
+    extended by the other half: the new mean surface is the whole sphere; the old field's was not there."""
+    from autodecoder import fit_cloud, update_field
 
-    with pytest.raises(ValueError, match="refit a grid field"):
-        update_field(sphere_field, CENTRE[None] + [RADIUS, 0, 0], np.array([[1.0, 0, 0]]))
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(3000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    top, bottom = d[d[:, 2] > 0.1], d[d[:, 2] < -0.1]
+    grids = dict(grid_mean={"finest": 48}, grid_cov={"finest": 8, "levels": 2, "channels": 4})
+    half = fit_cloud(RADIUS * top + CENTRE, top, representation="grid", cov_steps=20, mean_steps=20, **grids)
+    whole = update_field(half, RADIUS * bottom + CENTRE, bottom, seed=1)
+    assert whole.config["representation"] == "grid" and whole.config["grid_mean"] == {"finest": 48}
+    assert len(whole.training_points) == len(top) + len(bottom)
+    assert whole.info["updates"][-1]["n_new"] == len(bottom) and whole.info["updates"][-1]["refit"]
+    probe = RADIUS * np.array([[0.0, 0.0, -1.0], [0.6, 0.0, -0.8]]) + CENTRE  # on the new half
+    assert np.abs(whole.mean(probe)).max() < 0.05 * RADIUS
+    assert np.abs(half.mean(probe)).max() > np.abs(whole.mean(probe)).max()
+    with pytest.raises(TypeError, match="GridFitOptions"):
+        from autodecoder.field.fit import FitOptions
+
+        update_field(half, RADIUS * bottom + CENTRE, bottom, options=FitOptions())

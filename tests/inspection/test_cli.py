@@ -218,3 +218,23 @@ def test_latent_model_end_to_end(tmp_path, capsys):
     score = {r["name"]: float(r["score"]) for r in rows}
     assert min(score["test/dent/000"], score["test/dent/001"]) > max(score["test/good/000"], score["test/good/001"])
     assert json.loads((out / "summary.json").read_text())["model_kind"] == "latent"
+
+
+def test_rays_auto_stays_off_when_some_scans_of_the_collection_have_no_sensor_origin(tmp_path):
+    # a public layout's collection: rendered template views carry origins, its test scans none; rays calibrated on
+    # the views could not score the test scans, so rays='auto' must not turn them on
+    from inspection.run import _every_scan_has_an_origin
+
+    rng = np.random.default_rng(0)
+
+    def scan(name, split, origin):
+        p = rng.normal(size=(50, 3)).astype(np.float32)
+        n = p / np.linalg.norm(p, axis=1, keepdims=True)
+        return Scan(name=name, points=p, normals=n, split=split, label="good", sensor_origin=origin)
+
+    views = [scan(f"train/t/view_{i}", "train", np.array([0, 0, 5.0])) for i in range(2)]
+    ScanCollection.create(tmp_path / "all.h5", views + [scan("test/a", "test", np.array([5.0, 0, 0]))])
+    ScanCollection.create(tmp_path / "public.h5", views + [scan("test/a", "test", None)])
+    assert _every_scan_has_an_origin(tmp_path / "all.h5")
+    assert not _every_scan_has_an_origin(tmp_path / "public.h5")
+    assert _every_scan_has_an_origin(tmp_path / "scans_folder")  # files: decided by the scans given

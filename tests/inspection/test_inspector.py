@@ -416,3 +416,32 @@ def test_a_good_scan_whose_border_grazes_the_surface_is_not_flagged_for_it():
         insp.reference_.grazing_scale = 0.0  # a constant noise floor
         assert insp.inspect(scan).score > 1.3 * score
         insp.reference_.grazing_scale = fitted_scale
+
+
+def test_a_scan_without_sensor_origin_grazes_from_the_view_its_normals_face():
+    """Public layouts' test scans record no sensor: the grazing term then uses a viewpoint estimated from the
+    scan's outward normals (their mean faces the sensor), not none at all."""
+    from dataclasses import replace
+
+    from inspection.scores import view_origin_from_normals
+
+    scan = _cap_scan(40, name="test")
+    true = np.asarray(scan.sensor_origin, float) - scan.points.mean(0)
+    est = view_origin_from_normals(scan.points, scan.normals) - scan.points.mean(0)
+    angle = np.degrees(np.arccos(true @ est / np.linalg.norm(true) / np.linalg.norm(est)))
+    assert angle < 10
+    span = np.linalg.norm(np.ptp(scan.points, axis=0))
+    assert np.linalg.norm(est) == pytest.approx(2.0 * span, rel=1e-6)
+
+    good = [_cap_scan(s, name=f"train/{s}") for s in range(16)]
+    held = [_cap_scan(s, name=f"held/{s}") for s in range(20, 26)]
+    insp = Inspector(SphereModel(), point_score="distance", alpha=0.05).fit(held, reference_scans=good)
+    blind = replace(scan, sensor_origin=None)
+    stand_in = replace(scan, sensor_origin=view_origin_from_normals(scan.points, scan.normals))
+    np.testing.assert_allclose(insp.anomaly_map(blind), insp.anomaly_map(stand_in), rtol=1e-6)
+    known, score = insp.inspect(scan).score, insp.inspect(blind).score
+    insp.reference_.grazing_scale = 0.0  # what a scan without sensor scored before: no grazing term
+    before = insp.inspect(blind).score
+    # the stand-in view recovers part of what the true one explains (the silhouette's grazing angles are sensitive
+    # to the view's direction and distance, so not all of it)
+    assert known < score < before - 0.1

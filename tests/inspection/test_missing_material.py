@@ -386,6 +386,128 @@ def test_cli_calibrate_and_score_with_rays(tmp_path, capsys):
     rc = main(["score", "--model", str(model), "--data", str(bare), "--out", str(tmp_path / "r2"), "--quiet"])
     err = capsys.readouterr().err.strip()
     assert rc == 2 and len(err.splitlines()) == 1 and "bare.h5" in err and "no sensor origin" in err
-    # --ray-options without the rays
-    rc = main(["calibrate", "--model", str(model), "--data", str(data), "--ray-options", "n_rays=5", "--quiet"])
+    # --ray-options without the rays (--no-rays: on by default when the scans have sensor origins)
+    rc = main(["calibrate", "--model", str(model), "--data", str(data), "--ray-options", "n_rays=5", "--no-rays",
+               "--quiet"])
     assert rc == 2 and "--ray-options needs --rays" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------------------------- issue 18
+class OneSidedField(Field):
+    """The one-sided field of a sheet's top face z = top seen from above: "material" everywhere below it, the
+    cavity under the sheet and the part's real openings included (mean z - top, sd ``sd``); box [-1, 1]^3."""
+
+    def __init__(self, top=0.02, sd=0.005, ell=0.05):
+        self.top, self.sd, self.ell = top, sd, ell
+        self.noise = 0.0
+        self.lengthscale = 0.02
+        self.bounds = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+
+    def torch_mean(self, x):
+        return x[:, 2] - self.top
+
+    def torch_covariance(self, a, b):
+        return self.sd**2 * torch.exp(-((a - b) ** 2).sum(1) / (2 * self.ell**2))
+
+    def torch_variance(self, x):
+        return torch.full((len(x),), self.sd**2, dtype=x.dtype)
+
+
+def _sheet_points(opening, spacing=0.01, top=0.02):
+    """Good scans' points of a sheet's top face over [-0.6, 0.6]^2 without the disc ``opening`` (centre, radius),
+    and of the floor z = -0.5 under it."""
+    g = np.arange(-0.6, 0.6 + 1e-9, spacing)
+    xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    (cx, cy), r = opening
+    sheet = xy[np.hypot(xy[:, 0] - cx, xy[:, 1] - cy) >= r]
+    return np.r_[np.c_[sheet, np.full(len(sheet), top)], np.c_[xy, np.full(len(xy), -0.5)]]
+
+
+def test_surface_band_against_brute_force():
+    from autodecoder.scanning.free_space import SurfaceBand
+
+    rng = np.random.default_rng(3)
+    pts, x = rng.uniform(-1, 1, (300, 3)), rng.uniform(-1, 1, (500, 3))
+    band = SurfaceBand(pts, 0.15)
+    brute = np.sqrt(((x[:, None] - pts[None]) ** 2).sum(-1)).min(1) <= 0.15
+    np.testing.assert_array_equal(band.contains(x), brute)
+    with pytest.raises(ValueError, match="radius"):
+        SurfaceBand(pts, 0.0)
+
+
+def test_band_leaves_out_a_one_sided_fields_cavity_but_not_a_hole_in_the_sheet():
+    """Rays through a real opening cross the one-sided field's extrapolated material where good parts have no
+    surface: with the band they are free. Rays through a hole where good parts have the sheet cross it inside the
+    band: blocked, by at most what the band's deepest sample says (closed form: mean -radius, sd 0.005)."""
+    from autodecoder.scanning.free_space import SurfaceBand
+
+    field = OneSidedField()
+    good_surface = _sheet_points(((-0.3, 0.0), 0.15))  # the part's real opening at (-0.3, 0)
+    band = SurfaceBand(good_surface, field.lengthscale)  # the face at z = 0.02: the band is 0 <= z <= 0.04
+    sensor = np.array([0.0, 0.0, 2.0])
+    # points on the floor seen through the real opening, and through a hole at (0.3, 0) (the sheet of good parts)
+    through_opening = np.c_[-0.3 + 0.03 * np.arange(-2, 3), np.zeros(5), np.full(5, -0.5)]
+    through_hole = through_opening * [-1, 1, 1]
+    observed = np.r_[through_opening, through_hole]
+    for with_band, expect_open, expect_hole in ((False, 1.0, 1.0), (True, 0.0, 1.0)):
+        check = blocked_probability(field, sensor, observed, observed=observed, own_depth=0.06,
+                                    band=band if with_band else None)
+        np.testing.assert_allclose(check.p_blocked[:5], expect_open, atol=1e-6)
+        assert (check.p_blocked[5:] > 0.9).all() == (expect_hole == 1.0)
+    # closed form: inside the band no sample is deeper than 0.02 below the top face: P(f <= 0) <= Phi(0.02 / 0.005);
+    # the samples are < 0.012 apart along the rays (box length 1.5 / 127), so one lies in 0 <= z < 0.012: >= Phi(1.6)
+    phi = [0.5 * math.erfc(-v / math.sqrt(2)) for v in (4.0, 1.6)]
+    assert (check.max_marginal[5:] <= phi[0] + 1e-9).all() and (check.max_marginal[5:] >= phi[1]).all()
+    # ray_evidence with the good scans' points as its surface: the same, through the scan's own options
+    ev_open = ray_evidence(field, through_opening, sensor, n_empty=0, surface=good_surface, band=1.0)
+    ev_hole = ray_evidence(field, through_hole, sensor, n_empty=0, surface=good_surface, band=1.0)
+    ev_open_no_band = ray_evidence(field, through_opening, sensor, n_empty=0, surface=good_surface, band=None,
+                                   own_depth=0.06)
+    assert ev_open.score < 1e-6 < 1.0 < ev_hole.score and ev_open_no_band.score > 1.0
+
+
+def test_log_gated_combination_by_hand():
+    from inspection.combine import LOG_GATE_MARGIN, LOG_GATE_QUANTILE, LOG_GATE_WEIGHT as w
+
+    rays = np.array([0.0, 0.01, 0.02, 0.3, 1.5, 0.0, 0.05, 280.0, 0.1, 2.0])  # one heavy-tailed good scan
+    points = np.linspace(1.0, 2.0, len(rays))
+    cal = {"points": points, "rays": rays}
+    comb = Combination(cal, rule="gated-log")
+    lr = np.log1p(rays)
+    m_r, sd_r = lr.mean(), lr.std(ddof=1)
+    tau = np.quantile((lr - m_r) / sd_r, LOG_GATE_QUANTILE) + LOG_GATE_MARGIN
+    m_p, sd_p = points.mean(), points.std(ddof=1)
+    new = {"points": np.array([1.5, 1.5, 1.5]), "rays": np.array([0.0, 3.0, 200.0])}
+    z_r = (np.log1p(new["rays"]) - m_r) / sd_r
+    np.testing.assert_allclose(comb.score(new), 1.5 + sd_p * w * np.maximum(z_r - tau, 0.0))
+    # a scan whose rays go beyond the good scans' bulk counts, although one good scan went farther still
+    assert comb.score(new)[2] > 1.5 and comb.score(new)[0] == pytest.approx(1.5)
+    assert Combination(cal).score(new)[2] == pytest.approx(1.5)  # the max gate: closed by the one outlier
+    # leave-one-out, scan 7 (the outlier) against the other nine by hand
+    k = np.arange(len(rays)) != 7
+    m9, sd9 = lr[k].mean(), lr[k].std(ddof=1)
+    tau9 = np.quantile((lr[k] - m9) / sd9, LOG_GATE_QUANTILE) + LOG_GATE_MARGIN
+    p9 = points[k]
+    expected = p9.mean() + p9.std(ddof=1) * ((points[7] - p9.mean()) / p9.std(ddof=1)
+                                            + w * max(0.0, (lr[7] - m9) / sd9 - tau9))
+    assert comb.calibration_scores()[7] == pytest.approx(expected)
+    again = Combination.from_dict(comb.as_dict())
+    assert again.rule == "gated-log" and again.score(new).tolist() == comb.score(new).tolist()
+    with pytest.raises(ValueError, match=">= 0"):
+        Combination({"points": points, "rays": rays - 1.0}, rule="gated-log")
+
+
+def test_grazing_rays_are_not_tested():
+    """Rays to points whose |cos| of incidence is below min_cos are left out (grazing = 1 / cos^2 - 1)."""
+    field = WallField()
+    points, _ = wall_scan(n=300)
+    cos = np.linspace(0.01, 1.0, len(points))
+    grazing = 1.0 / cos**2 - 1.0
+    ev = ray_evidence(field, points, SENSOR, n_rays=len(points), n_empty=0, grazing=grazing, min_cos=0.2)
+    np.testing.assert_array_equal(ev.ray_index, np.flatnonzero(cos >= 0.2))
+    sub = ray_evidence(field, points, SENSOR, n_rays=50, n_empty=0, grazing=grazing, min_cos=0.2)
+    assert len(sub.ray_index) == 50 and (cos[sub.ray_index] >= 0.2).all()
+    assert len(ray_evidence(field, points, SENSOR, n_rays=len(points), n_empty=0, grazing=grazing,
+                            min_cos=0.0).ray_index) == len(points)
+    with pytest.raises(ValueError, match="min_cos"):
+        check_ray_options({"min_cos": 1.0})

@@ -31,11 +31,14 @@ def test_default_epochs_give_each_part_type_the_single_part_budget():
 
     for n in (3, 26, 100, 10_000):  # one part type: the single-part rule unchanged
         assert default_epochs(n, 8, n_parts=1) == default_epochs(n, 8)
-    assert default_epochs(200, 8, n_parts=1) == MIN_DEFAULT_EPOCHS  # 25 steps an epoch: 96 epochs, raised to 150
-    assert default_epochs(200, 8, n_parts=2) == math.ceil(2 * DEFAULT_STEPS / 25)  # 192 epochs: 4,800 steps
-    assert default_epochs(400, 8, n_parts=4) == math.ceil(4 * DEFAULT_STEPS / 50)
-    assert default_epochs(52, 8, n_parts=2) == MAX_DEFAULT_EPOCHS  # 7 steps an epoch: 686 epochs, capped at 600
-    assert default_epochs(200, 8, world=2, n_parts=2) == math.ceil(2 * DEFAULT_STEPS / 13)  # 100 scans a process
+    for n in (64, 200, 400, 4000):  # k parts of n scans each: every code as many updates as in its part alone
+        for k in (2, 3):
+            assert default_epochs(k * n, 8, n_parts=k) == default_epochs(n, 8)
+    assert default_epochs(400, 8, n_parts=2) == min(MAX_DEFAULT_EPOCHS, max(MIN_DEFAULT_EPOCHS,
+                                                                            math.ceil(2 * DEFAULT_STEPS / 50)))
+    assert default_epochs(52, 8, n_parts=2) == MAX_DEFAULT_EPOCHS  # 7 steps an epoch: capped at 600
+    assert default_epochs(20_000, 8, n_parts=2) == MIN_DEFAULT_EPOCHS
+    assert default_epochs(800, 8, world=2, n_parts=2) == default_epochs(400, 8, world=2)  # 400 scans a process
     with pytest.raises(ValueError, match="n_parts"):
         default_epochs(10, 8, n_parts=0)
 

@@ -335,7 +335,10 @@ def test_default_epochs_aim_at_a_step_budget():
     assert default_epochs(26, 8) == MAX_DEFAULT_EPOCHS  # 4 steps an epoch: 600 epochs (capped) = 2,400 steps
     assert default_epochs(100, 8) == math.ceil(DEFAULT_STEPS / 13)  # 13 steps an epoch
     assert default_epochs(10_000, 8) == MIN_DEFAULT_EPOCHS
-    assert default_epochs(100, 8, world=2) == math.ceil(DEFAULT_STEPS / 7)  # each process: 50 scans, 7 steps
+    assert default_epochs(100, 8, world=2) == min(MAX_DEFAULT_EPOCHS, math.ceil(DEFAULT_STEPS / 7))  # 50, 7 steps
+    assert default_epochs(400, 8, world=2) == math.ceil(DEFAULT_STEPS / 25)  # each process: 200 scans, 25 steps
+    # 4 complete templates rendered into 16 views each: every code is updated 600 times (docs/results.md)
+    assert default_epochs(64, 8) == MAX_DEFAULT_EPOCHS
     assert default_epochs(3, 8) == MAX_DEFAULT_EPOCHS  # a batch larger than the scans: one step an epoch
     # the resolved count is what the checkpoint records
     model = train_latent(sphere_scans()[:2], None, seed=0, quiet=True, stop_after=1, **TINY)
