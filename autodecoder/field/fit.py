@@ -2,7 +2,6 @@
 import math
 import time
 from dataclasses import asdict, dataclass
-from typing import Optional
 
 import numpy as np
 import torch
@@ -10,18 +9,17 @@ from tqdm.auto import tqdm
 
 from autodecoder.field.stochastic_field import StochasticField
 from datasets.frame import Frame
-from autodecoder.field.losses import SCREENING_WEIGHT
 from autodecoder.field.grid_fit import fit_grid_cloud
 from autodecoder.field.networks import build_networks
 from autodecoder.field.schedule import cosine_decay
-from autodecoder.field.steps import (MeanAverager, MeanPool, PairPool, covariance_step_loss, even_pool_size,
-                                     mean_step_loss)
+from autodecoder.field.steps import (MeanAverager, MeanPool, PairPool, StepOptions, covariance_step_loss,
+                                     even_pool_size, mean_step_loss)
 from autodecoder.field.targets import FIT_LENGTHSCALE_FACTOR, CloudTargets, default_lengthscale
 from datasets.validation import check_oriented_cloud
 
 
 @dataclass
-class FitOptions:
+class FitOptions(StepOptions):
     """Optimisation settings of :func:`fit_cloud` (defaults chosen for time and accuracy on a 2-core CPU).
 
     Why many small steps: the error of the mean surface falls with the number of Adam steps far more than with the
@@ -46,78 +44,23 @@ class FitOptions:
         Peak learning rate (cosine decay to ``lr * final_lr_fraction``).
     weight_decay : float
         Adam weight decay (the paper's 1e-5).
-    mean_batch : int
-        Box samples per step for the mean loss (half uniform, half near the points).
-    screen_batch : int
-        Cloud points per step for the screening terms.
-    pair_clusters, cluster_size : int
-        The covariance batch: pair_clusters x cluster_size points, all their ordered pairs.
-    screening_weight : float
-        lambda_S.
-    covariance_screening_weight : float, optional
-        lambda_S of the covariance's screening term c(p, p)^2 alone; default ``screening_weight``, as in the paper.
-        (The covariance lives at the scale of Sigma h^2, ~1e-4 in the unit cube, so the paper's 100 c(p, p)^2 is
-        small beside its Dirichlet term and pins the variance at the points only loosely.)
-    refresh : int
-        Minibatches in the mean-sample pool (the pool holds ``mean_batch * refresh`` samples).
-    pool_passes : int
-        Shuffled passes over the mean-sample pool before it is redrawn. GP targets are a large share of a small
-        step's cost; a pool served several times keeps that cost to a few per cent while every pass is still an
-        unbiased Monte-Carlo estimate of the loss (docs/results.md#single-cloud-fit-defaults-fandisk).
-    pair_pool, pair_reuse : int
-        Covariance batches kept in a pool, and how many steps each serves before it is redrawn (same reason).
-    average_decay : float
-        The mean net ends as an exponential moving average of its weights over the second half of the run
-        (:class:`MeanAverager`); 0 keeps the last iterate. 0.99 lowered fandisk's surface error on every seed
-        tried; 0.995 did no better (docs/results.md#single-cloud-fit-defaults-fandisk).
-    outside_weight : float
-        lambda_O of an optional boundary term lambda_O mean_{x on the box's surface} (g(x) - w)^2, w the value g
-        takes outside a closed surface (:meth:`CloudTargets.outside_value`): Poisson reconstruction's Dirichlet
-        condition, "the box's boundary is outside". 0 (default) is the paper's loss. Why: a partial scan is an open
-        sheet that the paper's loss does not close, so far from the sheet g decays to the average of its inside and
-        outside values, 0, and the far field is the surface's own level, half solid (on a one-scan fandisk field
-        the median of g on the box's surface is 0: docs/results.md#scanning-partial-scan-fields-and-next-best-view).
-        The term closes the sheet the way Poisson reconstruction does, which next-best-view needs to cast rays
-        through empty space.
+    final_lr_fraction, mean_batch, screen_batch, pair_clusters, cluster_size, screening_weight,
+    covariance_screening_weight, refresh, pool_passes, pair_pool, pair_reuse, average_decay, outside_weight
+        See :class:`autodecoder.field.steps.StepOptions`.
     """
 
     steps: int = 4000
     covariance_every: int = 16
     lr: float = 1e-3
-    final_lr_fraction: float = 0.05
     weight_decay: float = 1e-5
-    mean_batch: int = 256
-    screen_batch: int = 256
-    pair_clusters: int = 128
-    cluster_size: int = 4
-    screening_weight: float = SCREENING_WEIGHT
-    covariance_screening_weight: Optional[float] = None
-    refresh: int = 32
-    pool_passes: int = 8
-    pair_pool: int = 8
-    pair_reuse: int = 4
-    average_decay: float = 0.99
-    outside_weight: float = 0.0
 
-    def __post_init__(self):
-        # one clear error here instead of an empty loop, a zero-size batch or NaN losses deep in training
-        counts = {"steps": 1, "covariance_every": 1, "mean_batch": 1, "screen_batch": 1, "pair_clusters": 1,
-                  "cluster_size": 2, "refresh": 1, "pool_passes": 1, "pair_pool": 1, "pair_reuse": 1}
-        for name, least in counts.items():
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
-                raise ValueError(f"FitOptions.{name} must be an integer >= {least}, got {value!r}")
-        weights = {"lr": self.lr, "final_lr_fraction": self.final_lr_fraction, "weight_decay": self.weight_decay,
-                   "screening_weight": self.screening_weight, "outside_weight": self.outside_weight}
-        if self.covariance_screening_weight is not None:
-            weights["covariance_screening_weight"] = self.covariance_screening_weight
-        for name, value in weights.items():
-            if not (isinstance(value, (int, float, np.number)) and np.isfinite(value) and value >= 0):
-                raise ValueError(f"FitOptions.{name} must be a finite number >= 0, got {value!r}")
+    def _integers(self):
+        return {"steps": 1, "covariance_every": 1}
+
+    def _rates(self):
         if self.lr == 0:
             raise ValueError("FitOptions.lr must be > 0")
-        if not (isinstance(self.average_decay, (int, float, np.number)) and 0 <= self.average_decay < 1):
-            raise ValueError(f"FitOptions.average_decay must be in [0, 1), got {self.average_decay!r}")
+        return {"lr": self.lr}
 
 
 def fit_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, width=64, depth=3,

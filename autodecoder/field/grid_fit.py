@@ -9,16 +9,15 @@ paper's Monte-Carlo loss. The covariance's feature grids are trained by Adam on 
 import math
 import time
 from dataclasses import asdict, dataclass
-from typing import Optional
 
 import numpy as np
 import torch
 
 from autodecoder.field.stochastic_field import StochasticField
-from autodecoder.field.steps import MeanAverager, MeanPool, PairPool, covariance_step_loss, even_pool_size, mean_step_loss
+from autodecoder.field.steps import (MeanAverager, MeanPool, PairPool, StepOptions, covariance_step_loss,
+                                     even_pool_size, mean_step_loss)
 from autodecoder.field.grid_minimiser import grid_minimiser
 from autodecoder.field.grid_networks import GRID_REPRESENTATION, BSplineGrid, build_grid_networks
-from autodecoder.field.losses import SCREENING_WEIGHT
 from autodecoder.field.schedule import cosine_decay
 from autodecoder.field.targets import CloudTargets, default_lengthscale
 from datasets.frame import Frame
@@ -30,7 +29,7 @@ GRID_LENGTHSCALE_FACTOR = 1.0
 
 
 @dataclass
-class GridFitOptions:
+class GridFitOptions(StepOptions):
     """Settings of :func:`fit_grid_cloud` (field names shared with :class:`autodecoder.field.fit.FitOptions` mean the
     same; the step helpers of :mod:`autodecoder.field.steps` read them).
 
@@ -56,7 +55,7 @@ class GridFitOptions:
         Adam weight decay of decoder weights (never of grid control values, see :func:`_optimisers`).
     mean_batch, screen_batch, pair_clusters, cluster_size, screening_weight, covariance_screening_weight, refresh,
     pool_passes, pair_pool, pair_reuse, average_decay, outside_weight
-        As in :class:`autodecoder.field.fit.FitOptions`.
+        See :class:`autodecoder.field.steps.StepOptions`.
     """
 
     solve: bool = True
@@ -65,32 +64,12 @@ class GridFitOptions:
     mean_lr: float = 1e-5
     cov_steps: int = 250
     cov_lr: float = 1e-3
-    final_lr_fraction: float = 0.05
-    weight_decay: float = 0.0
-    mean_batch: int = 256
-    screen_batch: int = 256
-    pair_clusters: int = 128
-    cluster_size: int = 4
-    screening_weight: float = SCREENING_WEIGHT
-    covariance_screening_weight: Optional[float] = None
-    refresh: int = 32
-    pool_passes: int = 8
-    pair_pool: int = 8
-    pair_reuse: int = 4
-    average_decay: float = 0.99
-    outside_weight: float = 0.0
 
-    def __post_init__(self):
-        for name, least in {"mean_steps": 0, "cov_steps": 0, "mean_batch": 1, "screen_batch": 1, "pair_clusters": 1,
-                            "cluster_size": 2, "refresh": 1, "pool_passes": 1, "pair_pool": 1,
-                            "pair_reuse": 1}.items():
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
-                raise ValueError(f"GridFitOptions.{name} must be an integer >= {least}, got {value!r}")
-        for name in ("mean_lr", "cov_lr", "final_lr_fraction", "weight_decay", "screening_weight", "solve_tol"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float, np.number)) and np.isfinite(value) and value >= 0):
-                raise ValueError(f"GridFitOptions.{name} must be a finite number >= 0, got {value!r}")
+    def _integers(self):
+        return {"mean_steps": 0, "cov_steps": 0}
+
+    def _rates(self):
+        return {"mean_lr": self.mean_lr, "cov_lr": self.cov_lr, "solve_tol": self.solve_tol}
 
 
 def _optimisers(net, lr, weight_decay):

@@ -1,13 +1,104 @@
 """The pieces of one optimisation step shared by every single-cloud fit (SIREN and grid): target pools sized to
 the run, the late-iterate weight average, and the mean and covariance losses of a step."""
 import math
+from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 import torch
 from torch.optim.swa_utils import AveragedModel
 
-from autodecoder.field.losses import (covariance_dirichlet_loss_features, covariance_dirichlet_loss_pairs,
-                                      mean_dirichlet_loss, screening_loss)
+from autodecoder.field.losses import (SCREENING_WEIGHT, covariance_dirichlet_loss_features,
+                                      covariance_dirichlet_loss_pairs, mean_dirichlet_loss, screening_loss)
+
+
+@dataclass
+class StepOptions:
+    """The sampling, averaging and loss settings every single-cloud fit shares (:class:`autodecoder.field.fit.FitOptions`,
+    :class:`autodecoder.field.grid_fit.GridFitOptions`); each subclass adds its own steps and rates.
+
+    Attributes
+    ----------
+    final_lr_fraction : float
+        Cosine decay of the learning rates to this fraction of their peak (:func:`autodecoder.field.schedule.cosine_decay`).
+    weight_decay : float
+        Adam weight decay (each fit sets its own default).
+    mean_batch : int
+        Box samples per step for the mean loss (half uniform, half near the points).
+    screen_batch : int
+        Cloud points per step for the screening terms.
+    pair_clusters, cluster_size : int
+        The covariance batch: pair_clusters x cluster_size points, all their ordered pairs.
+    screening_weight : float
+        lambda_S.
+    covariance_screening_weight : float, optional
+        lambda_S of the covariance's screening term c(p, p)^2 alone; default ``screening_weight``, as in the paper.
+        (The covariance lives at the scale of Sigma h^2, ~1e-4 in the unit cube, so the paper's 100 c(p, p)^2 is
+        small beside its Dirichlet term and pins the variance at the points only loosely.)
+    refresh : int
+        Minibatches in the mean-sample pool (the pool holds ``mean_batch * refresh`` samples).
+    pool_passes : int
+        Shuffled passes over the mean-sample pool before it is redrawn. GP targets are a large share of a small
+        step's cost; a pool served several times keeps that cost to a few per cent while every pass is still an
+        unbiased Monte-Carlo estimate of the loss (docs/results.md#single-cloud-fit-defaults-fandisk).
+    pair_pool, pair_reuse : int
+        Covariance batches kept in a pool, and how many steps each serves before it is redrawn (same reason).
+    average_decay : float
+        The mean net ends as an exponential moving average of its weights over the second half of the run
+        (:class:`MeanAverager`); 0 keeps the last iterate. 0.99 lowered fandisk's surface error on every seed
+        tried; 0.995 did no better (docs/results.md#single-cloud-fit-defaults-fandisk).
+    outside_weight : float
+        lambda_O of an optional boundary term lambda_O mean_{x on the box's surface} (g(x) - w)^2, w the value g
+        takes outside a closed surface (:meth:`CloudTargets.outside_value`): Poisson reconstruction's Dirichlet
+        condition, "the box's boundary is outside". 0 (default) is the paper's loss. Why: a partial scan is an open
+        sheet that the paper's loss does not close, so far from the sheet g decays to the average of its inside and
+        outside values, 0, and the far field is the surface's own level, half solid (on a one-scan fandisk field
+        the median of g on the box's surface is 0: docs/results.md#scanning-partial-scan-fields-and-next-best-view).
+        The term closes the sheet the way Poisson reconstruction does, which next-best-view needs to cast rays
+        through empty space.
+    """
+
+    final_lr_fraction: float = 0.05
+    weight_decay: float = 0.0
+    mean_batch: int = 256
+    screen_batch: int = 256
+    pair_clusters: int = 128
+    cluster_size: int = 4
+    screening_weight: float = SCREENING_WEIGHT
+    covariance_screening_weight: Optional[float] = None
+    refresh: int = 32
+    pool_passes: int = 8
+    pair_pool: int = 8
+    pair_reuse: int = 4
+    average_decay: float = 0.99
+    outside_weight: float = 0.0
+
+    def _integers(self):
+        """{name: least value} of the subclass's own integer settings."""
+        return {}
+
+    def _rates(self):
+        """{name: value} of the subclass's own non-negative numbers (and any further check of them)."""
+        return {}
+
+    def __post_init__(self):
+        # one clear error here instead of an empty loop, a zero-size batch or NaN losses deep in training
+        kind = type(self).__name__
+        counts = {**self._integers(), "mean_batch": 1, "screen_batch": 1, "pair_clusters": 1, "cluster_size": 2,
+                  "refresh": 1, "pool_passes": 1, "pair_pool": 1, "pair_reuse": 1}
+        for name, least in counts.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+                raise ValueError(f"{kind}.{name} must be an integer >= {least}, got {value!r}")
+        weights = {**self._rates(), "final_lr_fraction": self.final_lr_fraction, "weight_decay": self.weight_decay,
+                   "screening_weight": self.screening_weight, "outside_weight": self.outside_weight}
+        if self.covariance_screening_weight is not None:
+            weights["covariance_screening_weight"] = self.covariance_screening_weight
+        for name, value in weights.items():
+            if not (isinstance(value, (int, float, np.number)) and np.isfinite(value) and value >= 0):
+                raise ValueError(f"{kind}.{name} must be a finite number >= 0, got {value!r}")
+        if not (isinstance(self.average_decay, (int, float, np.number)) and 0 <= self.average_decay < 1):
+            raise ValueError(f"{kind}.average_decay must be in [0, 1), got {self.average_decay!r}")
 
 
 def even_pool_size(steps, size, passes):
