@@ -36,7 +36,9 @@ z_j = (s_j - mean_j) / sd_j. Two rules make one score of them:
   looser gate let them outrank dented scans), and beyond it the rays decide: a scan whose rays show what no good
   scan's do is ranked above those that pass on their point scores (a hole's rays score hundreds of nats where good
   ones score 0-40), which the large weight does while keeping one scale. Quantile, margin and weight, measured on
-  four parts: docs/results.md#thin-walled-and-open-parts-issue-18.
+  four parts: docs/results.md#thin-walled-and-open-parts-issue-18. Known limit: the gate is not bounded by the ray
+  score's own ceiling (each ray's surprisal stops at -log 1e-300 = 690.8 nats); when the calibration scans' log
+  ray scores spread widely it can land above it, and the rays then add nothing (the held-out cup in that section).
 * ``'max'``: c(s) = max_j z_j, a scan as anomalous as its most anomalous component: the union of the components'
   detections, like a Bonferroni combination of p-values, but continuous (conformal p-values stop at 1 / (n + 1)
   beyond the largest calibration score, so with a few dozen calibration scans a min-p (or Fisher) combination ties

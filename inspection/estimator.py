@@ -263,7 +263,7 @@ class Inspector(BaseEstimator):
             if ray_reference is None:
                 ray_reference = getattr(self, "ray_reference_", None)
             result.rays = ray_evidence(good.field, good.points, good.origin, reference=ray_reference,
-                                       surface=None if reference is None else reference.points,
+                                       surface=None if reference is None else reference.tree,
                                        grazing=good.grazing,
                                        **check_ray_options(self.ray_options))
             result.components["rays"] = result.rays.score

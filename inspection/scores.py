@@ -159,11 +159,10 @@ def view_origin_from_normals(points, normals, distance=ESTIMATED_VIEW_DISTANCE):
     """A stand-in sensor origin for a scan that records none, for :func:`grazing_factor` only.
 
     Every normal a sensor sees faces it, so the mean of a one-view scan's outward normals points roughly at the
-    sensor: the origin is put ``distance`` bounding-box diagonals from the scan's centroid along it. On the test scans
-    of ``benchmarks/four_templates.py`` (built-in bracket, template-oriented normals) the direction was 5-21 degrees
-    off the true one (median 11), and the grazing term it gives took the object AUROC of dents from 0.83 to 0.85
-    (docs/results.md#training-from-4-complete-templates). Not a sensor origin for the ray score, which needs the
-    real one.
+    sensor: the origin is put ``distance`` bounding-box diagonals from the scan's centroid along it. A rough
+    direction (how rough, and what the grazing term it gives is worth: docs/results.md#training-from-4-complete-templates),
+    good enough for a noise term that grows smoothly with the angle; not a sensor origin for the ray score, which
+    needs the real one.
 
     Parameters
     ----------
@@ -309,13 +308,18 @@ class LocalReference:
         return LocalReference(self.points[keep], self.values[keep], self.k, self.quantity, self.variance_scale,
                               self.owners[keep], self.grazing_scale)
 
-    def stats(self, points):
-        """Local mean and standard deviation of the reference values around each point: (m,), (m,)."""
+    @property
+    def tree(self):
+        """The KD-tree of the reference points (built once, on first use; the ray score's surface band shares it)."""
         from scipy.spatial import cKDTree
 
         if self._tree is None:
             self._tree = cKDTree(self.points)
-        _, idx = self._tree.query(np.asarray(points, dtype=np.float64), self.k)
+        return self._tree
+
+    def stats(self, points):
+        """Local mean and standard deviation of the reference values around each point: (m,), (m,)."""
+        _, idx = self.tree.query(np.asarray(points, dtype=np.float64), self.k)
         v = self.values[idx].astype(np.float64)  # (m, k)
         return v.mean(1), v.std(1)
 

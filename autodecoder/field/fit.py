@@ -8,13 +8,12 @@ import torch
 from tqdm.auto import tqdm
 
 from autodecoder.field.stochastic_field import StochasticField
-from datasets.frame import Frame
 from autodecoder.field.grid_fit import fit_grid_cloud
 from autodecoder.field.networks import build_networks
 from autodecoder.field.schedule import cosine_decay
 from autodecoder.field.steps import (MeanAverager, MeanPool, PairPool, StepOptions, covariance_step_loss,
-                                     even_pool_size, mean_step_loss)
-from autodecoder.field.targets import FIT_LENGTHSCALE_FACTOR, CloudTargets, default_lengthscale
+                                     even_pool_size, mean_step_loss, residual_noise)
+from autodecoder.field.targets import FIT_LENGTHSCALE_FACTOR, cloud_frame_and_targets
 from datasets.validation import check_oriented_cloud
 
 
@@ -115,13 +114,12 @@ def fit_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, width=64
     if representation != "siren":
         raise ValueError(f"representation must be 'siren' or 'grid', got {representation!r}")
     points, normals = check_oriented_cloud(points, normals)
+    if options is not None and not isinstance(options, FitOptions):
+        raise TypeError(f"options of a SIREN fit must be FitOptions, got {type(options).__name__}")
     options = FitOptions(**{**asdict(options or FitOptions()), **option_overrides})
     t0 = time.perf_counter()
-    frame = Frame.fit(points)
-    model_points = frame.to_collection(points)
-    h = (default_lengthscale(model_points, FIT_LENGTHSCALE_FACTOR) if lengthscale is None
-         else float(lengthscale) * frame.scale)
-    targets = CloudTargets(model_points, normals, h)
+    frame, targets = cloud_frame_and_targets(points, normals, lengthscale, FIT_LENGTHSCALE_FACTOR)
+    h = targets.lengthscale
     config = {"width": width, "depth": depth, "latent_dim": 0, "covariance": covariance, "features": features,
               "omega0": omega0, "lengthscale": h, "box_lo": targets.box.lo.tolist(), "box_hi": targets.box.hi.tolist()}
 
@@ -130,10 +128,8 @@ def fit_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, width=64
     mean_net, cov_net = build_networks(config)
     history = train_single(mean_net, cov_net, targets, options, rng, quiet=quiet)
 
-    with torch.no_grad():
-        residual = mean_net(torch.from_numpy(targets.points32)).double().numpy() / frame.scale
     if noise is None:
-        noise = float(np.sqrt(np.mean(residual**2)))
+        noise = residual_noise(mean_net, targets, frame)
     info = {"fit_seconds": time.perf_counter() - t0, "steps": options.steps, "n_points": len(points),
             "final_losses": history[-1] if history else {}, "options": asdict(options),
             "history": history}

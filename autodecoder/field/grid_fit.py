@@ -15,12 +15,11 @@ import torch
 
 from autodecoder.field.stochastic_field import StochasticField
 from autodecoder.field.steps import (MeanAverager, MeanPool, PairPool, StepOptions, covariance_step_loss,
-                                     even_pool_size, mean_step_loss)
+                                     even_pool_size, mean_step_loss, residual_noise)
 from autodecoder.field.grid_minimiser import grid_minimiser
 from autodecoder.field.grid_networks import GRID_REPRESENTATION, BSplineGrid, build_grid_networks
 from autodecoder.field.schedule import cosine_decay
-from autodecoder.field.targets import CloudTargets, default_lengthscale
-from datasets.frame import Frame
+from autodecoder.field.targets import cloud_frame_and_targets
 from datasets.validation import check_oriented_cloud
 
 # Kernel lengthscale / point spacing of the grid fit. The grid mean follows the sharper posterior mean of a
@@ -195,11 +194,8 @@ def fit_grid_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, gri
         raise TypeError(f"options of a grid fit must be GridFitOptions, got {type(options).__name__}")
     options = GridFitOptions(**{**asdict(options or GridFitOptions()), **option_overrides})
     t0 = time.perf_counter()
-    frame = Frame.fit(points)
-    model_points = frame.to_collection(points)
-    h = (default_lengthscale(model_points, GRID_LENGTHSCALE_FACTOR) if lengthscale is None
-         else float(lengthscale) * frame.scale)
-    targets = CloudTargets(model_points, normals, h)
+    frame, targets = cloud_frame_and_targets(points, normals, lengthscale, GRID_LENGTHSCALE_FACTOR)
+    h = targets.lengthscale
     config = {"representation": GRID_REPRESENTATION, "latent_dim": 0, "covariance": "feature",
               "grid_mean": dict(grid_mean or {}), "grid_cov": dict(grid_cov or {}), "lengthscale": h,
               "box_lo": targets.box.lo.tolist(), "box_hi": targets.box.hi.tolist()}
@@ -211,10 +207,8 @@ def fit_grid_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, gri
     solve_info = solve_mean(mean_net, targets, options.solve_tol) if options.solve else {}
     t2 = time.perf_counter()
     history = train_grid(mean_net, cov_net, targets, options, rng)
-    with torch.no_grad():
-        residual = mean_net(torch.from_numpy(targets.points32)).double().numpy() / frame.scale
     if noise is None:
-        noise = float(np.sqrt(np.mean(residual**2)))
+        noise = residual_noise(mean_net, targets, frame)
     info = {"fit_seconds": time.perf_counter() - t0, "solve_seconds": t2 - t1,
             "train_seconds": time.perf_counter() - t2, "solve": solve_info, "n_points": len(points),
             "steps": options.mean_steps + options.cov_steps, "options": asdict(options), "history": history}

@@ -301,3 +301,11 @@ def _pair_subset(m, cluster_size, rng):
     keep_factor = np.ones(len(ii) + len(ci), dtype=np.float32)
     keep_factor[len(ii):] = (m * m - m * cluster_size) / max(len(ci), 1)
     return np.concatenate([ii, ci]), np.concatenate([jj, cj]), torch.from_numpy(keep_factor)
+
+
+def residual_noise(mean_net, targets, frame, code=None):
+    """RMS of the fitted mean at the cloud's own points, world units: how far the surface misses them (a fit's
+    default measurement noise)."""
+    with torch.no_grad():
+        residual = mean_net(torch.from_numpy(targets.points32), code).double().numpy() / frame.scale
+    return float(np.sqrt(np.mean(residual**2)))

@@ -118,3 +118,29 @@ class CloudTargets:
         if n >= len(self.points32):
             return self.points32[rng.permutation(len(self.points32))]
         return self.points32[rng.choice(len(self.points32), n, replace=False)]
+
+
+def cloud_frame_and_targets(points, normals, lengthscale=None, factor=FIT_LENGTHSCALE_FACTOR):
+    """The frame and GP targets of one cloud, as every single-cloud fit builds them.
+
+    Parameters
+    ----------
+    points, normals : (n, 3) float64 arrays
+        A validated oriented cloud (:func:`datasets.validation.check_oriented_cloud`), its own (world) units.
+    lengthscale : float, optional
+        Kernel lengthscale in world units; default ``factor`` median point spacings (:func:`default_lengthscale`).
+    factor : float
+
+    Returns
+    -------
+    frame : datasets.frame.Frame
+        World -> the unit-cube model frame of the cloud's bounding box.
+    targets : CloudTargets
+        In the model frame (lengthscale ``targets.lengthscale`` in model units).
+    """
+    from datasets.frame import Frame
+
+    frame = Frame.fit(points)
+    model_points = frame.to_collection(points)
+    h = (default_lengthscale(model_points, factor) if lengthscale is None else float(lengthscale) * frame.scale)
+    return frame, CloudTargets(model_points, normals, h)

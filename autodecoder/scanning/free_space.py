@@ -376,8 +376,9 @@ class SurfaceBand:
 
     Parameters
     ----------
-    points : (n, 3) array
-        Points of good scans of the part (e.g. the model's training scans), the field's frame.
+    points : (n, 3) array, or a scipy.spatial.cKDTree built over them
+        Points of good scans of the part (e.g. the model's training scans), the field's frame. A tree is used as it
+        is (the caller may already hold one over these points: no second build for every scan inspected).
     radius : float
         World units (> 0).
     """
@@ -385,11 +386,15 @@ class SurfaceBand:
     def __init__(self, points, radius):
         from scipy.spatial import cKDTree
 
-        self.points = check_points(points, "surface points")
         if not float(radius) > 0:
             raise ValueError(f"SurfaceBand radius must be > 0 (world units), got {radius!r}")
         self.radius = float(radius)
-        self._tree = cKDTree(self.points)
+        if isinstance(points, cKDTree):
+            self._tree = points
+            self.points = check_points(points.data, "surface points")
+        else:
+            self.points = check_points(points, "surface points")
+            self._tree = cKDTree(self.points)
 
     def contains(self, x):
         """(k, 3) points -> (k,) bool: within ``radius`` of a good scan's point."""

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from autodecoder.field.fit import FitOptions, train_single
+from autodecoder.field.steps import residual_noise
 from autodecoder.field.grid_fit import GridFitOptions, fit_grid_cloud
 from autodecoder.field.grid_networks import GRID_REPRESENTATION
 from autodecoder.field.sampling import Box
@@ -101,14 +102,12 @@ def update_field(field, points, normals, epochs=50, steps=None, lr_fraction=0.3,
     torch.manual_seed(seed)
     history = train_single(mean_net, cov_net, targets, options, np.random.default_rng(seed), quiet=quiet,
                            steps=steps)
-    with torch.no_grad():
-        residual = mean_net(torch.from_numpy(targets.points32)).double().numpy() / norm.scale
     config = {**field.config, "box_lo": lo.tolist(), "box_hi": hi.tolist()}
     info = copy.deepcopy(field.info)
     info.setdefault("updates", []).append({"n_new": len(points), "n_total": len(all_points), "steps": steps,
                                            "seconds": time.perf_counter() - t0,
                                            "final_losses": history[-1] if history else {}})
-    return StochasticField(mean_net, cov_net, norm, config, noise=float(np.sqrt(np.mean(residual**2))), info=info,
+    return StochasticField(mean_net, cov_net, norm, config, noise=residual_noise(mean_net, targets, norm), info=info,
                            training_points=all_points, training_normals=all_normals)
 
 

@@ -431,6 +431,11 @@ def test_surface_band_against_brute_force():
     band = SurfaceBand(pts, 0.15)
     brute = np.sqrt(((x[:, None] - pts[None]) ** 2).sum(-1)).min(1) <= 0.15
     np.testing.assert_array_equal(band.contains(x), brute)
+    from scipy.spatial import cKDTree
+
+    shared = SurfaceBand(cKDTree(pts), 0.15)  # a tree the caller already holds (the point score's reference)
+    np.testing.assert_array_equal(shared.contains(x), brute)
+    np.testing.assert_array_equal(shared.points, pts)
     with pytest.raises(ValueError, match="radius"):
         SurfaceBand(pts, 0.0)
 
