@@ -407,13 +407,16 @@ class Inspector(BaseEstimator):
         if not self.rays:
             self.combination_ = None
             return self._set([c["points"] for c in components], names)
+        from autodecoder.scanning.free_space import MAX_SURPRISAL
+
         from .combine import Combination
 
         missing = [i for i, c in enumerate(components) if "rays" not in c]
         if missing:
             raise ValueError(f"rays=True: {len(missing)} calibration scan(s) have no ray score (inspect them with "
                              f"this Inspector)")
-        self.combination_ = Combination(components, names=("points", "rays"), rule=COMBINATION_RULE)
+        self.combination_ = Combination(components, names=("points", "rays"), rule=COMBINATION_RULE,
+                                        ceiling=MAX_SURPRISAL)
         return self._set(self.combination_.calibration_scores(), names)
 
     def _set(self, scores, names):

@@ -73,7 +73,8 @@ DEFAULT_SELECT = 8
 DEFAULT_Q_FLOOR = 1e-3
 OWN_DEPTH_FACTOR = 3.0  # default own_depth in kernel lengthscales (see the module docstring)
 _MIN_VARIANCE = 1e-20
-_LOG_FLOOR = math.log(1e-300)  # P(free) below this is reported as this (a surprisal of 690.8 nats)
+MAX_SURPRISAL = -math.log(1e-300)  # the largest surprisal -log P(free) a ray can have: 690.8 nats (P(free) is floored)
+_LOG_FLOOR = -MAX_SURPRISAL
 
 
 @dataclass

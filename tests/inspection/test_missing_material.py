@@ -502,6 +502,41 @@ def test_log_gated_combination_by_hand():
         Combination({"points": points, "rays": rays - 1.0}, rule="gated-log")
 
 
+def test_log_gate_stays_below_the_ceiling():
+    """Good scans whose log ray scores spread widely (many 0, a few tens of nats) put the quantile gate above what
+    a ray score can reach; with the ceiling given the gate is log(1 + ceiling / factor) instead, by hand."""
+    from autodecoder.scanning.free_space import MAX_SURPRISAL
+    from inspection.combine import LOG_GATE_CEILING_FACTOR as f, LOG_GATE_MARGIN, LOG_GATE_QUANTILE, LOG_GATE_WEIGHT as w
+
+    assert MAX_SURPRISAL == pytest.approx(-np.log(1e-300))
+    rays = np.array([0.0] * 14 + [3.0, 12.0, 22.0, 31.0, 49.0, 110.0])  # shaped like the held-out cup's
+    points = np.linspace(1.0, 2.0, len(rays))
+    cal = {"points": points, "rays": rays}
+    free, bounded = Combination(cal, rule="gated-log"), Combination(cal, rule="gated-log", ceiling=MAX_SURPRISAL)
+    lr = np.log1p(rays)
+    m_r, sd_r = lr.mean(), lr.std(ddof=1)
+    quantile_gate = np.quantile((lr - m_r) / sd_r, LOG_GATE_QUANTILE) + LOG_GATE_MARGIN
+    assert np.expm1(m_r + sd_r * quantile_gate) > MAX_SURPRISAL  # unreachable: no scan could pass it
+    bound = (np.log1p(MAX_SURPRISAL / f) - m_r) / sd_r
+    assert bounded.gate[1] == pytest.approx(bound) and free.gate[1] == pytest.approx(quantile_gate)
+    m_p, sd_p = points.mean(), points.std(ddof=1)
+    new = {"points": np.full(3, 1.5), "rays": np.array([90.0, 300.0, MAX_SURPRISAL])}
+    z_r = (np.log1p(new["rays"]) - m_r) / sd_r
+    np.testing.assert_allclose(bounded.score(new), 1.5 + sd_p * w * np.maximum(z_r - bound, 0.0))
+    combined = bounded.score(new)
+    assert combined[0] == pytest.approx(1.5) and 1.5 < combined[1] < combined[2]
+    np.testing.assert_allclose(free.score(new), 1.5)  # without the bound the rays add nothing, even at the ceiling
+    # a gate already below the bound is left alone, and the ceiling survives the round trip
+    low = {"points": points, "rays": np.linspace(0.0, 2.0, len(rays))}
+    assert Combination(low, rule="gated-log", ceiling=MAX_SURPRISAL).gate[1] == pytest.approx(
+        Combination(low, rule="gated-log").gate[1])
+    again = Combination.from_dict(bounded.as_dict())
+    assert again.ceiling == MAX_SURPRISAL and again.score(new).tolist() == bounded.score(new).tolist()
+    assert "ceiling" not in free.as_dict() and Combination.from_dict(free.as_dict()).ceiling is None
+    with pytest.raises(ValueError, match="ceiling"):
+        Combination(cal, rule="gated-log", ceiling=0.0)
+
+
 def test_grazing_rays_are_not_tested():
     """Rays to points whose |cos| of incidence is below min_cos are left out (grazing = 1 / cos^2 - 1)."""
     field = WallField()
