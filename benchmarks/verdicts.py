@@ -12,7 +12,9 @@ held-back scans by itself). Printed per part: object AUROC overall and per defec
 and of good test scans flagged at the defaults, the threshold's basis and predicted false-alarm rate with its
 interval, seconds per scan; beside it the nearest-neighbour baseline (each test point's distance to the nearest point
 of the training scans, scan score = mean of the worst 5 %) thresholded the same way (``fit_threshold`` on the
-held-back scans' baseline scores at the same alpha).
+held-back scans' baseline scores at the same alpha). ``--no-origins`` strips the scans' sensor origins (a scanner that
+does not record them): a collection and model of their own, no rays, and the grazing term's viewpoint estimated from
+the normals (``inspection.scores.view_origin_from_normals``).
 
 ``--variants`` projects every scan once more and prints, for several point scores and aggregates, the same columns
 at the default alpha: the evidence behind the default score.
@@ -50,6 +52,8 @@ def synth(part, args, work):
 
     params = dict(part=part, n_train=args.train, n_test_good=args.test_good, n_test_defective=args.per_defect,
                   n_points=args.points, seed=args.seed, jitter_deg=args.jitter)
+    if args.no_origins:  # a scanner that does not record where it stood (the same scans otherwise)
+        params["sensor_origins"] = False
     key = hashlib.sha256(json.dumps(params, sort_keys=True).encode()).hexdigest()[:10]
     path = work / f"{part}_{key}" / "tree.h5"
     if not path.is_file():
@@ -58,6 +62,9 @@ def synth(part, args, work):
         scans, frame = synthesise(_part_mesh(part), n_train=args.train, n_test_good=args.test_good,
                                   n_test_defective=args.per_defect, n_points=args.points, seed=args.seed,
                                   jitter_deg=args.jitter, progress=not args.quiet)
+        if args.no_origins:
+            for scan in scans:
+                scan.sensor_origin = None
         ScanCollection.create(path, scans, frame=frame, provenance={"benchmark": "verdicts", **params})
         print(f"{part}: synthesised {len(scans)} scans in {time.perf_counter() - t0:.0f} s -> {path}")
     return path
@@ -175,6 +182,9 @@ def main(argv=None):
     rays.add_argument("--no-rays", action="store_true", help="calibrate without the ray score first (default: "
                                                              "score's own, the rays when every scan has a sensor "
                                                              "origin)")
+    p.add_argument("--no-origins", action="store_true", help="scans without sensor origins (the same synthetic scans, "
+                                                             "a collection and model of their own): no rays, and the "
+                                                             "grazing term's viewpoint estimated from the normals")
     p.add_argument("--epochs", type=int, default=None, help="train_latent epochs (default: its own)")
     p.add_argument("--variants", action="store_true", help="also the score study (point scores x aggregates)")
     p.add_argument("--work", default="results/verdicts")
