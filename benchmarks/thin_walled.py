@@ -21,8 +21,9 @@ Printed per part, object AUROC per defect type and overall, and the false-alarm 
   picks) aggregated as ``Inspector`` does;
 * ``rays``: the ray score alone (:mod:`inspection.ray_evidence`);
 * ``points+rays (max)``: :class:`inspection.combine.Combination` with ``rule='max'`` (the rule before issue 18);
-* ``points+rays (default)``: :class:`inspection.combine.Combination` with its default rule (``'gated'``), what
-  ``Inspector(rays=True)`` computes;
+* ``points+rays (gated)``: :class:`inspection.combine.Combination` with rule ``'gated'`` (what
+  ``Inspector(rays=True)`` computed before issue 18's ``'gated-log'``; the toolkit's defaults, surface band and
+  ``gated-log`` included, are measured by benchmarks/verdicts.py);
 * ``NN baseline``: each point's distance to the nearest point of all good training scans, scan score = mean of the
   top 5 % (as in benchmarks/inspect_fandisk.py).
 
@@ -237,7 +238,7 @@ def run_part(part, args, work):
     rows.append(("points+rays (max)", comb.score(test_m), comb.calibration_scores()))
     comb = Combination(cal_m)
     both_test = comb.score(test_m)
-    rows.append(("points+rays (default)", both_test, comb.calibration_scores()))
+    rows.append(("points+rays (gated)", both_test, comb.calibration_scores()))
     train_points = np.concatenate([s.points for s in ref_scans])
     nn_test, nn_cal = nn_baseline(train_points, test_scans), nn_baseline(train_points, cal_scans)
     rows.append(("NN baseline top5%", nn_test, nn_cal))
