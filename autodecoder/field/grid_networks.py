@@ -293,23 +293,35 @@ class GridMeanNet(nn.Module):
     init_std : float
         Initial feature scale (see :class:`GridEncoder`; the summed grids start at 0 whatever it is).
     seed : int
+    shared_cells : int
+        With a decoder: cells per side of one more B-spline level, not decoded, whose value is added to the
+        decoder's output, g(x, z) = s(x) + d(features(x), z) (0: none). In a latent model s is the geometry every
+        code shares (it can be solved on the union of the training scans, :func:`solve_shared`) and the decoded
+        part what the code changes.
     """
 
     def __init__(self, lo, hi, finest=128, levels=1, channels=1, base=None, hidden=0, depth=1, latent_dim=0,
-                 init_std=0.1, seed=0):
+                 init_std=0.1, seed=0, shared_cells=0):
         super().__init__()
         self.summed = hidden == 0 and latent_dim == 0
         if self.summed and channels != 1:
             raise ValueError(f"a mean without a decoder sums one channel per level, got channels={channels}")
+        if int(shared_cells) < 0 or (self.summed and int(shared_cells) > 0):
+            raise ValueError(f"shared_cells must be >= 0 and needs a decoder (hidden > 0 or a latent code), got "
+                             f"shared_cells={shared_cells}, hidden={hidden}, latent_dim={latent_dim}")
         self.encoder = GridEncoder(lo, hi, finest, levels, channels, base, 0.0 if self.summed else init_std, seed)
         self.decoder = None if self.summed else JetMLP(self.encoder.out_dim, 1, hidden, depth, latent_dim)
+        self.shared = BSplineGrid(int(shared_cells), 1, lo, hi) if int(shared_cells) > 0 else None
 
     def forward(self, x, z=None):
         """g at x (B, 3) -> (B,)."""
         f = self.encoder(x)
         if self.decoder is None:
             return f.sum(-1)
-        return self.decoder(f, z)[0][:, 0]
+        value = self.decoder(f, z)[0][:, 0]
+        if self.shared is not None:
+            value = value + self.shared(x)[:, 0]
+        return value
 
     def value_and_gradient(self, x, z=None):
         """g and grad_x g at x (B, 3) -> (B,), (B, 3)."""
@@ -317,7 +329,36 @@ class GridMeanNet(nn.Module):
         if self.decoder is None:
             return f.sum(-1), jac.sum(-1)
         value, grad = self.decoder(f, z, jac)
-        return value[:, 0], grad[:, :, 0]
+        value, grad = value[:, 0], grad[:, :, 0]
+        if self.shared is not None:
+            s, ds = self.shared.value_and_jacobian(x)
+            value, grad = value + s[:, 0], grad + ds[:, :, 0]
+        return value, grad
+
+    def features_at(self, x):
+        """What :meth:`value_and_gradient_from` needs at fixed points x (B, 3): everything that does not depend
+        on the code (features, their Jacobian, the shared level's value and gradient), detached.
+
+        Returns
+        -------
+        dict of tensors: ``f`` (B, F), ``jac`` (B, 3, F), ``s`` (B,), ``ds`` (B, 3) (zeros without a shared level)
+        """
+        if self.decoder is None:
+            raise ValueError("features_at needs a decoded grid mean (a summed one does not depend on a code)")
+        with torch.no_grad():
+            f, jac = self.encoder.value_and_jacobian(x)
+            if self.shared is not None:
+                s, ds = self.shared.value_and_jacobian(x)
+                s, ds = s[:, 0], ds[:, :, 0]
+            else:
+                s, ds = torch.zeros(len(x), dtype=f.dtype), torch.zeros(len(x), 3, dtype=f.dtype)
+        return {"f": f, "jac": jac, "s": s, "ds": ds}
+
+    def value_and_gradient_from(self, cache, z=None):
+        """g and grad_x g from :meth:`features_at`'s cache (rows may be indexed): the decoder alone runs, so a
+        code can be fitted to fixed points without interpolating the grids again. Returns (B,), (B, 3)."""
+        value, grad = self.decoder(cache["f"], z, cache["jac"])
+        return value[:, 0] + cache["s"], grad[:, :, 0] + cache["ds"]
 
 
 class GridCovarianceNet(nn.Module):
