@@ -53,6 +53,10 @@ MIN_DEFAULT_EPOCHS, MAX_DEFAULT_EPOCHS = 150, 600
 LATENT_GRID_MEAN = {"finest": 64, "levels": 4, "channels": 4, "hidden": 64, "depth": 1, "shared_cells": 96}
 LATENT_GRID_COV = {"finest": 16, "levels": 3, "channels": 16, "hidden": 64, "depth": 1, "features": 64}
 REPRESENTATIONS = ("siren", "grid")
+# The grid representation's step budget (default_epochs): its mean starts at the union's solved field, and on fandisk
+# its loss stopped falling within a few dozen epochs (docs/results.md#the-latent-model-on-grids-issue-19).
+GRID_DEFAULT_STEPS = 160
+GRID_MIN_DEFAULT_EPOCHS = 20
 
 LOG_COLUMNS = ("epoch", "loss", "mean_dirichlet", "mean_screening", "cov_dirichlet", "cov_screening", "code_reg",
                "code_rms", "lr", "seconds")
@@ -75,7 +79,8 @@ class LatentOptions:
         SIREN first-layer frequency.
     epochs : int, optional
         Passes over the training scans. Default (None): :func:`default_epochs`, enough for ``DEFAULT_STEPS``
-        optimisation steps per part type among the training scans (their ``part_id``), between 150 and 600 epochs.
+        optimisation steps per part type among the training scans (their ``part_id``), between 150 and 600 epochs
+        (grid representation: ``GRID_DEFAULT_STEPS``, at least 20 epochs).
     batch : int
         Scans per step (per process under DDP).
     lr, code_lr : float
@@ -143,7 +148,7 @@ class LatentOptions:
     grid_cov: Optional[dict] = None
     grid_lr: float = 1e-2
     shared_lr: float = 1e-5
-    shared_points: int = 30000
+    shared_points: int = 8000
 
     def __post_init__(self):
         if self.representation not in REPRESENTATIONS:
@@ -211,7 +216,7 @@ def _all_gather(obj, world):
     return out
 
 
-def default_epochs(n_scans, batch, world=1, n_parts=1):
+def default_epochs(n_scans, batch, world=1, n_parts=1, representation="siren"):
     """Epochs for ~``DEFAULT_STEPS`` steps per part type with ``n_scans`` scans of ``n_parts`` part types,
     ``batch`` per step and process, ``world`` processes; at least ``MIN_DEFAULT_EPOCHS`` (every code needs updates:
     it moves only when its scan is in a batch) and at most ``MAX_DEFAULT_EPOCHS``.
@@ -220,12 +225,19 @@ def default_epochs(n_scans, batch, world=1, n_parts=1):
     (``n_parts`` x ``DEFAULT_STEPS``), within the same epoch bounds, so that every code is updated about as often as
     in a single-part run of the same number of scans per part (one model trained on two parts with one part's budget
     ranked each part's defects far worse than the part's own model; docs/results.md#one-model-for-several-parts-issue-19).
-    With one part type this is the single-part rule unchanged."""
+    With one part type this is the single-part rule unchanged.
+
+    The grid representation (``representation="grid"``) starts from the union's solved mean and needs far fewer
+    steps: ``GRID_DEFAULT_STEPS`` per part type, between ``GRID_MIN_DEFAULT_EPOCHS`` and ``MAX_DEFAULT_EPOCHS``."""
     if int(n_parts) < 1:
         raise ValueError(f"n_parts must be >= 1, got {n_parts}")
+    if representation not in REPRESENTATIONS:
+        raise ValueError(f"representation must be one of {REPRESENTATIONS}, got {representation!r}")
     steps_per_epoch = math.ceil(math.ceil(n_scans / world) / max(1, min(batch, math.ceil(n_scans / world))))
-    steps = DEFAULT_STEPS * int(n_parts)
-    return int(min(MAX_DEFAULT_EPOCHS, max(MIN_DEFAULT_EPOCHS, math.ceil(steps / steps_per_epoch))))
+    grid = representation == "grid"
+    steps = (GRID_DEFAULT_STEPS if grid else DEFAULT_STEPS) * int(n_parts)
+    least = GRID_MIN_DEFAULT_EPOCHS if grid else MIN_DEFAULT_EPOCHS
+    return int(min(MAX_DEFAULT_EPOCHS, max(least, math.ceil(steps / steps_per_epoch))))
 
 
 def count_parts(part_ids):
@@ -407,7 +419,8 @@ def _resolve_options(options, resume, fingerprint, names, world, n_parts=1):
             raise ValueError(f"the checkpoint was written by {config.get('world_size', 1)} processes; resume it "
                              f"with the same number (got {world})")
     if options.epochs is None:
-        options = replace(options, epochs=default_epochs(len(names), options.batch, world, n_parts))
+        options = replace(options, epochs=default_epochs(len(names), options.batch, world, n_parts,
+                                                         options.representation))
     return options, config
 
 
