@@ -462,13 +462,14 @@ def _initial_state(config, options, n_scans, local, rank, device):
 
 
 def _net_optimiser(nets, options):
-    """Adam over the nets; grid control values get their own peak rate ``grid_lr`` (each group's ``peak_lr``,
-    which the schedule scales)."""
+    """Adam over the nets in groups with their own peak rates (each group's ``peak_lr``, which the schedule scales):
+    the decoders and SIRENs at ``lr``, grid control values at ``grid_lr``, the grid mean's shared level at
+    ``shared_lr``."""
     from autodecoder.field.grid_networks import BSplineGrid
 
-    shared = getattr(nets.mean_net, "shared", None)
-    shared = [] if shared is None else [shared.values]
-    grids = [m.values for m in nets.modules() if isinstance(m, BSplineGrid) and m.values is not (shared or [None])[0]]
+    shared_level = getattr(nets.mean_net, "shared", None)
+    shared = [] if shared_level is None else [shared_level.values]
+    grids = [m.values for m in nets.modules() if isinstance(m, BSplineGrid) and m is not shared_level]
     ids = {id(p) for p in grids + shared}
     others = [p for p in nets.parameters() if id(p) not in ids]
     groups = [{"params": others, "lr": options.lr, "peak_lr": options.lr}]

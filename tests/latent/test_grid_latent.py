@@ -154,3 +154,20 @@ def test_grid_default_epochs_follow_the_grid_budget():
     assert default_epochs(26, 8) != default_epochs(26, 8, representation="grid")
     with pytest.raises(ValueError, match="representation"):
         default_epochs(26, 8, representation="voxels")
+
+
+def test_grid_optimiser_groups_give_each_kind_of_parameter_its_rate():
+    from autodecoder.field.networks import build_networks
+    from autodecoder.latent.train import _NetPair, _net_optimiser
+
+    options = LatentOptions(**{k: v for k, v in GRID.items() if k not in ("grid_mean", "grid_cov")})
+    config = {"representation": "grid", "latent_dim": 2, "box_lo": [-0.5] * 3, "box_hi": [0.5] * 3,
+              "grid_mean": GRID["grid_mean"], "grid_cov": GRID["grid_cov"]}
+    mean_net, cov_net = build_networks(config)
+    opt = _net_optimiser(_NetPair(mean_net, cov_net, 100.0, 1.0), options)
+    rates = {id(p): g["peak_lr"] for g in opt.param_groups for p in g["params"]}
+    params = list(mean_net.parameters()) + list(cov_net.parameters())
+    assert len(rates) == len(params)  # every parameter once
+    assert rates[id(mean_net.shared.values)] == options.shared_lr
+    assert rates[id(mean_net.encoder.levels[0].values)] == rates[id(cov_net.encoder.levels[-1].values)] == options.grid_lr
+    assert rates[id(mean_net.decoder.layers[0].weight)] == rates[id(cov_net.decoder.code_in.weight)] == options.lr
