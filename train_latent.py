@@ -35,6 +35,10 @@ def build_parser():
                    help="passes over the training scans (default: enough for ~4800 steps per part type among the "
                         "scans' part ids, between 150 and 600 epochs); with --resume, the new total (default: the "
                         "checkpoint's)")
+    p.add_argument("--representation", choices=("siren", "grid"), default=None,
+                   help="the nets: 'siren' (the paper's SIRENs of --width x --depth) or 'grid' (B-spline feature "
+                        "grids decoded with the code; docs/model.md) (default: the library's "
+                        "LatentOptions.representation)")
     p.add_argument("--width", type=int, default=DEFAULTS["width"], help="SIREN hidden width (default: %(default)s)")
     p.add_argument("--depth", type=int, default=DEFAULTS["depth"],
                    help="SIREN hidden layers (default: %(default)s)")
@@ -85,6 +89,8 @@ def options_from_args(args):
                    seed=args.seed, checkpoint_every=args.checkpoint_every)
     if args.code_lr is not None:
         options["code_lr"] = args.code_lr
+    if args.representation is not None:
+        options["representation"] = args.representation
     return options
 
 

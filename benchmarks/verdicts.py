@@ -72,7 +72,7 @@ def synth(part, args, work):
 
 def train(data, args):
     """train_latent.py with its defaults (cached beside the data). Returns (model path, seconds or None)."""
-    model = data.parent / (f"model_e{args.epochs}.pt" if args.epochs else "model.pt")
+    model = data.parent / (f"model{_suffix(args)}.pt")
     if model.is_file():
         return model, None
     import train_latent
@@ -80,12 +80,19 @@ def train(data, args):
     argv = ["--data", str(data), "--out", str(model), "--seed", str(args.seed)]
     if args.epochs:
         argv += ["--epochs", str(args.epochs)]
+    if args.representation:
+        argv += ["--representation", args.representation]
     if args.quiet:
         argv.append("--quiet")
     t0 = time.perf_counter()
     if train_latent.main(argv) not in (0, None):
         raise SystemExit(f"training {data} failed")
     return model, time.perf_counter() - t0
+
+
+def _suffix(args):
+    """What tells this run's model (and scoring folder) apart from the defaults': '_e<epochs>', '_<representation>'."""
+    return (f"_e{args.epochs}" if args.epochs else "") + (f"_{args.representation}" if args.representation else "")
 
 
 def rates(scores, labels, defects, threshold):
@@ -107,7 +114,7 @@ def default_pipeline(part, data, model, args, work):
     """The README's shortest path on an uncalibrated copy: ``python -m inspection score``. Returns the summary."""
     from inspection.run import calibrate, score
 
-    run = work / ("defaults" + ("_aligned" if args.align else "") + ("_rays" if args.rays else "")
+    run = work / ("defaults" + _suffix(args) + ("_aligned" if args.align else "") + ("_rays" if args.rays else "")
                   + ("_norays" if args.no_rays else ""))
     run.mkdir(parents=True, exist_ok=True)
     copy = run / "model.pt"
@@ -186,6 +193,8 @@ def main(argv=None):
                                                              "a collection and model of their own): no rays, and the "
                                                              "grazing term's viewpoint estimated from the normals")
     p.add_argument("--epochs", type=int, default=None, help="train_latent epochs (default: its own)")
+    p.add_argument("--representation", choices=("siren", "grid"), default=None,
+                   help="train_latent.py --representation (default: its own); the model is cached per representation")
     p.add_argument("--variants", action="store_true", help="also the score study (point scores x aggregates)")
     p.add_argument("--work", default="results/verdicts")
     p.add_argument("--quiet", action="store_true")
@@ -210,7 +219,8 @@ def main(argv=None):
              "flag_good": metrics["false_alarm_rate"], "n_good": n_good}
         kinds |= set(metrics["auroc_per_defect"])
         rays = summary.get("rays") is not None
-        rows.append((part, f"toolkit {summary['point_score']}/{summary['aggregate']}" + (" +rays" if rays else ""), r, decision,
+        method = f"toolkit {summary['point_score']}/{summary['aggregate']}" + (" +rays" if rays else "")
+        rows.append((part, method + (f" {args.representation}" if args.representation else ""), r, decision,
                      summary["seconds_per_scan"]))
         nn, nn_decision, nn_sec = baseline(data, model, summary["alpha"])
         rows.append((part, "nearest-neighbour top5%", nn, nn_decision, nn_sec))

@@ -150,17 +150,33 @@ def solve_mean(mean_net, targets, tol=1e-6):
     """
     if mean_net.decoder is not None:
         raise ValueError("solve_mean needs a summed grid mean (no decoder): a decoded mean is not linear in the grids")
-    finest = mean_net.encoder.levels[-1]
-    extent = targets.box.hi - targets.box.lo
-    if not np.allclose(extent, extent[0], rtol=1e-6):
-        raise ValueError(f"solve_mean needs a cubic box, got extents {extent.tolist()}")
-    nodes, lo, _, info = grid_minimiser(targets, finest.cells + 1, tol=tol)
-    if not np.allclose(lo, finest.lo.double().numpy(), atol=1e-6):
-        raise ValueError("the grid mean's box is not the targets' box")
     with torch.no_grad():
         for level in mean_net.encoder.levels:
             level.values.zero_()
-    finest.set_from_nodes(nodes)
+    return _solve_level(mean_net.encoder.levels[-1], targets, tol)
+
+
+def solve_shared(mean_net, targets, tol=1e-6):
+    """Set a decoded grid mean's shared level s(x) (``GridMeanNet(shared_cells > 0)``) to the mean loss's minimiser
+    for ``targets`` on its nodes; returns the solver's info.
+
+    In a latent model ``targets`` are those of the union of the training scans: s is then the field every code
+    shares, and the decoder starts as a small correction of it.
+    """
+    if getattr(mean_net, "shared", None) is None:
+        raise ValueError("solve_shared needs a grid mean with a shared level (shared_cells > 0)")
+    return _solve_level(mean_net.shared, targets, tol)
+
+
+def _solve_level(level, targets, tol):
+    """Make the B-spline ``level`` interpolate the minimiser of ``targets``' mean loss on its nodes."""
+    extent = targets.box.hi - targets.box.lo
+    if not np.allclose(extent, extent[0], rtol=1e-6):
+        raise ValueError(f"the grid solve needs a cubic box, got extents {extent.tolist()}")
+    nodes, lo, _, info = grid_minimiser(targets, level.cells + 1, tol=tol)
+    if not np.allclose(lo, level.lo.double().numpy(), atol=1e-6):
+        raise ValueError("the grid mean's box is not the targets' box")
+    level.set_from_nodes(nodes)
     return info
 
 

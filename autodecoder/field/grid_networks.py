@@ -58,19 +58,35 @@ def cubic_bspline_weights(t):
 
 
 class _Gather(torch.autograd.Function):
-    """table[index] for a flat index; backward by ``index_add_`` (2-3x faster on CPU than ``F.embedding``'s)."""
+    """table[index], table[index + 1], ..., table[index + run - 1] side by side for a flat index: (R, C) -> (n, run C).
+
+    A tricubic tap's 4 control values along the last axis are consecutive rows, so one index fetches all 4 (a
+    quarter of the row look-ups of gathering them one by one). Forward: ``index_select`` on an overlapping strided
+    view of the table; backward: ``index_add_`` into that view's shape, then each of the ``run`` column blocks added
+    back at its row offset (faster on CPU than ``F.embedding``'s backward)."""
 
     @staticmethod
-    def forward(ctx, table, index):
+    def forward(ctx, table, index, run=1):
+        rows, channels = table.shape
         ctx.save_for_backward(index)
-        ctx.rows = table.shape[0]
-        return table.index_select(0, index)
+        ctx.rows, ctx.run = rows, int(run)
+        table = table.contiguous()
+        windows = table.as_strided((rows - run + 1, run * channels), (channels, 1))
+        return windows.index_select(0, index)
 
     @staticmethod
     def backward(ctx, grad):
         (index,) = ctx.saved_tensors
-        table_grad = torch.zeros(ctx.rows, grad.shape[1], dtype=grad.dtype, device=grad.device)
-        return table_grad.index_add_(0, index, grad), None
+        run, rows = ctx.run, ctx.rows
+        channels = grad.shape[1] // run
+        window_grad = torch.zeros(rows - run + 1, run * channels, dtype=grad.dtype, device=grad.device)
+        window_grad.index_add_(0, index, grad)
+        if run == 1:
+            return window_grad, None, None
+        table_grad = torch.zeros(rows, channels, dtype=grad.dtype, device=grad.device)
+        for k in range(run):
+            table_grad[k:k + rows - run + 1] += window_grad[:, k * channels:(k + 1) * channels]
+        return table_grad, None, None
 
 
 class BSplineGrid(nn.Module):
@@ -131,7 +147,8 @@ class BSplineGrid(nn.Module):
         self.values[:, channel] = torch.from_numpy(coef).reshape(-1).to(self.values.dtype)
 
     def _taps(self, x):
-        """Flat control-value indices (B, 64), interpolation weights (B, 4, 64): value, d/dx, d/dy, d/dz."""
+        """Flat control-value indices (B, 16) of the first of each run of 4 along z (the taps are the 4 rows from
+        each), interpolation weights (B, 4, 64): value, d/dx, d/dy, d/dz."""
         u = (x - self.lo.to(x.dtype)) / self.cell.to(x.dtype)  # (B, 3) in cells
         u = u.clamp(0.0, float(self.cells))
         base = u.detach().floor().clamp_(max=self.cells - 1)
@@ -142,7 +159,7 @@ class BSplineGrid(nn.Module):
         side = self.cells + 3
         offs = torch.arange(4, device=x.device)
         ix, iy, iz = (base[:, a, None] + offs for a in range(3))  # (B, 4) each
-        idx = ((ix[:, :, None, None] * side + iy[:, None, :, None]) * side + iz[:, None, None, :]).reshape(-1, 64)
+        idx = ((ix[:, :, None] * side + iy[:, None, :]) * side + iz[:, None, :1]).reshape(-1, 16)
         wx, wy, wz = w[:, 0], w[:, 1], w[:, 2]
         dx, dy, dz = dw[:, 0], dw[:, 1], dw[:, 2]
 
@@ -161,7 +178,7 @@ class BSplineGrid(nn.Module):
         idx, weights = self._taps(x)
         if not jacobian:
             weights = weights[:, :1]
-        taps = _Gather.apply(self.values, idx.reshape(-1)).reshape(len(x), 64, self.channels)
+        taps = _Gather.apply(self.values, idx.reshape(-1), 4).reshape(len(x), 64, self.channels)
         out = torch.bmm(weights.to(taps.dtype), taps)  # (B, 1 or 4, C)
         return out[:, 0], (out[:, 1:] if jacobian else None)
 
@@ -293,23 +310,35 @@ class GridMeanNet(nn.Module):
     init_std : float
         Initial feature scale (see :class:`GridEncoder`; the summed grids start at 0 whatever it is).
     seed : int
+    shared_cells : int
+        With a decoder: cells per side of one more B-spline level, not decoded, whose value is added to the
+        decoder's output, g(x, z) = s(x) + d(features(x), z) (0: none). In a latent model s is the geometry every
+        code shares (it can be solved on the union of the training scans, :func:`solve_shared`) and the decoded
+        part what the code changes.
     """
 
     def __init__(self, lo, hi, finest=128, levels=1, channels=1, base=None, hidden=0, depth=1, latent_dim=0,
-                 init_std=0.1, seed=0):
+                 init_std=0.1, seed=0, shared_cells=0):
         super().__init__()
         self.summed = hidden == 0 and latent_dim == 0
         if self.summed and channels != 1:
             raise ValueError(f"a mean without a decoder sums one channel per level, got channels={channels}")
+        if int(shared_cells) < 0 or (self.summed and int(shared_cells) > 0):
+            raise ValueError(f"shared_cells must be >= 0 and needs a decoder (hidden > 0 or a latent code), got "
+                             f"shared_cells={shared_cells}, hidden={hidden}, latent_dim={latent_dim}")
         self.encoder = GridEncoder(lo, hi, finest, levels, channels, base, 0.0 if self.summed else init_std, seed)
         self.decoder = None if self.summed else JetMLP(self.encoder.out_dim, 1, hidden, depth, latent_dim)
+        self.shared = BSplineGrid(int(shared_cells), 1, lo, hi) if int(shared_cells) > 0 else None
 
     def forward(self, x, z=None):
         """g at x (B, 3) -> (B,)."""
         f = self.encoder(x)
         if self.decoder is None:
             return f.sum(-1)
-        return self.decoder(f, z)[0][:, 0]
+        value = self.decoder(f, z)[0][:, 0]
+        if self.shared is not None:
+            value = value + self.shared(x)[:, 0]
+        return value
 
     def value_and_gradient(self, x, z=None):
         """g and grad_x g at x (B, 3) -> (B,), (B, 3)."""
@@ -317,7 +346,36 @@ class GridMeanNet(nn.Module):
         if self.decoder is None:
             return f.sum(-1), jac.sum(-1)
         value, grad = self.decoder(f, z, jac)
-        return value[:, 0], grad[:, :, 0]
+        value, grad = value[:, 0], grad[:, :, 0]
+        if self.shared is not None:
+            s, ds = self.shared.value_and_jacobian(x)
+            value, grad = value + s[:, 0], grad + ds[:, :, 0]
+        return value, grad
+
+    def features_at(self, x):
+        """What :meth:`value_and_gradient_from` needs at fixed points x (B, 3): everything that does not depend
+        on the code (features, their Jacobian, the shared level's value and gradient), detached.
+
+        Returns
+        -------
+        dict of tensors: ``f`` (B, F), ``jac`` (B, 3, F), ``s`` (B,), ``ds`` (B, 3) (zeros without a shared level)
+        """
+        if self.decoder is None:
+            raise ValueError("features_at needs a decoded grid mean (a summed one does not depend on a code)")
+        with torch.no_grad():
+            f, jac = self.encoder.value_and_jacobian(x)
+            if self.shared is not None:
+                s, ds = self.shared.value_and_jacobian(x)
+                s, ds = s[:, 0], ds[:, :, 0]
+            else:
+                s, ds = torch.zeros(len(x), dtype=f.dtype), torch.zeros(len(x), 3, dtype=f.dtype)
+        return {"f": f, "jac": jac, "s": s, "ds": ds}
+
+    def value_and_gradient_from(self, cache, z=None):
+        """g and grad_x g from :meth:`features_at`'s cache (rows may be indexed): the decoder alone runs, so a
+        code can be fitted to fixed points without interpolating the grids again. Returns (B,), (B, 3)."""
+        value, grad = self.decoder(cache["f"], z, cache["jac"])
+        return value[:, 0] + cache["s"], grad[:, :, 0] + cache["ds"]
 
 
 class GridCovarianceNet(nn.Module):

@@ -5,8 +5,10 @@ A checkpoint is a plain dict of tensors and Python values, readable with ``torch
 =====================  ==============================================================================================
 key                    content
 =====================  ==============================================================================================
-format, version        ``"nsspr-latent-model"``, 1
-config                 network and training configuration (see :func:`autodecoder.latent.train.train_latent`)
+format, version        ``"nsspr-latent-model"``, 2 (version 1, SIREN nets only, is still read)
+config                 network and training configuration (see :func:`autodecoder.latent.train.train_latent`);
+                       ``representation`` ('siren' or 'grid', absent in version 1: 'siren') and, for grids, the full
+                       ``grid_mean`` / ``grid_cov`` settings the nets are rebuilt from
 mean_state, cov_state  network weights
 codes                  (T, L) float32: one code per training scan, in ``train_names`` order
 code_mean, code_std    (L,) float32: statistics of the codes
@@ -37,7 +39,13 @@ from autodecoder.field.stochastic_field import StochasticField
 from autodecoder.latent.projection import project, project_many
 
 LATENT_FORMAT = "nsspr-latent-model"
-LATENT_VERSION = 1
+LATENT_VERSION = 2
+# Versions this toolkit reads. 1: SIREN nets (no ``representation`` in the config); 2 adds the grid representation
+# (a reader of version 1 only refuses those checkpoints instead of building the wrong nets).
+READABLE_VERSIONS = (1, 2)
+# Config keys a code's StochasticField needs to rebuild its nets (autodecoder.field.networks.build_networks).
+FIELD_CONFIG_KEYS = ("representation", "width", "depth", "latent_dim", "covariance", "features", "omega0",
+                     "grid_mean", "grid_cov", "lengthscale", "box_lo", "box_hi")
 _REQUIRED_KEYS = ("config", "mean_state", "cov_state", "codes", "train_names", "calibration_names", "frame", "noise")
 
 
@@ -45,9 +53,9 @@ def check_checkpoint(state, source):
     """Raise one clear ValueError naming ``source`` unless ``state`` is a latent-model checkpoint of our version."""
     if not isinstance(state, dict) or state.get("format") != LATENT_FORMAT:
         raise ValueError(f"{source}: not a latent model checkpoint (format tag {LATENT_FORMAT!r} missing)")
-    if state.get("version") != LATENT_VERSION:
+    if state.get("version") not in READABLE_VERSIONS:
         raise ValueError(f"{source}: latent model checkpoint version {state.get('version')} is not supported "
-                         f"(this toolkit reads version {LATENT_VERSION})")
+                         f"(this toolkit reads versions {', '.join(map(str, READABLE_VERSIONS))})")
     missing = [k for k in _REQUIRED_KEYS if k not in state]
     if missing:
         raise ValueError(f"{source}: damaged latent model checkpoint (missing {', '.join(missing)})")
@@ -115,18 +123,23 @@ class LatentModel:
         """GP kernel lengthscale the model was trained with (collection units)."""
         return float(self.config["lengthscale"])
 
+    @property
+    def representation(self):
+        """'siren' or 'grid': the kind of nets (version-1 checkpoints are all 'siren')."""
+        return str(self.config.get("representation", "siren"))
+
     def __repr__(self):
+        nets = (f"width={self.config['width']}, depth={self.config['depth']}" if self.representation == "siren"
+                else "grid")
         return (f"LatentModel({self.source!r}, {len(self.train_names)} training codes, latent_dim={self.latent_dim}, "
-                f"width={self.config['width']}, depth={self.config['depth']}, epoch={self.epoch})")
+                f"{nets}, epoch={self.epoch})")
 
     def field(self, code, mean_net=None, cov_net=None, info=None):
         """The :class:`StochasticField` of a code (L,), in the collection frame (identity frame)."""
         code = torch.as_tensor(code, dtype=torch.float32).reshape(-1)
         if code.shape != (self.latent_dim,):
             raise ValueError(f"code must have {self.latent_dim} entries, got {tuple(code.shape)}")
-        field_config = {k: self.config[k] for k in ("width", "depth", "latent_dim", "covariance", "features",
-                                                    "omega0", "lengthscale", "box_lo", "box_hi")
-                        if k in self.config}
+        field_config = {k: self.config[k] for k in FIELD_CONFIG_KEYS if k in self.config}
         return StochasticField(mean_net or self.mean_net, cov_net or self.cov_net, Frame.identity(),
                                field_config, code=code, noise=self.noise, info=info)
 

@@ -12,7 +12,9 @@ Robust starts: every candidate (the mean code and up to ``max_candidates`` train
 a small subset of the points; the ``starts`` best are optimised together for a short while and the best one goes on
 alone. A model trained on several part types records each training scan's part id; a scan of known part starts from
 that part's codes only (and from their mean instead of the mean of all codes), see :func:`part_codes`. Several scans are optimised in one batched forward pass (Adam acts elementwise, so each scan's code follows
-exactly the path it would follow alone).
+exactly the path it would follow alone). With a decoded grid mean (``representation="grid"``) the grids do not
+depend on the code: their features at a scan's points are interpolated once per scan
+(``mean_net.features_at``) and every step runs only the small decoder.
 """
 import time
 from dataclasses import dataclass, field, replace
@@ -119,11 +121,17 @@ def _prepare(scan_like, index):
     return points.astype(np.float32), normals.astype(np.float32), True
 
 
-def _point_losses(mean_net, x, normals, oriented, z, screening_weight):
-    """Per-point projection losses: x, normals (G, n, 3), z (G, L), oriented (G,) bool -> (G, n)."""
-    g_, n_, _ = x.shape
+def _point_losses(mean_net, x, normals, oriented, z, screening_weight, cache=None):
+    """Per-point projection losses: x, normals (G, n, 3), z (G, L), oriented (G,) bool -> (G, n).
+
+    ``cache``: the code-free part of the mean at x (``mean_net.features_at``, each entry (G, n, ...)); the mean is
+    then evaluated from it (``mean_net.value_and_gradient_from``) and x is not used."""
+    g_, n_, _ = normals.shape
     zz = z[:, None, :].expand(g_, n_, z.shape[1]).reshape(g_ * n_, -1)
-    g, grad = mean_net.value_and_gradient(x.reshape(-1, 3), zz)
+    if cache is None:
+        g, grad = mean_net.value_and_gradient(x.reshape(-1, 3), zz)
+    else:
+        g, grad = mean_net.value_and_gradient_from({k: v.reshape(g_ * n_, *v.shape[2:]) for k, v in cache.items()}, zz)
     g, grad = g.view(g_, n_), grad.view(g_, n_, 3)
     plus = (grad - normals).square().sum(-1)
     minus = (grad + normals).square().sum(-1)
@@ -142,9 +150,30 @@ def _trimmed_mean(per_point, trim):
     return per_point.mean(1)
 
 
-def _data_loss(mean_net, x, normals, oriented, z, screening_weight, trim=0.0):
+def _data_loss(mean_net, x, normals, oriented, z, screening_weight, trim=0.0, cache=None):
     """Per-group projection loss: x, normals (G, n, 3), z (G, L), oriented (G,) bool -> (G,) (trimmed mean)."""
-    return _trimmed_mean(_point_losses(mean_net, x, normals, oriented, z, screening_weight), trim)
+    return _trimmed_mean(_point_losses(mean_net, x, normals, oriented, z, screening_weight, cache), trim)
+
+
+def _uses_cache(net):
+    """Whether the mean net can be evaluated at fixed points from a code-free cache (a decoded grid mean: its
+    grids are interpolated once per scan, and each projection step runs only the decoder)."""
+    return hasattr(net, "features_at") and getattr(net, "decoder", None) is not None
+
+
+def _gathered(caches, idx):
+    """The caches' rows ``idx`` (one index tensor per scan), stacked: dict of (B, k, ...) tensors (None: no cache)."""
+    if caches is None:
+        return None
+    return {key: torch.stack([c[key][i] for c, i in zip(caches, idx)]) for key in caches[0]}
+
+
+def _expanded(cache, copies):
+    """Each scan's cache repeated for ``copies`` codes: (B, k, ...) -> (B * copies, k, ...) (None stays None)."""
+    if cache is None:
+        return None
+    return {key: v[:, None].expand(v.shape[0], copies, *v.shape[1:]).reshape(-1, *v.shape[1:])
+            for key, v in cache.items()}
 
 
 def project_many(model, scans, *, seed=0, batch=16, workers=None, quiet=True, **options):
@@ -281,21 +310,23 @@ def _project_batch(model, prepared, opts, seed):
     nrm = [torch.from_numpy(n) for _, n, _ in prepared]
     oriented = torch.tensor([o for _, _, o in prepared])
     sizes = [len(p) for p in pts]
+    caches = [net.features_at(p) for p in pts] if _uses_cache(net) else None
 
     def subset(k):
         idx = [torch.from_numpy(rng.integers(0, n, k)) for n in sizes]
-        return (torch.stack([p[i] for p, i in zip(pts, idx)]), torch.stack([q[i] for q, i in zip(nrm, idx)]))
+        return (torch.stack([p[i] for p, i in zip(pts, idx)]), torch.stack([q[i] for q, i in zip(nrm, idx)]),
+                _gathered(caches, idx))
 
     cand, cand_index = _candidates(model, opts.max_candidates, opts.exclude, opts.part_id)  # (C, L)
     c, latent = cand.shape
     starts = min(opts.starts, c)
     with torch.no_grad():
-        xs, ns = subset(opts.score_points)  # (B, q, 3)
+        xs, ns, cs = subset(opts.score_points)  # (B, q, 3)
         x = xs[:, None].expand(b, c, *xs.shape[1:]).reshape(b * c, -1, 3)
         n = ns[:, None].expand(b, c, *ns.shape[1:]).reshape(b * c, -1, 3)
         o = oriented[:, None].expand(b, c).reshape(-1)
         z = cand[None].expand(b, c, latent).reshape(b * c, latent)
-        score = _data_loss(net, x, n, o, z, lam_s, opts.trim).view(b, c)
+        score = _data_loss(net, x, n, o, z, lam_s, opts.trim, _expanded(cs, c)).view(b, c)
         best = torch.topk(-score, starts, dim=1).indices  # (B, starts)
     z = torch.nn.Parameter(cand[best].clone())  # (B, starts, L)
     start_index = cand_index[best.numpy()]  # (B, starts)
@@ -305,11 +336,11 @@ def _project_batch(model, prepared, opts, seed):
         for grp in opt.param_groups:
             grp["lr"] = opts.lr * cosine_decay(step, opts.steps, 0.1)
         k = z.shape[1]
-        xs, ns = subset(opts.sample)
+        xs, ns, cs = subset(opts.sample)
         x = xs[:, None].expand(b, k, *xs.shape[1:]).reshape(b * k, -1, 3)
         n = ns[:, None].expand(b, k, *ns.shape[1:]).reshape(b * k, -1, 3)
         o = oriented[:, None].expand(b, k).reshape(-1)
-        data = _data_loss(net, x, n, o, z.reshape(b * k, latent), lam_s, opts.trim).view(b, k)
+        data = _data_loss(net, x, n, o, z.reshape(b * k, latent), lam_s, opts.trim, _expanded(cs, k)).view(b, k)
         loss = data.sum() + lam_z * z.square().sum()
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -326,7 +357,8 @@ def _project_batch(model, prepared, opts, seed):
             start_index = start_index[rows.numpy(), keep.numpy()][:, None]
     z = z.detach()
     with torch.no_grad():  # final loss on all points, per start; keep the best
-        losses = torch.stack([_full_loss(net, pts[i], nrm[i], bool(oriented[i]), z[i], lam_s, opts.trim)
+        losses = torch.stack([_full_loss(net, pts[i], nrm[i], bool(oriented[i]), z[i], lam_s, opts.trim,
+                                         cache=None if caches is None else caches[i])
                               for i in range(b)])
     keep = losses.argmin(1)
     seconds = (time.perf_counter() - t0) / b
@@ -339,14 +371,16 @@ def _project_batch(model, prepared, opts, seed):
     return out
 
 
-def _full_loss(net, pts, nrm, oriented, z, lam_s, trim=0.0, chunk=8192):
-    """Projection loss (trimmed mean) of each of k codes z (k, L) on all of a scan's points -> (k,)."""
+def _full_loss(net, pts, nrm, oriented, z, lam_s, trim=0.0, chunk=8192, cache=None):
+    """Projection loss (trimmed mean) of each of k codes z (k, L) on all of a scan's points -> (k,); ``cache``: the
+    scan's ``features_at`` (entries (n, ...)), or None."""
     parts = []
     for s in range(0, len(pts), chunk):
         x = pts[s:s + chunk][None].expand(len(z), -1, 3)
         n = nrm[s:s + chunk][None].expand(len(z), -1, 3)
         o = torch.full((len(z),), oriented)
-        parts.append(_point_losses(net, x, n, o, z, lam_s).double())
+        part = None if cache is None else _expanded({k: v[s:s + chunk][None] for k, v in cache.items()}, len(z))
+        parts.append(_point_losses(net, x, n, o, z, lam_s, cache=part).double())
     return _trimmed_mean(torch.cat(parts, 1), trim).float()
 
 

@@ -46,6 +46,18 @@ from autodecoder.field.targets import DEFAULT_LENGTHSCALE_FACTOR, MIN_LENGTHSCAL
 DEFAULT_STEPS = 4800
 MIN_DEFAULT_EPOCHS, MAX_DEFAULT_EPOCHS = 150, 600
 
+# The grid representation's nets in a latent model (``representation="grid"``; keys of
+# autodecoder.field.grid_networks.GridMeanNet / GridCovarianceNet, overridden by LatentOptions.grid_mean / grid_cov):
+# multi-resolution B-spline features decoded with the code by a small MLP, and for the mean a shared level, solved
+# on the union of the training scans, that the decoded part corrects (docs/model.md; figures in docs/results.md).
+LATENT_GRID_MEAN = {"finest": 64, "levels": 4, "channels": 4, "hidden": 64, "depth": 1, "shared_cells": 96}
+LATENT_GRID_COV = {"finest": 16, "levels": 3, "channels": 16, "hidden": 64, "depth": 1, "features": 64}
+REPRESENTATIONS = ("siren", "grid")
+# The grid representation's step budget (default_epochs): its mean starts at the union's solved field, and on fandisk
+# its loss stopped falling within a few dozen epochs (docs/results.md#the-latent-model-on-grids-issue-19).
+GRID_DEFAULT_STEPS = 160
+GRID_MIN_DEFAULT_EPOCHS = 20
+
 LOG_COLUMNS = ("epoch", "loss", "mean_dirichlet", "mean_screening", "cov_dirichlet", "cov_screening", "code_reg",
                "code_rms", "lr", "seconds")
 
@@ -67,7 +79,8 @@ class LatentOptions:
         SIREN first-layer frequency.
     epochs : int, optional
         Passes over the training scans. Default (None): :func:`default_epochs`, enough for ``DEFAULT_STEPS``
-        optimisation steps per part type among the training scans (their ``part_id``), between 150 and 600 epochs.
+        optimisation steps per part type among the training scans (their ``part_id``), between 150 and 600 epochs
+        (grid representation: ``GRID_DEFAULT_STEPS``, at least 20 epochs).
     batch : int
         Scans per step (per process under DDP).
     lr, code_lr : float
@@ -92,6 +105,20 @@ class LatentOptions:
     seed : int
     checkpoint_every : int
         Epochs between checkpoints (0: only at the end).
+    representation : {'siren', 'grid'}
+        The nets: SIRENs of ``width`` x ``depth`` (the paper's), or B-spline feature grids decoded with the code
+        (:data:`LATENT_GRID_MEAN`, :data:`LATENT_GRID_COV`; ``width``, ``depth``, ``features`` and ``omega0`` are
+        then unused).
+    grid_mean, grid_cov : dict, optional
+        Overrides of :data:`LATENT_GRID_MEAN` / :data:`LATENT_GRID_COV` (grid representation only).
+    grid_lr : float
+        Peak Adam learning rate of the grids' control values (grid representation; the decoders use ``lr``).
+    shared_lr : float
+        Peak Adam learning rate of the grid mean's shared level: small, since it starts solved and Adam's noise on
+        control values few samples visit accumulates (as in :func:`autodecoder.field.grid_fit.fit_grid_cloud`).
+    shared_points : int
+        Points of the union of the training scans (a seeded random subset) on which the grid mean's shared level
+        is solved before training (0: not solved, the level starts at 0 and is trained like the rest).
     """
 
     latent_dim: int = 32
@@ -116,8 +143,16 @@ class LatentOptions:
     lengthscale: Optional[float] = None
     seed: int = 0
     checkpoint_every: int = 0
+    representation: str = "siren"
+    grid_mean: Optional[dict] = None
+    grid_cov: Optional[dict] = None
+    grid_lr: float = 1e-2
+    shared_lr: float = 1e-5
+    shared_points: int = 8000
 
     def __post_init__(self):
+        if self.representation not in REPRESENTATIONS:
+            raise ValueError(f"representation must be one of {REPRESENTATIONS}, got {self.representation!r}")
         for name in ("latent_dim", "width", "depth", "features", "batch", "mean_samples",
                      "screen_samples", "pair_clusters", "target_refresh", "target_passes"):
             if int(getattr(self, name)) < 1:
@@ -126,7 +161,11 @@ class LatentOptions:
             raise ValueError(f"epochs must be >= 1, got {self.epochs}")
         if self.cluster_size < 2:
             raise ValueError(f"cluster_size must be >= 2, got {self.cluster_size}")
-        for name in ("lr", "code_lr"):
+        if self.shared_lr < 0:
+            raise ValueError(f"shared_lr must be >= 0, got {self.shared_lr}")
+        if self.shared_points < 0:
+            raise ValueError(f"shared_points must be >= 0, got {self.shared_points}")
+        for name in ("lr", "code_lr", "grid_lr"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if self.code_reg < 0 or self.checkpoint_every < 0:
@@ -177,7 +216,7 @@ def _all_gather(obj, world):
     return out
 
 
-def default_epochs(n_scans, batch, world=1, n_parts=1):
+def default_epochs(n_scans, batch, world=1, n_parts=1, representation="siren"):
     """Epochs for ~``DEFAULT_STEPS`` steps per part type with ``n_scans`` scans of ``n_parts`` part types,
     ``batch`` per step and process, ``world`` processes; at least ``MIN_DEFAULT_EPOCHS`` (every code needs updates:
     it moves only when its scan is in a batch) and at most ``MAX_DEFAULT_EPOCHS``.
@@ -186,12 +225,19 @@ def default_epochs(n_scans, batch, world=1, n_parts=1):
     (``n_parts`` x ``DEFAULT_STEPS``), within the same epoch bounds, so that every code is updated about as often as
     in a single-part run of the same number of scans per part (one model trained on two parts with one part's budget
     ranked each part's defects far worse than the part's own model; docs/results.md#one-model-for-several-parts-issue-19).
-    With one part type this is the single-part rule unchanged."""
+    With one part type this is the single-part rule unchanged.
+
+    The grid representation (``representation="grid"``) starts from the union's solved mean and needs far fewer
+    steps: ``GRID_DEFAULT_STEPS`` per part type, between ``GRID_MIN_DEFAULT_EPOCHS`` and ``MAX_DEFAULT_EPOCHS``."""
     if int(n_parts) < 1:
         raise ValueError(f"n_parts must be >= 1, got {n_parts}")
+    if representation not in REPRESENTATIONS:
+        raise ValueError(f"representation must be one of {REPRESENTATIONS}, got {representation!r}")
     steps_per_epoch = math.ceil(math.ceil(n_scans / world) / max(1, min(batch, math.ceil(n_scans / world))))
-    steps = DEFAULT_STEPS * int(n_parts)
-    return int(min(MAX_DEFAULT_EPOCHS, max(MIN_DEFAULT_EPOCHS, math.ceil(steps / steps_per_epoch))))
+    grid = representation == "grid"
+    steps = (GRID_DEFAULT_STEPS if grid else DEFAULT_STEPS) * int(n_parts)
+    least = GRID_MIN_DEFAULT_EPOCHS if grid else MIN_DEFAULT_EPOCHS
+    return int(min(MAX_DEFAULT_EPOCHS, max(least, math.ceil(steps / steps_per_epoch))))
 
 
 def count_parts(part_ids):
@@ -257,6 +303,8 @@ def train_latent(scans, out=None, options=None, *, names=None, frame=None, finge
     state = _initial_state(config, options, n_scans, local, rank, device)
     if resume is not None:
         _restore(state, resume, local, rank, device)
+    elif config.get("representation", "siren") == "grid":
+        state.info["shared_solve"] = _solve_shared_level(state, local_scans, config, options)
     module = state.nets
     if distributed:
         from torch.nn.parallel import DistributedDataParallel
@@ -371,7 +419,8 @@ def _resolve_options(options, resume, fingerprint, names, world, n_parts=1):
             raise ValueError(f"the checkpoint was written by {config.get('world_size', 1)} processes; resume it "
                              f"with the same number (got {world})")
     if options.epochs is None:
-        options = replace(options, epochs=default_epochs(len(names), options.batch, world, n_parts))
+        options = replace(options, epochs=default_epochs(len(names), options.batch, world, n_parts,
+                                                         options.representation))
     return options, config
 
 
@@ -387,8 +436,12 @@ def _new_config(options, scans, n_scans, local_scans, world, distributed):
         dist.all_reduce(t, op=dist.ReduceOp.MAX)
         lo, hi = -t[:3].numpy(), t[3:].numpy()
     box = Box.around(np.stack([lo, hi]), margin=max(0.1, 4 * h))
-    return {**asdict(options), "lengthscale": float(h), "covariance": "feature",
-            "box_lo": box.lo.tolist(), "box_hi": box.hi.tolist(), "world_size": world}
+    config = {**asdict(options), "lengthscale": float(h), "covariance": "feature",
+              "box_lo": box.lo.tolist(), "box_hi": box.hi.tolist(), "world_size": world}
+    if options.representation == "grid":  # the full settings, so that a checkpoint rebuilds its nets exactly
+        config["grid_mean"] = {**LATENT_GRID_MEAN, "seed": options.seed, **(options.grid_mean or {})}
+        config["grid_cov"] = {**LATENT_GRID_COV, "seed": options.seed + 1, **(options.grid_cov or {})}
+    return config
 
 
 def _box(config):
@@ -403,10 +456,47 @@ def _initial_state(config, options, n_scans, local, rank, device):
     gen = torch.Generator().manual_seed(options.seed + 1)
     all_codes = torch.randn(n_scans, options.latent_dim, generator=gen) * options.code_init_std
     codes = nn.Parameter(all_codes[local].clone().to(device))
-    return TrainingState(config=config, nets=nets, codes=codes,
-                         opt_nets=torch.optim.Adam(nets.parameters(), lr=options.lr),
+    return TrainingState(config=config, nets=nets, codes=codes, opt_nets=_net_optimiser(nets, options),
                          opt_codes=torch.optim.Adam([codes], lr=options.code_lr),
                          rng=np.random.default_rng([options.seed, rank]), info={"train_seconds": 0.0})
+
+
+def _net_optimiser(nets, options):
+    """Adam over the nets in groups with their own peak rates (each group's ``peak_lr``, which the schedule scales):
+    the decoders and SIRENs at ``lr``, grid control values at ``grid_lr``, the grid mean's shared level at
+    ``shared_lr``."""
+    from autodecoder.field.grid_networks import BSplineGrid
+
+    shared_level = getattr(nets.mean_net, "shared", None)
+    shared = [] if shared_level is None else [shared_level.values]
+    grids = [m.values for m in nets.modules() if isinstance(m, BSplineGrid) and m is not shared_level]
+    ids = {id(p) for p in grids + shared}
+    others = [p for p in nets.parameters() if id(p) not in ids]
+    groups = [{"params": others, "lr": options.lr, "peak_lr": options.lr}]
+    for params, lr in ((grids, options.grid_lr), (shared, options.shared_lr)):
+        if params:
+            groups.append({"params": params, "lr": lr, "peak_lr": lr})
+    return torch.optim.Adam(groups, lr=options.lr)
+
+
+def _solve_shared_level(state, local_scans, config, options):
+    """Start the grid mean's shared level at the mean loss's minimiser on the union of this process's training
+    scans (``options.shared_points`` of their points, a seeded subset); returns the solver's info (empty when there
+    is nothing to solve). Under DDP every rank solves on its own scans and DDP copies rank 0's result."""
+    mean_net = state.nets.mean_net
+    if getattr(mean_net, "shared", None) is None or options.shared_points == 0:
+        return {}
+    from autodecoder.field.grid_fit import solve_shared
+
+    t0 = time.perf_counter()
+    points = np.concatenate([np.asarray(s.points, np.float64) for s in local_scans.values()])
+    normals = np.concatenate([np.asarray(s.normals, np.float64) for s in local_scans.values()])
+    if len(points) > options.shared_points:
+        pick = np.random.default_rng([options.seed, 7]).choice(len(points), options.shared_points, replace=False)
+        points, normals = points[pick], normals[pick]
+    union = CloudTargets(points, normals, float(config["lengthscale"]), box=_box(config))
+    info = solve_shared(mean_net, union)
+    return {**info, "points": len(points), "seconds": time.perf_counter() - t0}
 
 
 def _restore(state, checkpoint, local, rank, device):
@@ -488,7 +578,7 @@ def _train_epoch(state, module, pools, scope, options, epoch, steps_per_epoch, b
     for k in range(steps_per_epoch):
         f = cosine_decay(epoch * steps_per_epoch + k, total_steps, options.final_lr_fraction)
         for g in state.opt_nets.param_groups:
-            g["lr"] = options.lr * f
+            g["lr"] = g.get("peak_lr", options.lr) * f
         for g in state.opt_codes.param_groups:
             g["lr"] = options.code_lr * f
         sums += _train_step(state, module, pools, scope, options, epoch, order[k * batch:(k + 1) * batch])

@@ -43,6 +43,9 @@ MEANS = {
     "summed": lambda: GridMeanNet(LO, HI, finest=12, levels=3),
     "decoded": lambda: GridMeanNet(LO, HI, finest=8, levels=2, channels=3, hidden=8, depth=2),
     "latent": lambda: GridMeanNet(LO, HI, finest=8, levels=2, channels=2, hidden=8, latent_dim=4),
+    # the latent model's mean: decoded levels plus a shared level added to the decoder's output
+    "latent_shared": lambda: GridMeanNet(LO, HI, finest=8, levels=2, channels=2, hidden=8, latent_dim=4,
+                                         shared_cells=5),
 }
 
 
@@ -81,8 +84,9 @@ def test_mean_gradient_matches_autograd_and_finite_differences(kind):
     assert_rel_close(grad.detach(), fd, rtol=1e-6)
 
 
-def test_per_row_codes_are_accepted():
-    net = randomised(MEANS["latent"]())
+@pytest.mark.parametrize("kind", ["latent", "latent_shared"])
+def test_per_row_codes_are_accepted(kind):
+    net = randomised(MEANS[kind]())
     x = inside_points(6)
     z = code_for(net, batch=6)
     value, grad = net.value_and_gradient(x, z)
@@ -92,17 +96,77 @@ def test_per_row_codes_are_accepted():
         assert_rel_close(grad[i:i + 1], g)
 
 
+@pytest.mark.parametrize("kind", ["latent", "latent_shared"])
+def test_cached_features_give_the_same_mean_and_gradient(kind):
+    # projection interpolates the grids once per scan (features_at) and then runs only the decoder, on rows of the
+    # cache picked by index and with a code per row
+    net = randomised(MEANS[kind]())
+    x = inside_points(12)
+    z = code_for(net, batch=5)
+    pick = torch.tensor([3, 0, 11, 3, 7])
+    cache = net.features_at(x)
+    value, grad = net.value_and_gradient_from({k: v[pick] for k, v in cache.items()}, z)
+    ref_value, ref_grad = net.value_and_gradient(x[pick], z)
+    assert_rel_close(value.detach(), ref_value.detach())
+    assert_rel_close(grad.detach(), ref_grad.detach())
+    # the cache carries no graph back to the grids; the code still gets its gradient
+    assert all(not v.requires_grad for v in cache.values())
+    zr = z.clone().requires_grad_(True)
+    value, grad = net.value_and_gradient_from({k: v[pick] for k, v in cache.items()}, zr)
+    dz = torch.autograd.grad((value + grad.sum(1)).sum(), zr)[0]
+    zr2 = z.clone().requires_grad_(True)
+    value2, grad2 = net.value_and_gradient(x[pick], zr2)
+    assert_rel_close(dz, torch.autograd.grad((value2 + grad2.sum(1)).sum(), zr2)[0])
+    with pytest.raises(ValueError, match="decoded"):
+        randomised(MEANS["summed"]()).features_at(x)
+
+
+def test_shared_level_needs_a_decoder():
+    with pytest.raises(ValueError, match="shared_cells"):
+        GridMeanNet(LO, HI, finest=8, shared_cells=4)
+    with pytest.raises(ValueError, match="shared_cells"):
+        GridMeanNet(LO, HI, finest=8, channels=2, hidden=8, shared_cells=-1)
+
+
+def test_solve_shared_makes_the_shared_level_interpolate_the_grid_minimiser():
+    from autodecoder.field.grid_fit import solve_shared
+    from autodecoder.field.grid_minimiser import grid_minimiser
+    from autodecoder.field.sampling import Box
+    from autodecoder.field.targets import CloudTargets
+
+    rng = np.random.default_rng(0)
+    normals = rng.normal(size=(800, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    box = Box(np.full(3, -0.5), np.full(3, 0.5))
+    targets = CloudTargets(0.3 * normals, normals, 0.08, box=box)
+    net = GridMeanNet(box.lo, box.hi, finest=4, levels=1, channels=2, hidden=4, latent_dim=2, shared_cells=10)
+    info = solve_shared(net, targets)
+    nodes, lo, delta, _ = grid_minimiser(targets, 11, tol=1e-6)
+    assert info["converged"]
+    axis = lo[0] + delta * np.arange(11)
+    x = torch.from_numpy(np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)).float()
+    with torch.no_grad():
+        shared = net.shared(x)[:, 0].double().numpy()
+    assert np.abs(shared - nodes.ravel()).max() < 1e-4 * np.abs(nodes).max()
+    # the sphere's inside is negative, the box's corners positive
+    assert shared[np.argmin(np.linalg.norm(x.numpy(), axis=1))] < 0 < shared[0]
+    with pytest.raises(ValueError, match="shared level"):
+        solve_shared(GridMeanNet(box.lo, box.hi, finest=4, channels=2, hidden=4, latent_dim=2), targets)
+
+
 def test_latent_mean_without_code_is_refused():
     net = MEANS["latent"]()
     with pytest.raises(ValueError, match="latent code"):
         net(inside_points(3).float())
 
 
-@pytest.mark.parametrize("decoded", [False, True])
+@pytest.mark.parametrize("decoded", [False, True, "per-row codes"])
 def test_d_operator_matches_nested_autograd(decoded):
     kwargs = {"hidden": 8, "features": 5, "latent_dim": 2} if decoded else {}
     net = randomised(GridCovarianceNet(LO, HI, finest=6, levels=2, channels=3, **kwargs))
     z = torch.tensor([0.3, -0.7], dtype=torch.float64) if decoded else None
+    if decoded == "per-row codes":  # latent training: one code per pair, as many codes as scans in the batch
+        z = torch.randn(10, 2, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
     a, b = inside_points(10, seed=2), inside_points(10, seed=3)
     d_c = net.d_operator(a, b, z)
     ar, br = a.clone().requires_grad_(True), b.clone().requires_grad_(True)
