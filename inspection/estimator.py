@@ -11,7 +11,7 @@ from datasets.validation import points_and_normals
 from .calibration import Calibration
 from .threshold import DEFAULT_ALPHA, check_alpha, fit_threshold
 from .scores import (POINT_SCORES, REFERENCE_QUANTITY, LocalReference, aggregate as aggregate_scores, check_aggregate,
-                     field_quantity, grazing_factor, point_scores, view_origin_from_normals)
+                     field_quantity, grazing_factor, point_scores, reference_scores, view_origin_from_normals)
 
 log = logging.getLogger(__name__)
 
@@ -114,12 +114,13 @@ class Inspector(BaseEstimator):
         the worst 1 % of the points; chosen on benchmarks/inspect_fandisk.py, where it separated best: defects
         cover a few per cent of a scan's points, so the paper's ``'mean'`` dilutes them), ``'mean'`` (the paper's),
         ``'max'``, ``'median'``, ``'top<P>'``, ``'q<P>'``.
-    point_score : {'residual', 'distance', 'local', 'nll'}
+    point_score : {'residual', 'joint', 'distance', 'local', 'nll'}
         Per-point score (:func:`inspection.scores.point_scores`): the standardized residual (default here, as it
-        needs nothing more; the command line picks ``'distance'`` when it can reach the training scans), the
+        needs nothing more; the command line picks ``'joint'`` when it can reach the training scans), the
         first-order distance to the mean surface standardized against good scans at the same place
-        (``'distance'``: :meth:`fit` then needs ``reference_scans``, e.g. the model's training scans), the same on
-        E f itself (``'local'``), or the paper's NLL.
+        (``'distance'``: :meth:`fit` then needs ``reference_scans``, e.g. the model's training scans), that together
+        with the point's offset from the good scans' own surface (``'joint'``, same needs), the same on E f itself
+        (``'local'``), or the paper's NLL.
     noise : float, optional
         Noise floor (measurement noise standard deviation, model frame units); default the field's own.
     projection : dict, optional
@@ -153,7 +154,7 @@ class Inspector(BaseEstimator):
         ``-threshold_``, so that ``decision_function = score_samples - offset_`` is negative exactly for defects.
     n_calibration_ : int
     reference_ : LocalReference or None
-        Per-location statistics of good scans (point scores ``'distance'`` and ``'local'`` only).
+        Per-location statistics of good scans (point scores ``'joint'``, ``'distance'`` and ``'local'`` only).
     combination_ : Combination or None
         The standardization of the components on the calibration scans (``rays=True`` only).
     """
@@ -206,7 +207,7 @@ class Inspector(BaseEstimator):
 
     def inspect_components(self, scan):
         """Like :meth:`inspect`, but ``score`` is the point score's aggregate alone; works unfitted (except for
-        point scores ``'distance'`` and ``'local'``, which need their reference)."""
+        the per-location point scores, which need their reference)."""
         self._check_params()
         if self.point_score in REFERENCE_QUANTITY and getattr(self, "reference_", None) is None:
             raise NotFittedError(f"point_score {self.point_score!r} needs the per-location reference: call "
@@ -249,7 +250,8 @@ class Inspector(BaseEstimator):
         fitted ray reference, if any) (components: points, rays)."""
         if self.point_score in REFERENCE_QUANTITY:
             noise = float(getattr(good.field, "noise", 0.0) if self.noise is None else self.noise)
-            values = reference.standardized(good.points, good.value, good.variance, noise, good.grazing)
+            values = reference_scores(reference, self.point_score, good.points, good.value, good.variance, noise,
+                                      good.grazing)
         else:
             values = point_scores(good.field, good.points, kind=self.point_score, noise=self.noise)
         # a stray point (a lone return off the surface) is not a defect unless many points agree: the scan's score
@@ -294,9 +296,10 @@ class Inspector(BaseEstimator):
 
     # ------------------------------------------------------------------------------------------------ fitting
     def fit_reference(self, scans, max_points=60000, seed=0):
-        """Build ``reference_`` (for point scores ``'distance'`` and ``'local'``) from good scans, each projected as
-        a test scan would be (a training scan without starting from its own trained code); the model's training
-        scans are the natural choice. They are kept for the cross-fitted calibration of :meth:`fit`. Returns self."""
+        """Build ``reference_`` (for point scores ``'joint'``, ``'distance'`` and ``'local'``) from good scans, each
+        projected as a test scan would be (a training scan without starting from its own trained code); the model's
+        training scans are the natural choice. They are kept for the cross-fitted calibration of :meth:`fit`.
+        Returns self."""
         if self.point_score not in REFERENCE_QUANTITY:
             raise ValueError(f"point_score {self.point_score!r} uses no per-location reference")
         goods = [self._project(s, i, exclude_own_code=True) for i, s in enumerate(scans)]
@@ -335,8 +338,8 @@ class Inspector(BaseEstimator):
         names : list of str, optional
             Default: the scans' names.
         reference_scans : sequence of Scan, optional
-            Good scans for the per-location reference (point scores ``'distance'``, ``'local'``; required then, unless
-            ``reference_`` is already set): usually the model's training scans.
+            Good scans for the per-location reference (point scores ``'joint'``, ``'distance'``, ``'local'``; required
+            then, unless ``reference_`` is already set): usually the model's training scans.
         cross_fit : bool
             Also calibrate on the reference scans, cross-fitted (needs the scans the reference was built from
             in this session; with rays, their sensor origins).

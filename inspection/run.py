@@ -422,7 +422,7 @@ def _write_scan_maps(insp, scan, res, maps_dir):
     from .maps import RAY_MAP_RANGE, safe_name, write_map
     from .scores import point_scores
 
-    resid = res.point_scores if insp.point_score in ("residual", "local", "distance") else \
+    resid = res.point_scores if insp.point_score in ("residual", "local", "distance", "joint") else \
         point_scores(res.field, scan.points, "residual", insp.noise)
     write_map(maps_dir / f"{safe_name(scan.name)}.ply", scan.points, scan.normals, resid)
     if insp.rays:

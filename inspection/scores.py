@@ -10,13 +10,17 @@ import numpy as np
 
 from autodecoder.field.protocol import check_field
 
-POINT_SCORES = ("residual", "nll", "local", "distance")
+POINT_SCORES = ("residual", "nll", "local", "distance", "joint")
 REFERENCE_NEIGHBOURS = 16
 # |grad E f| is unitless (~1 on the mean surface of a well-fitted field, -> 0 far from it, where E f saturates); the
 # floor keeps E f / |grad E f| finite there while still growing well past the saturation distance
 GRADIENT_FLOOR = 0.2
 # which quantity each per-location point score compares with its reference
-REFERENCE_QUANTITY = {"local": "mean", "distance": "distance"}
+REFERENCE_QUANTITY = {"local": "mean", "distance": "distance", "joint": "distance"}
+# a reference point within this many reference bounding-box diagonals of a scored point is that point itself (a
+# rendered view of a template shares its points with the other views of that template): the reference surface's
+# plane is fitted without it
+SELF_DISTANCE = 1e-6
 _MIN_VARIANCE = 1e-20
 # cos^2 of the angle between the sensor's ray and the surface normal is floored here (about 87 degrees) so that the
 # grazing factor 1 / cos^2 - 1 stays finite at silhouettes
@@ -47,6 +51,12 @@ def point_scores(field, points, kind="residual", noise=None, reference=None, nor
       follows the depth while |grad m| >= the floor and then stays at |m| / floor: points off the field's shell
       are lifted by up to 1 / floor = 5 x relative to points near the mean surface (where |grad m| ~ 1), which is
       where the defects are and good scans are not (figures: docs/results.md#the-per-point-score).
+    * ``'joint'``: the ``'distance'`` score z_d and the reference surface's z_s (:meth:`LocalReference.surface_scores`:
+      the point's offset from the plane through its nearest good-scan points) taken together as two independent
+      standardized residuals, sqrt((z_d^2 + z_s^2) / 2) (:func:`joint_score`). The projected field errs at a
+      scan's borders and at grazing angles, where the good scans' points still lie on the part; the good scans'
+      points do not follow the scan's own field and are noisy and sparse, where the field is smooth. A point scores
+      high only when its residual is large under both on average, in the same units as the other scores.
 
     Parameters
     ----------
@@ -54,12 +64,13 @@ def point_scores(field, points, kind="residual", noise=None, reference=None, nor
         E.g. a :class:`autodecoder.StochasticField`.
     points : (m, 3) array
         In the field's frame.
-    kind : {'residual', 'nll', 'local', 'distance'}
+    kind : {'residual', 'nll', 'local', 'distance', 'joint'}
     noise : float, optional
         Measurement noise standard deviation (the noise floor), in the field's length units; default
         ``field.noise``.
     reference : LocalReference
-        Needed by ``'local'`` and ``'distance'``, built on the same quantity (``REFERENCE_QUANTITY[kind]``).
+        Needed by ``'local'``, ``'distance'`` and ``'joint'``, built on the same quantity
+        (``REFERENCE_QUANTITY[kind]``).
     normals, origin : (m, 3) array and (3,) array, optional
         The scan's normals and sensor origin: with both, the reference scores' noise grows where the sensor's ray
         grazes the surface (:func:`grazing_factor`, weighted by the reference's ``grazing_scale``).
@@ -86,13 +97,46 @@ def point_scores(field, points, kind="residual", noise=None, reference=None, nor
                              f"of {reference.quantity!r} values")
         value, variance = field_quantity(field, points, reference.quantity, with_variance=True)
         grazing = None if origin is None or normals is None else grazing_factor(points, normals, origin)
-        return reference.standardized(points, value, variance, noise, grazing)
+        return reference_scores(reference, kind, points, value, variance, noise, grazing)
     mean = np.asarray(field.mean(points), dtype=np.float64)
     var = np.maximum(np.asarray(field.variance(points), dtype=np.float64), 0.0)
     total = np.maximum(var + noise**2, _MIN_VARIANCE)
     if kind == "residual":
         return np.abs(mean) / np.sqrt(total)
     return 0.5 * (mean**2 / total + np.log(2 * math.pi * total))
+
+
+def joint_score(distance_scores, surface_scores):
+    """sqrt((z_d^2 + z_s^2) / 2) of two standardized residuals of the same points, elementwise.
+
+    Under a good part each residual is ~N(0, 1); taken as independent, -log of their joint density is
+    (z_d^2 + z_s^2) / 2 up to a constant, and its square root keeps the score in standard deviations (a point 2
+    deviations off under both scores 2), which the log-normal tail of :mod:`inspection.threshold` and the maps'
+    fixed colour range expect. Equal weights: neither residual is trusted more a priori.
+
+    Parameters
+    ----------
+    distance_scores, surface_scores : (m,) arrays >= 0
+
+    Returns
+    -------
+    (m,) float64 array
+    """
+    a = np.asarray(distance_scores, dtype=np.float64)
+    b = np.asarray(surface_scores, dtype=np.float64)
+    if a.shape != b.shape:
+        raise ValueError(f"joint_score needs one surface score per distance score, got shapes {a.shape} and {b.shape}")
+    return np.sqrt((a**2 + b**2) / 2)
+
+
+def reference_scores(reference, kind, points, value, variance, noise, grazing=None):
+    """The per-location point score ``kind`` (``'local'``, ``'distance'`` or ``'joint'``) of (m, 3) points whose
+    compared quantity (m,) and field variance (m,) are given, against ``reference`` (a :class:`LocalReference`);
+    ``grazing`` (m,) or None. Returns (m,) float64."""
+    scores = reference.standardized(points, value, variance, noise, grazing)
+    if kind == "joint":
+        scores = joint_score(scores, reference.surface_scores(points, noise, grazing))
+    return scores
 
 
 def field_quantity(field, points, quantity, with_variance=False):
@@ -243,6 +287,10 @@ class LocalReference:
     where good scans' worst points lie (at a view's border, near silhouettes). ``variance_scale`` and
     ``grazing_scale`` are calibrated on good scans (:meth:`fit_noise_model`); both 0 is the reference alone.
 
+    The good scans' points also describe the part's surface by themselves, independently of any field:
+    :meth:`surface_scores` scores a point by its offset from the plane through its ``k`` nearest distinct reference
+    points (the ``'joint'`` point score).
+
     Parameters
     ----------
     points : (n, 3) array
@@ -281,6 +329,7 @@ class LocalReference:
         if self.owners is not None and len(self.owners) != len(self.points):
             raise ValueError(f"owners must have one entry per point ({len(self.points)}), got {len(self.owners)}")
         self._tree = None
+        self._surface = None
 
     @classmethod
     def from_values(cls, scans, max_points=60000, seed=0, k=REFERENCE_NEIGHBOURS, quantity="mean"):
@@ -316,6 +365,62 @@ class LocalReference:
         if self._tree is None:
             self._tree = cKDTree(self.points)
         return self._tree
+
+    def _surface_tree(self):
+        """(KD-tree over the distinct reference points, self distance): a point that several good scans share
+        (rendered views of one template) counts once in the plane fits."""
+        from scipy.spatial import cKDTree
+
+        if self._surface is None:
+            distinct = np.unique(self.points, axis=0)
+            diagonal = float(np.linalg.norm(np.ptp(distinct, axis=0)))
+            self._surface = (cKDTree(distinct), SELF_DISTANCE * max(diagonal, 1e-12))
+        return self._surface
+
+    def surface(self, points):
+        """Offsets of points from the good scans' surface, without any field.
+
+        For each point p, the plane through its ``k`` nearest distinct reference points, p itself left out when it
+        is one of them (a calibration view of a template shares its points with the reference's views of that
+        template; a point is not evidence for itself): centroid c, unit normal n (the direction of least spread),
+        and the points' variance along n, which holds their noise and the surface's curvature within the
+        neighbourhood.
+
+        Parameters
+        ----------
+        points : (m, 3) array
+            Model frame.
+
+        Returns
+        -------
+        offset : (m,) float64
+            n . (p - c), world units, the sign arbitrary.
+        spread : (m,) float64
+            The neighbours' variance along n, squared world units (>= 0).
+        """
+        tree, self_distance = self._surface_tree()
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        k = min(self.k, tree.n - 1)
+        if k < 3:
+            raise ValueError(f"the reference surface needs >= 4 distinct points, got {tree.n}")
+        dist, idx = tree.query(points, k + 1)  # (m, k + 1)
+        is_self = dist[:, 0] <= self_distance
+        idx = np.where(is_self[:, None], idx[:, 1:], idx[:, :-1])  # (m, k)
+        nb = tree.data[idx]  # (m, k, 3)
+        centroid = nb.mean(1)
+        centred = nb - centroid[:, None]
+        cov = np.einsum("mki,mkj->mij", centred, centred) / k  # (m, 3, 3)
+        eigval, eigvec = np.linalg.eigh(cov)  # ascending
+        normal = eigvec[:, :, 0]
+        return np.einsum("mi,mi->m", normal, points - centroid), np.maximum(eigval[:, 0], 0.0)
+
+    def surface_scores(self, points, noise, grazing=None):
+        """|offset| / sqrt(spread + noise^2 (1 + grazing_scale * g)) with offset, spread of :meth:`surface`: how
+        many standard deviations a point lies off the good scans' surface. The neighbours' spread holds their own
+        noise and the surface's curvature; the point's own measurement noise grows with the grazing factor g (m,)
+        (None: 0) as in :meth:`standardized`. (m,) float64."""
+        offset, spread = self.surface(points)
+        return np.abs(offset) / np.sqrt(self._total(spread, 0.0, float(noise) ** 2, grazing, 0.0, self.grazing_scale))
 
     def stats(self, points):
         """Local mean and standard deviation of the reference values around each point: (m,), (m,)."""

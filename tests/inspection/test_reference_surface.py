@@ -1,0 +1,116 @@
+"""inspection.scores: the good scans' own surface (LocalReference.surface) and the 'joint' point score."""
+import math
+
+import numpy as np
+import pytest
+
+from autodecoder.field.protocol import Field
+from inspection import point_scores
+from inspection.scores import LocalReference, joint_score
+
+
+def _naive_surface(reference_points, query, k, self_distance):
+    """Brute force: the k nearest distinct reference points other than the query itself, plane by SVD."""
+    distinct = np.unique(np.asarray(reference_points, dtype=np.float32), axis=0).astype(np.float64)
+    offsets, spreads = [], []
+    for p in query:
+        d = np.linalg.norm(distinct - p, axis=1)
+        order = [i for i in np.argsort(d, kind="stable") if d[i] > self_distance][:k]
+        nb = distinct[order]
+        c = nb.mean(0)
+        _, s, vt = np.linalg.svd(nb - c)
+        offsets.append(vt[-1] @ (p - c))
+        spreads.append(s[-1] ** 2 / k)
+    return np.array(offsets), np.array(spreads)
+
+
+def _tilted_plane(n, seed, noise):
+    """Points on the plane z = 0.3 x - 0.2 y (unit normal below) with noise along the normal."""
+    rng = np.random.default_rng(seed)
+    normal = np.array([-0.3, 0.2, 1.0]) / math.sqrt(1.13)
+    xy = rng.uniform(-1, 1, (n, 2))
+    pts = np.c_[xy, 0.3 * xy[:, 0] - 0.2 * xy[:, 1]] + noise * rng.normal(size=(n, 1)) * normal
+    return pts, normal
+
+
+def test_surface_offset_is_the_distance_to_the_plane_and_matches_brute_force():
+    pts, normal = _tilted_plane(3000, 0, noise=0.0)
+    ref = LocalReference(pts, np.zeros(len(pts)), k=12)
+    heights = np.array([0.0, 0.01, -0.05, 0.2])
+    base = np.array([[0.1, 0.2, 0.0], [-0.3, 0.0, 0.0], [0.0, -0.4, 0.0], [0.5, 0.5, 0.0]])
+    base[:, 2] = 0.3 * base[:, 0] - 0.2 * base[:, 1]
+    query = base + heights[:, None] * normal
+    offset, spread = ref.surface(query)
+    np.testing.assert_allclose(np.abs(offset), np.abs(heights), atol=1e-6)  # exact plane (float32 storage)
+    np.testing.assert_allclose(spread, 0.0, atol=1e-12)
+    # noisy: against the brute-force plane fit
+    noisy, _ = _tilted_plane(800, 1, noise=0.01)
+    ref = LocalReference(noisy, np.zeros(len(noisy)), k=10)
+    q = noisy[:50] + np.random.default_rng(2).normal(0, 0.02, (50, 3))
+    self_distance = 1e-6 * float(np.linalg.norm(np.ptp(np.unique(ref.points, axis=0), axis=0)))
+    exp_off, exp_spread = _naive_surface(noisy, q, 10, self_distance)
+    offset, spread = ref.surface(q)
+    np.testing.assert_allclose(np.abs(offset), np.abs(exp_off), rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(spread, exp_spread, rtol=1e-6, atol=1e-12)
+
+
+def test_surface_leaves_the_point_itself_out_and_counts_shared_points_once():
+    """A calibration view of a template shares its points with the reference's views: the point is not evidence
+    for itself, and a point in several views is one point of the surface."""
+    pts, _ = _tilted_plane(500, 3, noise=0.01)
+    ref = LocalReference(pts, np.zeros(len(pts)), k=8)
+    twice = LocalReference(np.r_[pts, pts, pts], np.zeros(3 * len(pts)), k=8)
+    offset, spread = ref.surface(pts[:40])
+    np.testing.assert_array_equal(twice.surface(pts[:40])[0], offset)
+    # brute force without the point itself (stored as float32: it lies within ~1e-8 of its float64 query)
+    exp_off, exp_spread = _naive_surface(pts, pts[:40], 8, 1e-6)
+    np.testing.assert_allclose(np.abs(offset), np.abs(exp_off), rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(spread, exp_spread, rtol=1e-5, atol=1e-12)
+    # with the point in its own plane fit, the offset would be shrunk toward 0
+    assert np.mean(np.abs(offset)) > 1.02 * np.mean(np.abs(_naive_surface(pts, pts[:40], 8, -1.0)[0]))
+    with pytest.raises(ValueError, match="distinct"):
+        LocalReference(np.zeros((20, 3)), np.zeros(20), k=4).surface(np.ones((1, 3)))
+
+
+def test_surface_scores_and_joint_score_formulae():
+    pts, normal = _tilted_plane(2000, 4, noise=0.0)
+    ref = LocalReference(pts, np.zeros(len(pts)), k=12, quantity="distance", grazing_scale=2.0)
+    q = np.array([[0.0, 0.0, 0.0]]) + 0.03 * normal
+    # spread 0 on an exact plane: 0.03 / sqrt(noise^2 (1 + 2 g))
+    assert ref.surface_scores(q, 0.01)[0] == pytest.approx(3.0, rel=1e-4)
+    assert ref.surface_scores(q, 0.01, np.array([4.0]))[0] == pytest.approx(0.03 / math.sqrt(1e-4 * 9), rel=1e-4)
+    np.testing.assert_allclose(joint_score([3.0, 0.0, 1.0], [4.0, 2.0, 1.0]), [math.sqrt(12.5), math.sqrt(2), 1.0])
+    with pytest.raises(ValueError, match="one surface score per distance score"):
+        joint_score([1.0, 2.0], [1.0])
+
+
+class _PlaneField(Field):
+    """E f = the signed height above the plane z = 0 (so the distance quantity is the height), variance 1e-4."""
+
+    def __init__(self, offset=0.0):
+        self.noise, self.offset = 0.01, offset
+
+    def mean(self, x):
+        return np.asarray(x)[:, 2] + self.offset
+
+    def variance(self, x):
+        return np.full(len(x), 1e-4)
+
+    def mean_gradient(self, x):
+        return np.tile([0.0, 0.0, 1.0], (len(x), 1))
+
+
+def test_joint_point_score_combines_the_distance_and_surface_scores():
+    rng = np.random.default_rng(5)
+    pts = np.c_[rng.uniform(-1, 1, (2000, 2)), np.zeros(2000)]
+    ref = LocalReference(pts, rng.normal(0, 0.005, 2000), k=16, quantity="distance", variance_scale=0.5)
+    x = np.c_[rng.uniform(-0.5, 0.5, (30, 2)), rng.normal(0, 0.02, 30)]
+    f = _PlaneField()
+    dist = point_scores(f, x, "distance", reference=ref)
+    surf = ref.surface_scores(x, f.noise)
+    np.testing.assert_allclose(point_scores(f, x, "joint", reference=ref), np.sqrt((dist**2 + surf**2) / 2),
+                               rtol=1e-12)
+    # a field that misses a good point (E f = 0.05 where the point lies on the good scans' plane) scores it lower
+    # under 'joint' than under 'distance': the good scans' surface explains it
+    on, off = np.c_[rng.uniform(-0.5, 0.5, (30, 2)), np.zeros(30)], _PlaneField(offset=0.05)
+    assert np.all(point_scores(off, on, "joint", reference=ref) < point_scores(off, on, "distance", reference=ref))
