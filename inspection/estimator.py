@@ -27,6 +27,29 @@ COMBINATION_RULE = "gated-log"
 REFERENCE_RAYS = 1536
 
 
+# points of the good scans' own surface kept in a reference (LocalReference.surface), at most: every training scan of
+# a 64-view template collection (~180,000 points) or of 32 synthetic scans of 4,000 points fits
+SURFACE_MAX_POINTS = 240000
+
+
+def _surface_points(scans, reference_names, seed=0):
+    """The points (n, 3) of good scans and their owners (n,): the index in ``reference_names`` of a scan named like
+    one of them, else -1 - its own index (never left out). Seeded subsample to ``SURFACE_MAX_POINTS``."""
+    points, owners = [], []
+    for i, scan in enumerate(scans):
+        p = np.asarray(points_and_normals(scan)[0], dtype=np.float64).reshape(-1, 3)
+        name = getattr(scan, "name", None)
+        owners.append(np.full(len(p), reference_names.index(name) if name and name in reference_names else -1 - i))
+        points.append(p)
+    if not points:
+        raise ValueError("surface_scans: no scans given")
+    points, owners = np.concatenate(points), np.concatenate(owners)
+    if len(points) > SURFACE_MAX_POINTS:
+        keep = np.sort(np.random.default_rng(seed).choice(len(points), SURFACE_MAX_POINTS, replace=False))
+        points, owners = points[keep], owners[keep]
+    return points.astype(np.float32), owners
+
+
 @dataclass
 class _Projected:
     """A scan projected into the model: its name, points (m, 3), field, sensor origin (None when unknown), and for
@@ -295,11 +318,14 @@ class Inspector(BaseEstimator):
         return self.inspect_components(scan).rays.point_map
 
     # ------------------------------------------------------------------------------------------------ fitting
-    def fit_reference(self, scans, max_points=60000, seed=0):
+    def fit_reference(self, scans, max_points=60000, seed=0, surface_scans=None):
         """Build ``reference_`` (for point scores ``'joint'``, ``'distance'`` and ``'local'``) from good scans, each
         projected as a test scan would be (a training scan without starting from its own trained code); the model's
         training scans are the natural choice. They are kept for the cross-fitted calibration of :meth:`fit`.
-        Returns self."""
+        ``surface_scans`` (good scans, not projected; e.g. every training scan when ``scans`` is a subset of them):
+        the points of the good scans' own surface (:meth:`LocalReference.surface`), up to ``SURFACE_MAX_POINTS``
+        (seeded subsample); a scan named like one of ``scans`` is left out with it when cross-fitting. None: the
+        points of ``scans``. Returns self."""
         if self.point_score not in REFERENCE_QUANTITY:
             raise ValueError(f"point_score {self.point_score!r} uses no per-location reference")
         goods = [self._project(s, i, exclude_own_code=True) for i, s in enumerate(scans)]
@@ -307,6 +333,9 @@ class Inspector(BaseEstimator):
             raise ValueError("fit_reference needs at least one good scan, got none")
         self.reference_ = LocalReference.from_values([(g.points, g.value) for g in goods], max_points=max_points,
                                                      seed=seed, quantity=REFERENCE_QUANTITY[self.point_score])
+        if surface_scans is not None:
+            self.reference_.surface_points, self.reference_.surface_owners = _surface_points(
+                surface_scans, [g.name for g in goods], seed)
         self._reference_scans = goods
         self.ray_reference_ = None
         if self.rays and all(g.origin is not None for g in goods):
@@ -321,7 +350,7 @@ class Inspector(BaseEstimator):
             self.ray_reference_ = RayReference.build(((g.points, g.origin, g.field) for g in goods), **options)
         return self
 
-    def fit(self, good_scans, y=None, names=None, reference_scans=None, cross_fit=True):
+    def fit(self, good_scans, y=None, names=None, reference_scans=None, cross_fit=True, surface_scans=None):
         """Calibrate on good scans: the ones given, which the model did NOT train on (held-back or validation
         scans), and, with a per-location reference, the reference scans themselves, cross-fitted.
 
@@ -343,6 +372,9 @@ class Inspector(BaseEstimator):
         cross_fit : bool
             Also calibrate on the reference scans, cross-fitted (needs the scans the reference was built from
             in this session; with rays, their sensor origins).
+        surface_scans : sequence of Scan, optional
+            With ``reference_scans``: the good scans whose points make the reference's surface
+            (:meth:`fit_reference`).
 
         Returns
         -------
@@ -350,7 +382,7 @@ class Inspector(BaseEstimator):
         """
         self._check_params()
         if reference_scans is not None:
-            self.fit_reference(reference_scans)
+            self.fit_reference(reference_scans, surface_scans=surface_scans)
         elif self.point_score in REFERENCE_QUANTITY and getattr(self, "reference_", None) is None:
             raise ValueError(f"point_score={self.point_score!r} needs reference_scans (good scans, e.g. the training "
                              "scans)")

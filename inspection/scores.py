@@ -307,10 +307,17 @@ class LocalReference:
         Growth of the noise with the grazing factor.
     owners : (n,) int array, optional
         Which good scan each point came from; lets :meth:`without` leave one scan out (cross-fitting). Not stored.
+    surface_points : (n2, 3) array, optional
+        The points of :meth:`surface` (model frame), when they should be more than ``points``: every good training
+        scan's points, not only those of the scans projected for the values (a part seen by few views is missing
+        from a subset of them). None: ``points``.
+    surface_owners : (n2,) int array, optional
+        Like ``owners``, for ``surface_points`` (the same scan numbers; a scan that is not one of ``points``' gets a
+        number no ``owners`` entry has). Not stored.
     """
 
     def __init__(self, points, values, k=REFERENCE_NEIGHBOURS, quantity="mean", variance_scale=0.0, owners=None,
-                 grazing_scale=0.0):
+                 grazing_scale=0.0, surface_points=None, surface_owners=None):
         self.points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
         self.values = np.asarray(values, dtype=np.float32).reshape(-1)
         if len(self.points) != len(self.values) or len(self.points) < k:
@@ -328,6 +335,12 @@ class LocalReference:
         self.owners = None if owners is None else np.asarray(owners, dtype=np.int64).reshape(-1)
         if self.owners is not None and len(self.owners) != len(self.points):
             raise ValueError(f"owners must have one entry per point ({len(self.points)}), got {len(self.owners)}")
+        self.surface_points = None if surface_points is None else \
+            np.asarray(surface_points, dtype=np.float32).reshape(-1, 3)
+        self.surface_owners = None if surface_owners is None else np.asarray(surface_owners, np.int64).reshape(-1)
+        if self.surface_owners is not None and (self.surface_points is None
+                                                or len(self.surface_owners) != len(self.surface_points)):
+            raise ValueError("surface_owners must have one entry per surface point")
         self._tree = None
         self._surface = None
 
@@ -354,8 +367,11 @@ class LocalReference:
         if self.owners is None:
             raise ValueError("this LocalReference does not know which scan each point came from (owners)")
         keep = self.owners != owner
+        surface, surface_owners = self.surface_points, self.surface_owners
+        if surface_owners is not None:
+            surface, surface_owners = surface[surface_owners != owner], surface_owners[surface_owners != owner]
         return LocalReference(self.points[keep], self.values[keep], self.k, self.quantity, self.variance_scale,
-                              self.owners[keep], self.grazing_scale)
+                              self.owners[keep], self.grazing_scale, surface, surface_owners)
 
     @property
     def tree(self):
@@ -367,12 +383,12 @@ class LocalReference:
         return self._tree
 
     def _surface_tree(self):
-        """(KD-tree over the distinct reference points, self distance): a point that several good scans share
+        """(KD-tree over the distinct surface points, self distance): a point that several good scans share
         (rendered views of one template) counts once in the plane fits."""
         from scipy.spatial import cKDTree
 
         if self._surface is None:
-            distinct = np.unique(self.points, axis=0)
+            distinct = np.unique(self.points if self.surface_points is None else self.surface_points, axis=0)
             diagonal = float(np.linalg.norm(np.ptp(distinct, axis=0)))
             self._surface = (cKDTree(distinct), SELF_DISTANCE * max(diagonal, 1e-12))
         return self._surface
@@ -380,7 +396,8 @@ class LocalReference:
     def surface(self, points):
         """Offsets of points from the good scans' surface, without any field.
 
-        For each point p, the plane through its ``k`` nearest distinct reference points, p itself left out when it
+        For each point p, the plane through its ``k`` nearest distinct surface points (``surface_points``, else the
+        reference points), p itself left out when it
         is one of them (a calibration view of a template shares its points with the reference's views of that
         template; a point is not evidence for itself): centroid c, unit normal n (the direction of least spread),
         and the points' variance along n, which holds their noise and the surface's curvature within the
@@ -493,12 +510,15 @@ class LocalReference:
     def as_dict(self):
         import torch
 
+        surface = None if self.surface_points is None else torch.from_numpy(np.unique(self.surface_points, axis=0))
         return {"points": torch.from_numpy(self.points.copy()), "values": torch.from_numpy(self.values.copy()),
                 "k": self.k, "quantity": self.quantity, "variance_scale": self.variance_scale,
-                "grazing_scale": self.grazing_scale}
+                "grazing_scale": self.grazing_scale, "surface_points": surface}
 
     @classmethod
     def from_dict(cls, d):
+        surface = d.get("surface_points")
         return cls(np.asarray(d["points"]), np.asarray(d["values"]), int(d.get("k", REFERENCE_NEIGHBOURS)),
                    str(d.get("quantity", "mean")), float(d.get("variance_scale", 0.0)),
-                   grazing_scale=float(d.get("grazing_scale", 0.0)))
+                   grazing_scale=float(d.get("grazing_scale", 0.0)),
+                   surface_points=None if surface is None else np.asarray(surface))

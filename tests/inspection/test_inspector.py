@@ -466,3 +466,21 @@ def test_joint_point_score_calibrates_restores_and_ranks_a_dent():
         distance.anomaly_map(scan), insp.reference_.surface_scores(scan, 0.01)), rtol=1e-12)
     dented = sphere_scan(seed=40, n=800, dent=0.05)[0]
     assert insp.anomaly_scores([dented])[0] > insp.calibration_scores_.max()
+
+
+def test_fit_reference_takes_the_surface_from_every_surface_scan():
+    """``surface_scans``: the reference's surface from all of them, owners matched by name to the projected
+    reference scans so that cross-fitting leaves a scan's surface points out with its values."""
+    from datasets.scan import Scan
+
+    def scan(seed, name):
+        pts, nrm = sphere_scan(seed=seed, n=400)
+        return Scan(name=name, points=pts, normals=nrm, split="train", label="good")
+
+    every = [scan(s, f"train/{s}") for s in range(6)]
+    insp = Inspector(SphereModel(), point_score="joint").fit_reference(every[:3], surface_scans=every)
+    ref = insp.reference_
+    assert len(ref.points) == 1200 and len(ref.surface_points) == 2400
+    np.testing.assert_array_equal(np.unique(ref.surface_owners), [-6, -5, -4, 0, 1, 2])
+    np.testing.assert_array_equal(ref.surface_points[ref.surface_owners == 1], every[1].points.astype(np.float32))
+    assert len(ref.without(1).surface_points) == 2000

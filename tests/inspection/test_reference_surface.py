@@ -114,3 +114,26 @@ def test_joint_point_score_combines_the_distance_and_surface_scores():
     # under 'joint' than under 'distance': the good scans' surface explains it
     on, off = np.c_[rng.uniform(-0.5, 0.5, (30, 2)), np.zeros(30)], _PlaneField(offset=0.05)
     assert np.all(point_scores(off, on, "joint", reference=ref) < point_scores(off, on, "distance", reference=ref))
+
+
+def test_surface_points_beyond_the_reference_points_leave_scans_out_and_are_stored():
+    """The surface can come from more good scans than the projected reference (every training scan); cross-fitting
+    leaves a scan's surface points out with its reference points, and the calibration stores the distinct ones."""
+    import torch  # noqa: F401  (as_dict holds tensors)
+
+    left, _ = _tilted_plane(600, 6, noise=0.005)
+    right = left + np.array([0.0, 0.0, 5.0])  # a parallel patch far from the reference points
+    halves = np.arange(600) % 2  # the reference points come from good scans 0 and 1
+    ref = LocalReference(left, np.zeros(len(left)), k=8, owners=halves, quantity="distance",
+                         surface_points=np.r_[left, right, right],
+                         surface_owners=np.r_[halves, np.full(600, -3), np.full(600, -4)])
+    plain = LocalReference(left, np.zeros(len(left)), k=8, quantity="distance")
+    q = right[:20] + 0.001
+    assert np.all(ref.surface_scores(q, 0.005) < 3) and np.all(plain.surface_scores(q, 0.005) > 3)
+    alone = ref.without(0)
+    assert len(alone.surface_points) == 1500 and not np.any(alone.surface_owners == 0)
+    restored = LocalReference.from_dict(ref.as_dict())
+    assert len(restored.surface_points) == 1200  # the distinct points: 'right' counted once
+    np.testing.assert_array_equal(restored.surface_scores(q, 0.005), ref.surface_scores(q, 0.005))
+    with pytest.raises(ValueError, match="surface_owners"):
+        LocalReference(left, np.zeros(len(left)), k=8, surface_owners=np.zeros(600))
