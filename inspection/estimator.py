@@ -33,21 +33,34 @@ SURFACE_MAX_POINTS = 240000
 
 
 def _surface_points(scans, reference_names, seed=0):
-    """The points (n, 3) of good scans and their owners (n,): the index in ``reference_names`` of a scan named like
-    one of them, else -1 - its own index (never left out). Seeded subsample to ``SURFACE_MAX_POINTS``."""
-    points, owners = [], []
+    """The points (n, 3) of good scans, their owners (n,): the index in ``reference_names`` of a scan named like one
+    of them, else -1 - its own index (never left out), and their normals (n, 3) (None when a scan has none).
+    Seeded subsample to ``SURFACE_MAX_POINTS``."""
+    points, owners, normals = [], [], []
     for i, scan in enumerate(scans):
-        p = np.asarray(points_and_normals(scan)[0], dtype=np.float64).reshape(-1, 3)
+        p, n = points_and_normals(scan)
+        p = np.asarray(p, dtype=np.float64).reshape(-1, 3)
         name = getattr(scan, "name", None)
         owners.append(np.full(len(p), reference_names.index(name) if name and name in reference_names else -1 - i))
         points.append(p)
+        normals.append(None if n is None else np.asarray(n, dtype=np.float64).reshape(-1, 3))
     if not points:
         raise ValueError("surface_scans: no scans given")
     points, owners = np.concatenate(points), np.concatenate(owners)
+    normals = None if any(n is None for n in normals) else np.concatenate(normals)
     if len(points) > SURFACE_MAX_POINTS:
         keep = np.sort(np.random.default_rng(seed).choice(len(points), SURFACE_MAX_POINTS, replace=False))
-        points, owners = points[keep], owners[keep]
-    return points.astype(np.float32), owners
+        points, owners, normals = points[keep], owners[keep], None if normals is None else normals[keep]
+    return points.astype(np.float32), owners, None if normals is None else normals.astype(np.float32)
+
+
+@dataclass
+class _Named:
+    """Points (m, 3) and normals (m, 3) or None under a scan name (the projected reference scans as surface scans)."""
+
+    name: str
+    points: np.ndarray
+    normals: np.ndarray = None
 
 
 @dataclass
@@ -55,7 +68,8 @@ class _Projected:
     """A scan projected into the model: its name, points (m, 3), field, sensor origin (None when unknown), and for
     reference-based point scores the compared quantity (m,), the field's variance in its units (m,) and the grazing
     factor of the sensor's rays (m,) (None without a sensor origin); ``stray`` (m,) bool marks isolated returns off
-    the surface their neighbours define (:func:`datasets.outliers.stray_points`)."""
+    the surface their neighbours define (:func:`datasets.outliers.stray_points`); ``normals`` (m, 3) are the
+    scan's (None when it has none)."""
 
     name: str
     points: np.ndarray
@@ -65,6 +79,7 @@ class _Projected:
     variance: np.ndarray = None
     grazing: np.ndarray = None
     stray: np.ndarray = None
+    normals: np.ndarray = None
 
 
 @dataclass
@@ -266,7 +281,8 @@ class Inspector(BaseEstimator):
         from datasets.outliers import stray_points
 
         points = np.asarray(points, dtype=np.float64)
-        return _Projected(name, points, field, origin, value, variance, grazing, stray_points(points))
+        return _Projected(name, points, field, origin, value, variance, grazing, stray_points(points),
+                          None if normals is None else np.asarray(normals, dtype=np.float64))
 
     def _score(self, good, reference, ray_reference=None):
         """A :class:`ScanResult` of a projected scan against ``reference`` and ``ray_reference`` (default: the
@@ -274,7 +290,7 @@ class Inspector(BaseEstimator):
         if self.point_score in REFERENCE_QUANTITY:
             noise = float(getattr(good.field, "noise", 0.0) if self.noise is None else self.noise)
             values = reference_scores(reference, self.point_score, good.points, good.value, good.variance, noise,
-                                      good.grazing)
+                                      good.grazing, good.normals)
         else:
             values = point_scores(good.field, good.points, kind=self.point_score, noise=self.noise)
         # a stray point (a lone return off the surface) is not a defect unless many points agree: the scan's score
@@ -323,9 +339,9 @@ class Inspector(BaseEstimator):
         projected as a test scan would be (a training scan without starting from its own trained code); the model's
         training scans are the natural choice. They are kept for the cross-fitted calibration of :meth:`fit`.
         ``surface_scans`` (good scans, not projected; e.g. every training scan when ``scans`` is a subset of them):
-        the points of the good scans' own surface (:meth:`LocalReference.surface`), up to ``SURFACE_MAX_POINTS``
-        (seeded subsample); a scan named like one of ``scans`` is left out with it when cross-fitting. None: the
-        points of ``scans``. Returns self."""
+        the points and normals of the good scans' own surface (:meth:`LocalReference.surface`), up to
+        ``SURFACE_MAX_POINTS`` (seeded subsample); a scan named like one of ``scans`` is left out with it when
+        cross-fitting. None: ``scans`` themselves. Returns self."""
         if self.point_score not in REFERENCE_QUANTITY:
             raise ValueError(f"point_score {self.point_score!r} uses no per-location reference")
         goods = [self._project(s, i, exclude_own_code=True) for i, s in enumerate(scans)]
@@ -333,9 +349,11 @@ class Inspector(BaseEstimator):
             raise ValueError("fit_reference needs at least one good scan, got none")
         self.reference_ = LocalReference.from_values([(g.points, g.value) for g in goods], max_points=max_points,
                                                      seed=seed, quantity=REFERENCE_QUANTITY[self.point_score])
-        if surface_scans is not None:
-            self.reference_.surface_points, self.reference_.surface_owners = _surface_points(
-                surface_scans, [g.name for g in goods], seed)
+        names = [g.name for g in goods]
+        if surface_scans is None:  # the projected scans themselves, each its own owner
+            surface_scans = [_Named(g.name, g.points, g.normals) for g in goods]
+        ref = self.reference_
+        ref.surface_points, ref.surface_owners, ref.surface_normals = _surface_points(surface_scans, names, seed)
         self._reference_scans = goods
         self.ray_reference_ = None
         if self.rays and all(g.origin is not None for g in goods):

@@ -21,6 +21,8 @@ REFERENCE_QUANTITY = {"local": "mean", "distance": "distance", "joint": "distanc
 # rendered view of a template shares its points with the other views of that template): the reference surface's
 # plane is fitted without it
 SELF_DISTANCE = 1e-6
+# candidates per plane neighbour searched for points on the same side as the scored point (LocalReference.surface)
+SURFACE_CANDIDATES = 4
 _MIN_VARIANCE = 1e-20
 # cos^2 of the angle between the sensor's ray and the surface normal is floored here (about 87 degrees) so that the
 # grazing factor 1 / cos^2 - 1 stays finite at silhouettes
@@ -73,7 +75,9 @@ def point_scores(field, points, kind="residual", noise=None, reference=None, nor
         (``REFERENCE_QUANTITY[kind]``).
     normals, origin : (m, 3) array and (3,) array, optional
         The scan's normals and sensor origin: with both, the reference scores' noise grows where the sensor's ray
-        grazes the surface (:func:`grazing_factor`, weighted by the reference's ``grazing_scale``).
+        grazes the surface (:func:`grazing_factor`, weighted by the reference's ``grazing_scale``); with the
+        normals, ``'joint'``'s reference surface is fitted through points on the same side
+        (:meth:`LocalReference.surface`).
 
     Returns
     -------
@@ -97,7 +101,7 @@ def point_scores(field, points, kind="residual", noise=None, reference=None, nor
                              f"of {reference.quantity!r} values")
         value, variance = field_quantity(field, points, reference.quantity, with_variance=True)
         grazing = None if origin is None or normals is None else grazing_factor(points, normals, origin)
-        return reference_scores(reference, kind, points, value, variance, noise, grazing)
+        return reference_scores(reference, kind, points, value, variance, noise, grazing, normals)
     mean = np.asarray(field.mean(points), dtype=np.float64)
     var = np.maximum(np.asarray(field.variance(points), dtype=np.float64), 0.0)
     total = np.maximum(var + noise**2, _MIN_VARIANCE)
@@ -129,13 +133,14 @@ def joint_score(distance_scores, surface_scores):
     return np.sqrt((a**2 + b**2) / 2)
 
 
-def reference_scores(reference, kind, points, value, variance, noise, grazing=None):
+def reference_scores(reference, kind, points, value, variance, noise, grazing=None, normals=None):
     """The per-location point score ``kind`` (``'local'``, ``'distance'`` or ``'joint'``) of (m, 3) points whose
     compared quantity (m,) and field variance (m,) are given, against ``reference`` (a :class:`LocalReference`);
-    ``grazing`` (m,) or None. Returns (m,) float64."""
+    ``grazing`` (m,) and the points' ``normals`` (m, 3) (for the reference surface's side) or None. Returns (m,)
+    float64."""
     scores = reference.standardized(points, value, variance, noise, grazing)
     if kind == "joint":
-        scores = joint_score(scores, reference.surface_scores(points, noise, grazing))
+        scores = joint_score(scores, reference.surface_scores(points, noise, grazing, normals))
     return scores
 
 
@@ -314,10 +319,13 @@ class LocalReference:
     surface_owners : (n2,) int array, optional
         Like ``owners``, for ``surface_points`` (the same scan numbers; a scan that is not one of ``points``' gets a
         number no ``owners`` entry has). Not stored.
+    surface_normals : (n2, 3) array, optional
+        Unit outward normals of ``surface_points``: with the scored points' normals, a plane is fitted only through
+        points on the same side of a thin wall (:meth:`surface`).
     """
 
     def __init__(self, points, values, k=REFERENCE_NEIGHBOURS, quantity="mean", variance_scale=0.0, owners=None,
-                 grazing_scale=0.0, surface_points=None, surface_owners=None):
+                 grazing_scale=0.0, surface_points=None, surface_owners=None, surface_normals=None):
         self.points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
         self.values = np.asarray(values, dtype=np.float32).reshape(-1)
         if len(self.points) != len(self.values) or len(self.points) < k:
@@ -338,9 +346,11 @@ class LocalReference:
         self.surface_points = None if surface_points is None else \
             np.asarray(surface_points, dtype=np.float32).reshape(-1, 3)
         self.surface_owners = None if surface_owners is None else np.asarray(surface_owners, np.int64).reshape(-1)
-        if self.surface_owners is not None and (self.surface_points is None
-                                                or len(self.surface_owners) != len(self.surface_points)):
-            raise ValueError("surface_owners must have one entry per surface point")
+        self.surface_normals = None if surface_normals is None else \
+            np.asarray(surface_normals, dtype=np.float32).reshape(-1, 3)
+        for name, a in (("surface_owners", self.surface_owners), ("surface_normals", self.surface_normals)):
+            if a is not None and (self.surface_points is None or len(a) != len(self.surface_points)):
+                raise ValueError(f"{name} must have one entry per surface point")
         self._tree = None
         self._surface = None
 
@@ -367,11 +377,13 @@ class LocalReference:
         if self.owners is None:
             raise ValueError("this LocalReference does not know which scan each point came from (owners)")
         keep = self.owners != owner
-        surface, surface_owners = self.surface_points, self.surface_owners
+        surface, surface_owners, surface_normals = self.surface_points, self.surface_owners, self.surface_normals
         if surface_owners is not None:
-            surface, surface_owners = surface[surface_owners != owner], surface_owners[surface_owners != owner]
+            other = surface_owners != owner
+            surface, surface_owners = surface[other], surface_owners[other]
+            surface_normals = None if surface_normals is None else surface_normals[other]
         return LocalReference(self.points[keep], self.values[keep], self.k, self.quantity, self.variance_scale,
-                              self.owners[keep], self.grazing_scale, surface, surface_owners)
+                              self.owners[keep], self.grazing_scale, surface, surface_owners, surface_normals)
 
     @property
     def tree(self):
@@ -383,30 +395,36 @@ class LocalReference:
         return self._tree
 
     def _surface_tree(self):
-        """(KD-tree over the distinct surface points, self distance): a point that several good scans share
-        (rendered views of one template) counts once in the plane fits."""
+        """(KD-tree over the distinct surface points, their normals (or None), self distance): a point that several
+        good scans share (rendered views of one template) counts once in the plane fits."""
         from scipy.spatial import cKDTree
 
         if self._surface is None:
-            distinct = np.unique(self.points if self.surface_points is None else self.surface_points, axis=0)
+            points = self.points if self.surface_points is None else self.surface_points
+            distinct, first = np.unique(points, axis=0, return_index=True)
+            normals = None if self.surface_normals is None else self.surface_normals[first].astype(np.float64)
             diagonal = float(np.linalg.norm(np.ptp(distinct, axis=0)))
-            self._surface = (cKDTree(distinct), SELF_DISTANCE * max(diagonal, 1e-12))
+            self._surface = (cKDTree(distinct), normals, SELF_DISTANCE * max(diagonal, 1e-12))
         return self._surface
 
-    def surface(self, points):
+    def surface(self, points, normals=None):
         """Offsets of points from the good scans' surface, without any field.
 
         For each point p, the plane through its ``k`` nearest distinct surface points (``surface_points``, else the
-        reference points), p itself left out when it
-        is one of them (a calibration view of a template shares its points with the reference's views of that
-        template; a point is not evidence for itself): centroid c, unit normal n (the direction of least spread),
-        and the points' variance along n, which holds their noise and the surface's curvature within the
-        neighbourhood.
+        reference points), p itself left out when it is one of them (a calibration view of a template shares its
+        points with the reference's views of that template; a point is not evidence for itself), and, when both p's
+        normal and ``surface_normals`` are known, only points whose normal faces the same side as p's (the nearest
+        of ``SURFACE_CANDIDATES`` x k; all of them when fewer than 3 agree): across a wall thinner than the points'
+        spacing the nearest points lie on both faces, and a plane through both would sit inside the wall. The plane:
+        centroid c, unit normal n (the direction of least spread), and the points' variance along n, which holds
+        their noise and the surface's curvature within the neighbourhood.
 
         Parameters
         ----------
         points : (m, 3) array
             Model frame.
+        normals : (m, 3) array, optional
+            The points' outward normals (any length; only their sign against the surface normals is used).
 
         Returns
         -------
@@ -415,28 +433,37 @@ class LocalReference:
         spread : (m,) float64
             The neighbours' variance along n, squared world units (>= 0).
         """
-        tree, self_distance = self._surface_tree()
+        tree, surface_normals, self_distance = self._surface_tree()
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         k = min(self.k, tree.n - 1)
         if k < 3:
             raise ValueError(f"the reference surface needs >= 4 distinct points, got {tree.n}")
-        dist, idx = tree.query(points, k + 1)  # (m, k + 1)
-        is_self = dist[:, 0] <= self_distance
-        idx = np.where(is_self[:, None], idx[:, 1:], idx[:, :-1])  # (m, k)
-        nb = tree.data[idx]  # (m, k, 3)
-        centroid = nb.mean(1)
+        sided = normals is not None and surface_normals is not None
+        wide = min(SURFACE_CANDIDATES * k + 1, tree.n) if sided else k + 1
+        dist, idx = tree.query(points, wide)  # (m, wide)
+        valid = dist > self_distance
+        if sided:
+            normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+            same = np.einsum("mj,mkj->mk", normals, surface_normals[idx]) > 0
+            enough = (valid & same).sum(1) >= 3
+            valid &= same | ~enough[:, None]
+        weight = (valid & (np.cumsum(valid, 1) <= k)).astype(np.float64)  # (m, wide): the first k valid
+        nb = tree.data[idx]  # (m, wide, 3)
+        count = weight.sum(1)
+        centroid = np.einsum("mk,mki->mi", weight, nb) / count[:, None]
         centred = nb - centroid[:, None]
-        cov = np.einsum("mki,mkj->mij", centred, centred) / k  # (m, 3, 3)
+        cov = np.einsum("mk,mki,mkj->mij", weight, centred, centred) / count[:, None, None]  # (m, 3, 3)
         eigval, eigvec = np.linalg.eigh(cov)  # ascending
         normal = eigvec[:, :, 0]
         return np.einsum("mi,mi->m", normal, points - centroid), np.maximum(eigval[:, 0], 0.0)
 
-    def surface_scores(self, points, noise, grazing=None):
-        """|offset| / sqrt(spread + noise^2 (1 + grazing_scale * g)) with offset, spread of :meth:`surface`: how
-        many standard deviations a point lies off the good scans' surface. The neighbours' spread holds their own
-        noise and the surface's curvature; the point's own measurement noise grows with the grazing factor g (m,)
-        (None: 0) as in :meth:`standardized`. (m,) float64."""
-        offset, spread = self.surface(points)
+    def surface_scores(self, points, noise, grazing=None, normals=None):
+        """|offset| / sqrt(spread + noise^2 (1 + grazing_scale * g)) with offset, spread of :meth:`surface` (with the
+        points' ``normals`` (m, 3), optional): how many standard deviations a point lies off the good scans'
+        surface. The neighbours' spread holds their own noise and the surface's curvature; the point's own
+        measurement noise grows with the grazing factor g (m,) (None: 0) as in :meth:`standardized`. (m,)
+        float64."""
+        offset, spread = self.surface(points, normals)
         return np.abs(offset) / np.sqrt(self._total(spread, 0.0, float(noise) ** 2, grazing, 0.0, self.grazing_scale))
 
     def stats(self, points):
@@ -510,15 +537,20 @@ class LocalReference:
     def as_dict(self):
         import torch
 
-        surface = None if self.surface_points is None else torch.from_numpy(np.unique(self.surface_points, axis=0))
+        surface = normals = None
+        if self.surface_points is not None:
+            distinct, first = np.unique(self.surface_points, axis=0, return_index=True)
+            surface = torch.from_numpy(distinct)
+            normals = None if self.surface_normals is None else torch.from_numpy(self.surface_normals[first].copy())
         return {"points": torch.from_numpy(self.points.copy()), "values": torch.from_numpy(self.values.copy()),
                 "k": self.k, "quantity": self.quantity, "variance_scale": self.variance_scale,
-                "grazing_scale": self.grazing_scale, "surface_points": surface}
+                "grazing_scale": self.grazing_scale, "surface_points": surface, "surface_normals": normals}
 
     @classmethod
     def from_dict(cls, d):
-        surface = d.get("surface_points")
+        surface, normals = d.get("surface_points"), d.get("surface_normals")
         return cls(np.asarray(d["points"]), np.asarray(d["values"]), int(d.get("k", REFERENCE_NEIGHBOURS)),
                    str(d.get("quantity", "mean")), float(d.get("variance_scale", 0.0)),
                    grazing_scale=float(d.get("grazing_scale", 0.0)),
-                   surface_points=None if surface is None else np.asarray(surface))
+                   surface_points=None if surface is None else np.asarray(surface),
+                   surface_normals=None if normals is None else np.asarray(normals))

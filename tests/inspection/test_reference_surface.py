@@ -137,3 +137,29 @@ def test_surface_points_beyond_the_reference_points_leave_scans_out_and_are_stor
     np.testing.assert_array_equal(restored.surface_scores(q, 0.005), ref.surface_scores(q, 0.005))
     with pytest.raises(ValueError, match="surface_owners"):
         LocalReference(left, np.zeros(len(left)), k=8, surface_owners=np.zeros(600))
+
+
+def test_surface_with_normals_fits_the_plane_on_the_scored_points_side_of_a_thin_wall():
+    """Two faces of a wall thinner than the points' spacing, outward normals opposite: with the scored point's
+    normal the plane goes through its own face's points (offset 0 on it); without, through both (mid-wall)."""
+    rng = np.random.default_rng(7)
+    xy = rng.uniform(-1, 1, (2000, 2))
+    gap = 0.01  # the spacing is ~0.045
+    top, bottom = np.c_[xy[:1000], np.full(1000, gap)], np.c_[xy[1000:], np.zeros(1000)]
+    normals = np.r_[np.tile([0.0, 0.0, 1.0], (1000, 1)), np.tile([0.0, 0.0, -1.0], (1000, 1))]
+    ref = LocalReference(np.r_[top, bottom], np.zeros(2000), k=8, surface_points=np.r_[top, bottom],
+                         surface_normals=normals)
+    q = np.c_[rng.uniform(-0.5, 0.5, (20, 2)), np.full(20, gap)]  # on the top face
+    up = np.tile([0.0, 0.0, 2.0], (20, 1))  # any length
+    offset, spread = ref.surface(q, up)
+    np.testing.assert_allclose(offset, 0.0, atol=1e-6)
+    np.testing.assert_allclose(spread, 0.0, atol=1e-9)
+    mixed, mixed_spread = ref.surface(q)  # no normals given: both faces, the plane inside the wall
+    assert np.mean(np.abs(mixed)) > 0.3 * gap and np.all(np.abs(mixed) < gap)
+    assert np.mean(mixed_spread) > 0.1 * gap**2
+    # the bottom face's side: offset = the gap
+    np.testing.assert_allclose(np.abs(ref.surface(q, -up)[0]), gap, atol=1e-6)
+    restored = LocalReference.from_dict(ref.as_dict())
+    np.testing.assert_array_equal(restored.surface(q, up)[0], offset)
+    with pytest.raises(ValueError, match="surface_normals"):
+        LocalReference(top, np.zeros(1000), k=8, surface_normals=normals[:1000])
