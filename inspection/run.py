@@ -221,8 +221,8 @@ def calibrate(model, data, alpha=DEFAULT_ALPHA, aggregate=None, point_score=None
     score ``'joint'`` or ``'distance'`` it is tested only where the training scans have a surface) and calibrates
     its combination with the point score; every calibration scan then needs a sensor origin. ``rays='auto'`` (the
     default): on when ``data`` is the model's training collection (its training scans give that band) and every scan
-    in it has a sensor origin (not a public layout's, whose test scans have none) (benchmarks/verdicts.py's parts and benchmarks/real_bunny.py:
-    docs/results.md#thin-walled-and-open-parts-issue-18)."""
+    in it has a sensor origin (not a public layout's, whose test scans have none) (benchmarks/verdicts.py's parts
+    and benchmarks/real_bunny.py: docs/results.md#thin-walled-and-open-parts-issue-18)."""
     from tqdm import tqdm
 
     from .calibration import write_calibration
