@@ -32,8 +32,8 @@ def _parser():
                         "scans the threshold is extrapolated from a log-normal fit of their scores, and says so)")
     c.add_argument("--aggregate", default=None, help="per-scan aggregate: top1 (default), mean, max, median, "
                                                      "top<P>, q<P>")
-    c.add_argument("--point-score", choices=("distance", "local", "residual", "nll"), default=None,
-                   help="per-point score (default: distance when DATA is the model's training collection, whose "
+    c.add_argument("--point-score", choices=("joint", "distance", "local", "residual", "nll"), default=None,
+                   help="per-point score (default: joint when DATA is the model's training collection, whose "
                         "training scans then give the per-location reference, else residual)")
     c.add_argument("--noise", type=float, default=None, help="noise floor (model frame units; default the model's)")
     c.add_argument("--projection", default="default", help="latent projection options as KEY=VALUE,... (fields of "

@@ -11,7 +11,7 @@ from datasets.validation import points_and_normals
 from .calibration import Calibration
 from .threshold import DEFAULT_ALPHA, check_alpha, fit_threshold
 from .scores import (POINT_SCORES, REFERENCE_QUANTITY, LocalReference, aggregate as aggregate_scores, check_aggregate,
-                     field_quantity, grazing_factor, point_scores, view_origin_from_normals)
+                     field_quantity, grazing_factor, point_scores, reference_scores, view_origin_from_normals)
 
 log = logging.getLogger(__name__)
 
@@ -27,12 +27,49 @@ COMBINATION_RULE = "gated-log"
 REFERENCE_RAYS = 1536
 
 
+# points of the good scans' own surface kept in a reference (LocalReference.surface), at most: every training scan of
+# a 64-view template collection (~180,000 points) or of 32 synthetic scans of 4,000 points fits
+SURFACE_MAX_POINTS = 240000
+
+
+def _surface_points(scans, reference_names, seed=0):
+    """The points (n, 3) of good scans, their owners (n,): the index in ``reference_names`` of a scan named like one
+    of them, else -1 - its own index (never left out), and their normals (n, 3) (None when a scan has none).
+    Seeded subsample to ``SURFACE_MAX_POINTS``."""
+    points, owners, normals = [], [], []
+    for i, scan in enumerate(scans):
+        p, n = points_and_normals(scan)
+        p = np.asarray(p, dtype=np.float64).reshape(-1, 3)
+        name = getattr(scan, "name", None)
+        owners.append(np.full(len(p), reference_names.index(name) if name and name in reference_names else -1 - i))
+        points.append(p)
+        normals.append(None if n is None else np.asarray(n, dtype=np.float64).reshape(-1, 3))
+    if not points:
+        raise ValueError("surface_scans: no scans given")
+    points, owners = np.concatenate(points), np.concatenate(owners)
+    normals = None if any(n is None for n in normals) else np.concatenate(normals)
+    if len(points) > SURFACE_MAX_POINTS:
+        keep = np.sort(np.random.default_rng(seed).choice(len(points), SURFACE_MAX_POINTS, replace=False))
+        points, owners, normals = points[keep], owners[keep], None if normals is None else normals[keep]
+    return points.astype(np.float32), owners, None if normals is None else normals.astype(np.float32)
+
+
+@dataclass
+class _Named:
+    """Points (m, 3) and normals (m, 3) or None under a scan name (the projected reference scans as surface scans)."""
+
+    name: str
+    points: np.ndarray
+    normals: np.ndarray = None
+
+
 @dataclass
 class _Projected:
     """A scan projected into the model: its name, points (m, 3), field, sensor origin (None when unknown), and for
     reference-based point scores the compared quantity (m,), the field's variance in its units (m,) and the grazing
     factor of the sensor's rays (m,) (None without a sensor origin); ``stray`` (m,) bool marks isolated returns off
-    the surface their neighbours define (:func:`datasets.outliers.stray_points`)."""
+    the surface their neighbours define (:func:`datasets.outliers.stray_points`); ``normals`` (m, 3) are the
+    scan's (None when it has none)."""
 
     name: str
     points: np.ndarray
@@ -42,6 +79,7 @@ class _Projected:
     variance: np.ndarray = None
     grazing: np.ndarray = None
     stray: np.ndarray = None
+    normals: np.ndarray = None
 
 
 @dataclass
@@ -114,12 +152,13 @@ class Inspector(BaseEstimator):
         the worst 1 % of the points; chosen on benchmarks/inspect_fandisk.py, where it separated best: defects
         cover a few per cent of a scan's points, so the paper's ``'mean'`` dilutes them), ``'mean'`` (the paper's),
         ``'max'``, ``'median'``, ``'top<P>'``, ``'q<P>'``.
-    point_score : {'residual', 'distance', 'local', 'nll'}
+    point_score : {'residual', 'joint', 'distance', 'local', 'nll'}
         Per-point score (:func:`inspection.scores.point_scores`): the standardized residual (default here, as it
-        needs nothing more; the command line picks ``'distance'`` when it can reach the training scans), the
+        needs nothing more; the command line picks ``'joint'`` when it can reach the training scans), the
         first-order distance to the mean surface standardized against good scans at the same place
-        (``'distance'``: :meth:`fit` then needs ``reference_scans``, e.g. the model's training scans), the same on
-        E f itself (``'local'``), or the paper's NLL.
+        (``'distance'``: :meth:`fit` then needs ``reference_scans``, e.g. the model's training scans), that together
+        with the point's offset from the good scans' own surface (``'joint'``, same needs), the same on E f itself
+        (``'local'``), or the paper's NLL.
     noise : float, optional
         Noise floor (measurement noise standard deviation, model frame units); default the field's own.
     projection : dict, optional
@@ -153,7 +192,7 @@ class Inspector(BaseEstimator):
         ``-threshold_``, so that ``decision_function = score_samples - offset_`` is negative exactly for defects.
     n_calibration_ : int
     reference_ : LocalReference or None
-        Per-location statistics of good scans (point scores ``'distance'`` and ``'local'`` only).
+        Per-location statistics of good scans (point scores ``'joint'``, ``'distance'`` and ``'local'`` only).
     combination_ : Combination or None
         The standardization of the components on the calibration scans (``rays=True`` only).
     """
@@ -206,7 +245,7 @@ class Inspector(BaseEstimator):
 
     def inspect_components(self, scan):
         """Like :meth:`inspect`, but ``score`` is the point score's aggregate alone; works unfitted (except for
-        point scores ``'distance'`` and ``'local'``, which need their reference)."""
+        the per-location point scores, which need their reference)."""
         self._check_params()
         if self.point_score in REFERENCE_QUANTITY and getattr(self, "reference_", None) is None:
             raise NotFittedError(f"point_score {self.point_score!r} needs the per-location reference: call "
@@ -242,14 +281,16 @@ class Inspector(BaseEstimator):
         from datasets.outliers import stray_points
 
         points = np.asarray(points, dtype=np.float64)
-        return _Projected(name, points, field, origin, value, variance, grazing, stray_points(points))
+        return _Projected(name, points, field, origin, value, variance, grazing, stray_points(points),
+                          None if normals is None else np.asarray(normals, dtype=np.float64))
 
     def _score(self, good, reference, ray_reference=None):
         """A :class:`ScanResult` of a projected scan against ``reference`` and ``ray_reference`` (default: the
         fitted ray reference, if any) (components: points, rays)."""
         if self.point_score in REFERENCE_QUANTITY:
             noise = float(getattr(good.field, "noise", 0.0) if self.noise is None else self.noise)
-            values = reference.standardized(good.points, good.value, good.variance, noise, good.grazing)
+            values = reference_scores(reference, self.point_score, good.points, good.value, good.variance, noise,
+                                      good.grazing, good.normals)
         else:
             values = point_scores(good.field, good.points, kind=self.point_score, noise=self.noise)
         # a stray point (a lone return off the surface) is not a defect unless many points agree: the scan's score
@@ -293,10 +334,14 @@ class Inspector(BaseEstimator):
         return self.inspect_components(scan).rays.point_map
 
     # ------------------------------------------------------------------------------------------------ fitting
-    def fit_reference(self, scans, max_points=60000, seed=0):
-        """Build ``reference_`` (for point scores ``'distance'`` and ``'local'``) from good scans, each projected as
-        a test scan would be (a training scan without starting from its own trained code); the model's training
-        scans are the natural choice. They are kept for the cross-fitted calibration of :meth:`fit`. Returns self."""
+    def fit_reference(self, scans, max_points=60000, seed=0, surface_scans=None):
+        """Build ``reference_`` (for point scores ``'joint'``, ``'distance'`` and ``'local'``) from good scans, each
+        projected as a test scan would be (a training scan without starting from its own trained code); the model's
+        training scans are the natural choice. They are kept for the cross-fitted calibration of :meth:`fit`.
+        ``surface_scans`` (good scans, not projected; e.g. every training scan when ``scans`` is a subset of them):
+        the points and normals of the good scans' own surface (:meth:`LocalReference.surface`), up to
+        ``SURFACE_MAX_POINTS`` (seeded subsample); a scan named like one of ``scans`` is left out with it when
+        cross-fitting. None: ``scans`` themselves. Returns self."""
         if self.point_score not in REFERENCE_QUANTITY:
             raise ValueError(f"point_score {self.point_score!r} uses no per-location reference")
         goods = [self._project(s, i, exclude_own_code=True) for i, s in enumerate(scans)]
@@ -304,6 +349,11 @@ class Inspector(BaseEstimator):
             raise ValueError("fit_reference needs at least one good scan, got none")
         self.reference_ = LocalReference.from_values([(g.points, g.value) for g in goods], max_points=max_points,
                                                      seed=seed, quantity=REFERENCE_QUANTITY[self.point_score])
+        names = [g.name for g in goods]
+        if surface_scans is None:  # the projected scans themselves, each its own owner
+            surface_scans = [_Named(g.name, g.points, g.normals) for g in goods]
+        ref = self.reference_
+        ref.surface_points, ref.surface_owners, ref.surface_normals = _surface_points(surface_scans, names, seed)
         self._reference_scans = goods
         self.ray_reference_ = None
         if self.rays and all(g.origin is not None for g in goods):
@@ -318,7 +368,7 @@ class Inspector(BaseEstimator):
             self.ray_reference_ = RayReference.build(((g.points, g.origin, g.field) for g in goods), **options)
         return self
 
-    def fit(self, good_scans, y=None, names=None, reference_scans=None, cross_fit=True):
+    def fit(self, good_scans, y=None, names=None, reference_scans=None, cross_fit=True, surface_scans=None):
         """Calibrate on good scans: the ones given, which the model did NOT train on (held-back or validation
         scans), and, with a per-location reference, the reference scans themselves, cross-fitted.
 
@@ -335,11 +385,14 @@ class Inspector(BaseEstimator):
         names : list of str, optional
             Default: the scans' names.
         reference_scans : sequence of Scan, optional
-            Good scans for the per-location reference (point scores ``'distance'``, ``'local'``; required then, unless
-            ``reference_`` is already set): usually the model's training scans.
+            Good scans for the per-location reference (point scores ``'joint'``, ``'distance'``, ``'local'``; required
+            then, unless ``reference_`` is already set): usually the model's training scans.
         cross_fit : bool
             Also calibrate on the reference scans, cross-fitted (needs the scans the reference was built from
             in this session; with rays, their sensor origins).
+        surface_scans : sequence of Scan, optional
+            With ``reference_scans``: the good scans whose points make the reference's surface
+            (:meth:`fit_reference`).
 
         Returns
         -------
@@ -347,7 +400,7 @@ class Inspector(BaseEstimator):
         """
         self._check_params()
         if reference_scans is not None:
-            self.fit_reference(reference_scans)
+            self.fit_reference(reference_scans, surface_scans=surface_scans)
         elif self.point_score in REFERENCE_QUANTITY and getattr(self, "reference_", None) is None:
             raise ValueError(f"point_score={self.point_score!r} needs reference_scans (good scans, e.g. the training "
                              "scans)")

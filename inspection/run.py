@@ -174,8 +174,8 @@ def calibration_scans(handle, data, split=None, frame_check=True):
 
 
 def reference_scans(handle, data, info, max_scans=32, part=None):
-    """Up to ``max_scans`` of the model's training scans (evenly spread; of part ``part`` only when given), read from
-    ``data`` when it is the model's training collection; None otherwise."""
+    """Up to ``max_scans`` (None: all) of the model's training scans (evenly spread; of part ``part`` only when
+    given), read from ``data`` when it is the model's training collection; None otherwise."""
     if not info.get("same_as_training") or not handle.train_names:
         return None
     from datasets import ScanCollection
@@ -186,7 +186,8 @@ def reference_scans(handle, data, info, max_scans=32, part=None):
         present = [n for n, p in zip(handle.train_names, part_ids) if n in names and (part is None or p == part)]
         if not present:
             return None
-        pick = np.unique(np.linspace(0, len(present) - 1, min(max_scans, len(present))).round().astype(int))
+        n = len(present) if max_scans is None else min(max_scans, len(present))
+        pick = np.unique(np.linspace(0, len(present) - 1, n).round().astype(int))
         return c.read_many([c.index_of(present[i]) for i in pick])
 
 
@@ -217,11 +218,11 @@ def calibrate(model, data, alpha=DEFAULT_ALPHA, aggregate=None, point_score=None
     """Calibrate ``model`` on good scans and store the calibration in the model file. Returns (Inspector, info).
 
     ``rays=True`` adds the ray score (:mod:`inspection.ray_evidence`, settings ``ray_options``; with the point
-    score ``'distance'`` it is tested only where the training scans have a surface) and calibrates its combination
-    with the point score; every calibration scan then needs a sensor origin. ``rays='auto'`` (the default): on when
-    ``data`` is the model's training collection (its training scans give that band) and every scan in it has a sensor
-    origin (not a public layout's, whose test scans have none) (benchmarks/verdicts.py's parts and benchmarks/real_bunny.py:
-    docs/results.md#thin-walled-and-open-parts-issue-18)."""
+    score ``'joint'`` or ``'distance'`` it is tested only where the training scans have a surface) and calibrates
+    its combination with the point score; every calibration scan then needs a sensor origin. ``rays='auto'`` (the
+    default): on when ``data`` is the model's training collection (its training scans give that band) and every scan
+    in it has a sensor origin (not a public layout's, whose test scans have none) (benchmarks/verdicts.py's parts
+    and benchmarks/real_bunny.py: docs/results.md#thin-walled-and-open-parts-issue-18)."""
     from tqdm import tqdm
 
     from .calibration import write_calibration
@@ -245,7 +246,7 @@ def calibrate(model, data, alpha=DEFAULT_ALPHA, aggregate=None, point_score=None
         rays = reference is not None and all(s.sensor_origin is not None for s in [*scans, *reference]) \
             and _every_scan_has_an_origin(data)
     if point_score is None:
-        point_score = "distance" if reference else DEFAULT_POINT_SCORE
+        point_score = "joint" if reference else DEFAULT_POINT_SCORE
 
     def make():
         return Inspector(handle.model, alpha=alpha, aggregate=aggregate or DEFAULT_AGGREGATE,
@@ -253,10 +254,13 @@ def calibrate(model, data, alpha=DEFAULT_ALPHA, aggregate=None, point_score=None
                          projection=(DEFAULT_PROJECTION if projection == "default" else projection)
                          if handle.kind == "latent" else None, rays=bool(rays), ray_options=ray_options)
 
-    def fit(insp, scans, reference, desc=""):
+    def fit(insp, scans, reference, desc="", part=None):
         insp._check_params()  # bad ray options fail before any work
         if point_score in REFERENCE_QUANTITY:
-            insp.fit_reference(tqdm(reference, desc=f"reference{desc}", unit="scan", disable=not progress))
+            # the good scans' own surface from every training scan: the reference's subset of them can miss a
+            # region few views saw (docs/results.md#training-from-4-complete-templates)
+            insp.fit_reference(tqdm(reference, desc=f"reference{desc}", unit="scan", disable=not progress),
+                               surface_scans=reference_scans(handle, data, info, max_scans=None, part=part))
         insp.fit(tqdm(scans, desc=f"calibrate{desc}", unit="scan", disable=not progress),
                  names=[s.name for s in scans])
         return insp
@@ -269,7 +273,7 @@ def calibrate(model, data, alpha=DEFAULT_ALPHA, aggregate=None, point_score=None
             raise InspectionError(f"{data}: no good calibration scans of part(s) {empty} (the model was trained on "
                                   f"parts {parts} and calibrates each on its own scans)")
         insp = PartInspector({p: fit(make(), by_part[p], reference_scans(handle, data, info, part=p)
-                                     if point_score in REFERENCE_QUANTITY else None, f" {p}") for p in parts})
+                                     if point_score in REFERENCE_QUANTITY else None, f" {p}", p) for p in parts})
         roles = [r for p in parts for r in insp.inspectors[p].calibration_roles_]
         how += f", per part ({', '.join(parts)})"
     else:
@@ -422,7 +426,7 @@ def _write_scan_maps(insp, scan, res, maps_dir):
     from .maps import RAY_MAP_RANGE, safe_name, write_map
     from .scores import point_scores
 
-    resid = res.point_scores if insp.point_score in ("residual", "local", "distance") else \
+    resid = res.point_scores if insp.point_score in ("residual", "local", "distance", "joint") else \
         point_scores(res.field, scan.points, "residual", insp.noise)
     write_map(maps_dir / f"{safe_name(scan.name)}.ply", scan.points, scan.normals, resid)
     if insp.rays:

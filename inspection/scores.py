@@ -10,13 +10,19 @@ import numpy as np
 
 from autodecoder.field.protocol import check_field
 
-POINT_SCORES = ("residual", "nll", "local", "distance")
+POINT_SCORES = ("residual", "nll", "local", "distance", "joint")
 REFERENCE_NEIGHBOURS = 16
 # |grad E f| is unitless (~1 on the mean surface of a well-fitted field, -> 0 far from it, where E f saturates); the
 # floor keeps E f / |grad E f| finite there while still growing well past the saturation distance
 GRADIENT_FLOOR = 0.2
 # which quantity each per-location point score compares with its reference
-REFERENCE_QUANTITY = {"local": "mean", "distance": "distance"}
+REFERENCE_QUANTITY = {"local": "mean", "distance": "distance", "joint": "distance"}
+# a reference point within this many reference bounding-box diagonals of a scored point is that point itself (a
+# rendered view of a template shares its points with the other views of that template): the reference surface's
+# plane is fitted without it
+SELF_DISTANCE = 1e-6
+# candidates per plane neighbour searched for points on the same side as the scored point (LocalReference.surface)
+SURFACE_CANDIDATES = 4
 _MIN_VARIANCE = 1e-20
 # cos^2 of the angle between the sensor's ray and the surface normal is floored here (about 87 degrees) so that the
 # grazing factor 1 / cos^2 - 1 stays finite at silhouettes
@@ -47,6 +53,12 @@ def point_scores(field, points, kind="residual", noise=None, reference=None, nor
       follows the depth while |grad m| >= the floor and then stays at |m| / floor: points off the field's shell
       are lifted by up to 1 / floor = 5 x relative to points near the mean surface (where |grad m| ~ 1), which is
       where the defects are and good scans are not (figures: docs/results.md#the-per-point-score).
+    * ``'joint'``: the ``'distance'`` score z_d and the reference surface's z_s (:meth:`LocalReference.surface_scores`:
+      the point's offset from the plane through its nearest good-scan points) taken together as two independent
+      standardized residuals, sqrt((z_d^2 + z_s^2) / 2) (:func:`joint_score`). The projected field errs at a
+      scan's borders and at grazing angles, where the good scans' points still lie on the part; the good scans'
+      points do not follow the scan's own field and are noisy and sparse, where the field is smooth. A point scores
+      high only when its residual is large under both on average, in the same units as the other scores.
 
     Parameters
     ----------
@@ -54,15 +66,18 @@ def point_scores(field, points, kind="residual", noise=None, reference=None, nor
         E.g. a :class:`autodecoder.StochasticField`.
     points : (m, 3) array
         In the field's frame.
-    kind : {'residual', 'nll', 'local', 'distance'}
+    kind : {'residual', 'nll', 'local', 'distance', 'joint'}
     noise : float, optional
         Measurement noise standard deviation (the noise floor), in the field's length units; default
         ``field.noise``.
     reference : LocalReference
-        Needed by ``'local'`` and ``'distance'``, built on the same quantity (``REFERENCE_QUANTITY[kind]``).
+        Needed by ``'local'``, ``'distance'`` and ``'joint'``, built on the same quantity
+        (``REFERENCE_QUANTITY[kind]``).
     normals, origin : (m, 3) array and (3,) array, optional
         The scan's normals and sensor origin: with both, the reference scores' noise grows where the sensor's ray
-        grazes the surface (:func:`grazing_factor`, weighted by the reference's ``grazing_scale``).
+        grazes the surface (:func:`grazing_factor`, weighted by the reference's ``grazing_scale``); with the
+        normals, ``'joint'``'s reference surface is fitted through points on the same side
+        (:meth:`LocalReference.surface`).
 
     Returns
     -------
@@ -86,13 +101,47 @@ def point_scores(field, points, kind="residual", noise=None, reference=None, nor
                              f"of {reference.quantity!r} values")
         value, variance = field_quantity(field, points, reference.quantity, with_variance=True)
         grazing = None if origin is None or normals is None else grazing_factor(points, normals, origin)
-        return reference.standardized(points, value, variance, noise, grazing)
+        return reference_scores(reference, kind, points, value, variance, noise, grazing, normals)
     mean = np.asarray(field.mean(points), dtype=np.float64)
     var = np.maximum(np.asarray(field.variance(points), dtype=np.float64), 0.0)
     total = np.maximum(var + noise**2, _MIN_VARIANCE)
     if kind == "residual":
         return np.abs(mean) / np.sqrt(total)
     return 0.5 * (mean**2 / total + np.log(2 * math.pi * total))
+
+
+def joint_score(distance_scores, surface_scores):
+    """sqrt((z_d^2 + z_s^2) / 2) of two standardized residuals of the same points, elementwise.
+
+    Under a good part each residual is ~N(0, 1); taken as independent, -log of their joint density is
+    (z_d^2 + z_s^2) / 2 up to a constant, and its square root keeps the score in standard deviations (a point 2
+    deviations off under both scores 2), which the log-normal tail of :mod:`inspection.threshold` and the maps'
+    fixed colour range expect. Equal weights: neither residual is trusted more a priori.
+
+    Parameters
+    ----------
+    distance_scores, surface_scores : (m,) arrays >= 0
+
+    Returns
+    -------
+    (m,) float64 array
+    """
+    a = np.asarray(distance_scores, dtype=np.float64)
+    b = np.asarray(surface_scores, dtype=np.float64)
+    if a.shape != b.shape:
+        raise ValueError(f"joint_score needs one surface score per distance score, got shapes {a.shape} and {b.shape}")
+    return np.sqrt((a**2 + b**2) / 2)
+
+
+def reference_scores(reference, kind, points, value, variance, noise, grazing=None, normals=None):
+    """The per-location point score ``kind`` (``'local'``, ``'distance'`` or ``'joint'``) of (m, 3) points whose
+    compared quantity (m,) and field variance (m,) are given, against ``reference`` (a :class:`LocalReference`);
+    ``grazing`` (m,) and the points' ``normals`` (m, 3) (for the reference surface's side) or None. Returns (m,)
+    float64."""
+    scores = reference.standardized(points, value, variance, noise, grazing)
+    if kind == "joint":
+        scores = joint_score(scores, reference.surface_scores(points, noise, grazing, normals))
+    return scores
 
 
 def field_quantity(field, points, quantity, with_variance=False):
@@ -243,6 +292,10 @@ class LocalReference:
     where good scans' worst points lie (at a view's border, near silhouettes). ``variance_scale`` and
     ``grazing_scale`` are calibrated on good scans (:meth:`fit_noise_model`); both 0 is the reference alone.
 
+    The good scans' points also describe the part's surface by themselves, independently of any field:
+    :meth:`surface_scores` scores a point by its offset from the plane through its ``k`` nearest distinct reference
+    points (the ``'joint'`` point score).
+
     Parameters
     ----------
     points : (n, 3) array
@@ -259,10 +312,20 @@ class LocalReference:
         Growth of the noise with the grazing factor.
     owners : (n,) int array, optional
         Which good scan each point came from; lets :meth:`without` leave one scan out (cross-fitting). Not stored.
+    surface_points : (n2, 3) array, optional
+        The points of :meth:`surface` (model frame), when they should be more than ``points``: every good training
+        scan's points, not only those of the scans projected for the values (a part seen by few views is missing
+        from a subset of them). None: ``points``.
+    surface_owners : (n2,) int array, optional
+        Like ``owners``, for ``surface_points`` (the same scan numbers; a scan that is not one of ``points``' gets a
+        number no ``owners`` entry has). Not stored.
+    surface_normals : (n2, 3) array, optional
+        Unit outward normals of ``surface_points``: with the scored points' normals, a plane is fitted only through
+        points on the same side of a thin wall (:meth:`surface`).
     """
 
     def __init__(self, points, values, k=REFERENCE_NEIGHBOURS, quantity="mean", variance_scale=0.0, owners=None,
-                 grazing_scale=0.0):
+                 grazing_scale=0.0, surface_points=None, surface_owners=None, surface_normals=None):
         self.points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
         self.values = np.asarray(values, dtype=np.float32).reshape(-1)
         if len(self.points) != len(self.values) or len(self.points) < k:
@@ -280,7 +343,16 @@ class LocalReference:
         self.owners = None if owners is None else np.asarray(owners, dtype=np.int64).reshape(-1)
         if self.owners is not None and len(self.owners) != len(self.points):
             raise ValueError(f"owners must have one entry per point ({len(self.points)}), got {len(self.owners)}")
+        self.surface_points = None if surface_points is None else \
+            np.asarray(surface_points, dtype=np.float32).reshape(-1, 3)
+        self.surface_owners = None if surface_owners is None else np.asarray(surface_owners, np.int64).reshape(-1)
+        self.surface_normals = None if surface_normals is None else \
+            np.asarray(surface_normals, dtype=np.float32).reshape(-1, 3)
+        for name, a in (("surface_owners", self.surface_owners), ("surface_normals", self.surface_normals)):
+            if a is not None and (self.surface_points is None or len(a) != len(self.surface_points)):
+                raise ValueError(f"{name} must have one entry per surface point")
         self._tree = None
+        self._surface = None
 
     @classmethod
     def from_values(cls, scans, max_points=60000, seed=0, k=REFERENCE_NEIGHBOURS, quantity="mean"):
@@ -305,8 +377,13 @@ class LocalReference:
         if self.owners is None:
             raise ValueError("this LocalReference does not know which scan each point came from (owners)")
         keep = self.owners != owner
+        surface, surface_owners, surface_normals = self.surface_points, self.surface_owners, self.surface_normals
+        if surface_owners is not None:
+            other = surface_owners != owner
+            surface, surface_owners = surface[other], surface_owners[other]
+            surface_normals = None if surface_normals is None else surface_normals[other]
         return LocalReference(self.points[keep], self.values[keep], self.k, self.quantity, self.variance_scale,
-                              self.owners[keep], self.grazing_scale)
+                              self.owners[keep], self.grazing_scale, surface, surface_owners, surface_normals)
 
     @property
     def tree(self):
@@ -316,6 +393,78 @@ class LocalReference:
         if self._tree is None:
             self._tree = cKDTree(self.points)
         return self._tree
+
+    def _surface_tree(self):
+        """(KD-tree over the distinct surface points, their normals (or None), self distance): a point that several
+        good scans share (rendered views of one template) counts once in the plane fits."""
+        from scipy.spatial import cKDTree
+
+        if self._surface is None:
+            points = self.points if self.surface_points is None else self.surface_points
+            distinct, first = np.unique(points, axis=0, return_index=True)
+            normals = None if self.surface_normals is None else self.surface_normals[first].astype(np.float64)
+            diagonal = float(np.linalg.norm(np.ptp(distinct, axis=0)))
+            self._surface = (cKDTree(distinct), normals, SELF_DISTANCE * max(diagonal, 1e-12))
+        return self._surface
+
+    def surface(self, points, normals=None):
+        """Offsets of points from the good scans' surface, without any field.
+
+        For each point p, the plane through its ``k`` nearest distinct surface points (``surface_points``, else the
+        reference points), p itself left out when it is one of them (a calibration view of a template shares its
+        points with the reference's views of that template; a point is not evidence for itself), and, when both p's
+        normal and ``surface_normals`` are known, only points whose normal faces the same side as p's (the nearest
+        of ``SURFACE_CANDIDATES`` x k; all of them when fewer than 3 agree): across a wall thinner than the points'
+        spacing the nearest points lie on both faces, and a plane through both would sit inside the wall. The plane:
+        centroid c, unit normal n (the direction of least spread), and the points' variance along n, which holds
+        their noise and the surface's curvature within the neighbourhood.
+
+        Parameters
+        ----------
+        points : (m, 3) array
+            Model frame.
+        normals : (m, 3) array, optional
+            The points' outward normals (any length; only their sign against the surface normals is used).
+
+        Returns
+        -------
+        offset : (m,) float64
+            n . (p - c), world units, the sign arbitrary.
+        spread : (m,) float64
+            The neighbours' variance along n, squared world units (>= 0).
+        """
+        tree, surface_normals, self_distance = self._surface_tree()
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        k = min(self.k, tree.n - 1)
+        if k < 3:
+            raise ValueError(f"the reference surface needs >= 4 distinct points, got {tree.n}")
+        sided = normals is not None and surface_normals is not None
+        wide = min(SURFACE_CANDIDATES * k + 1, tree.n) if sided else k + 1
+        dist, idx = tree.query(points, wide)  # (m, wide)
+        valid = dist > self_distance
+        if sided:
+            normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+            same = np.einsum("mj,mkj->mk", normals, surface_normals[idx]) > 0
+            enough = (valid & same).sum(1) >= 3
+            valid &= same | ~enough[:, None]
+        weight = (valid & (np.cumsum(valid, 1) <= k)).astype(np.float64)  # (m, wide): the first k valid
+        nb = tree.data[idx]  # (m, wide, 3)
+        count = weight.sum(1)
+        centroid = np.einsum("mk,mki->mi", weight, nb) / count[:, None]
+        centred = nb - centroid[:, None]
+        cov = np.einsum("mk,mki,mkj->mij", weight, centred, centred) / count[:, None, None]  # (m, 3, 3)
+        eigval, eigvec = np.linalg.eigh(cov)  # ascending
+        normal = eigvec[:, :, 0]
+        return np.einsum("mi,mi->m", normal, points - centroid), np.maximum(eigval[:, 0], 0.0)
+
+    def surface_scores(self, points, noise, grazing=None, normals=None):
+        """|offset| / sqrt(spread + noise^2 (1 + grazing_scale * g)) with offset, spread of :meth:`surface` (with the
+        points' ``normals`` (m, 3), optional): how many standard deviations a point lies off the good scans'
+        surface. The neighbours' spread holds their own noise and the surface's curvature; the point's own
+        measurement noise grows with the grazing factor g (m,) (None: 0) as in :meth:`standardized`. (m,)
+        float64."""
+        offset, spread = self.surface(points, normals)
+        return np.abs(offset) / np.sqrt(self._total(spread, 0.0, float(noise) ** 2, grazing, 0.0, self.grazing_scale))
 
     def stats(self, points):
         """Local mean and standard deviation of the reference values around each point: (m,), (m,)."""
@@ -388,12 +537,20 @@ class LocalReference:
     def as_dict(self):
         import torch
 
+        surface = normals = None
+        if self.surface_points is not None:
+            distinct, first = np.unique(self.surface_points, axis=0, return_index=True)
+            surface = torch.from_numpy(distinct)
+            normals = None if self.surface_normals is None else torch.from_numpy(self.surface_normals[first].copy())
         return {"points": torch.from_numpy(self.points.copy()), "values": torch.from_numpy(self.values.copy()),
                 "k": self.k, "quantity": self.quantity, "variance_scale": self.variance_scale,
-                "grazing_scale": self.grazing_scale}
+                "grazing_scale": self.grazing_scale, "surface_points": surface, "surface_normals": normals}
 
     @classmethod
     def from_dict(cls, d):
+        surface, normals = d.get("surface_points"), d.get("surface_normals")
         return cls(np.asarray(d["points"]), np.asarray(d["values"]), int(d.get("k", REFERENCE_NEIGHBOURS)),
                    str(d.get("quantity", "mean")), float(d.get("variance_scale", 0.0)),
-                   grazing_scale=float(d.get("grazing_scale", 0.0)))
+                   grazing_scale=float(d.get("grazing_scale", 0.0)),
+                   surface_points=None if surface is None else np.asarray(surface),
+                   surface_normals=None if normals is None else np.asarray(normals))

@@ -445,3 +445,42 @@ def test_a_scan_without_sensor_origin_grazes_from_the_view_its_normals_face():
     # the stand-in view recovers part of what the true one explains (the silhouette's grazing angles are sensitive
     # to the view's direction and distance, so not all of it)
     assert known < score < before - 0.1
+
+
+def test_joint_point_score_calibrates_restores_and_ranks_a_dent():
+    """'joint' builds its reference on distances like 'distance', stores itself in the calibration, and a scan with a
+    dent scores above good ones."""
+    from inspection.scores import joint_score
+
+    good = [sphere_scan(seed=s, n=800)[0] for s in range(6)]
+    held = [sphere_scan(seed=s, n=800)[0] for s in range(20, 24)]
+    insp = Inspector(SphereModel(), point_score="joint", alpha=0.2).fit(held, reference_scans=good)
+    assert insp.reference_.quantity == "distance" and insp.calibration_roles_.count("cross-fitted") == 6
+    restored = Inspector(SphereModel()).set_calibration(insp.calibration())
+    assert restored.point_score == "joint"
+    np.testing.assert_array_equal(restored.anomaly_scores(held[:2]), insp.anomaly_scores(held[:2]))
+    distance = Inspector(SphereModel(), point_score="distance").set_calibration(insp.calibration())
+    distance.point_score = "distance"
+    scan = held[0]
+    np.testing.assert_allclose(insp.anomaly_map(scan), joint_score(
+        distance.anomaly_map(scan), insp.reference_.surface_scores(scan, 0.01)), rtol=1e-12)
+    dented = sphere_scan(seed=40, n=800, dent=0.05)[0]
+    assert insp.anomaly_scores([dented])[0] > insp.calibration_scores_.max()
+
+
+def test_fit_reference_takes_the_surface_from_every_surface_scan():
+    """``surface_scans``: the reference's surface from all of them, owners matched by name to the projected
+    reference scans so that cross-fitting leaves a scan's surface points out with its values."""
+    from datasets.scan import Scan
+
+    def scan(seed, name):
+        pts, nrm = sphere_scan(seed=seed, n=400)
+        return Scan(name=name, points=pts, normals=nrm, split="train", label="good")
+
+    every = [scan(s, f"train/{s}") for s in range(6)]
+    insp = Inspector(SphereModel(), point_score="joint").fit_reference(every[:3], surface_scans=every)
+    ref = insp.reference_
+    assert len(ref.points) == 1200 and len(ref.surface_points) == 2400
+    np.testing.assert_array_equal(np.unique(ref.surface_owners), [-6, -5, -4, 0, 1, 2])
+    np.testing.assert_array_equal(ref.surface_points[ref.surface_owners == 1], every[1].points.astype(np.float32))
+    assert len(ref.without(1).surface_points) == 2000

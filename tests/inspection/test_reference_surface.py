@@ -1,0 +1,165 @@
+"""inspection.scores: the good scans' own surface (LocalReference.surface) and the 'joint' point score."""
+import math
+
+import numpy as np
+import pytest
+
+from autodecoder.field.protocol import Field
+from inspection import point_scores
+from inspection.scores import LocalReference, joint_score
+
+
+def _naive_surface(reference_points, query, k, self_distance):
+    """Brute force: the k nearest distinct reference points other than the query itself, plane by SVD."""
+    distinct = np.unique(np.asarray(reference_points, dtype=np.float32), axis=0).astype(np.float64)
+    offsets, spreads = [], []
+    for p in query:
+        d = np.linalg.norm(distinct - p, axis=1)
+        order = [i for i in np.argsort(d, kind="stable") if d[i] > self_distance][:k]
+        nb = distinct[order]
+        c = nb.mean(0)
+        _, s, vt = np.linalg.svd(nb - c)
+        offsets.append(vt[-1] @ (p - c))
+        spreads.append(s[-1] ** 2 / k)
+    return np.array(offsets), np.array(spreads)
+
+
+def _tilted_plane(n, seed, noise):
+    """Points on the plane z = 0.3 x - 0.2 y (unit normal below) with noise along the normal."""
+    rng = np.random.default_rng(seed)
+    normal = np.array([-0.3, 0.2, 1.0]) / math.sqrt(1.13)
+    xy = rng.uniform(-1, 1, (n, 2))
+    pts = np.c_[xy, 0.3 * xy[:, 0] - 0.2 * xy[:, 1]] + noise * rng.normal(size=(n, 1)) * normal
+    return pts, normal
+
+
+def test_surface_offset_is_the_distance_to_the_plane_and_matches_brute_force():
+    pts, normal = _tilted_plane(3000, 0, noise=0.0)
+    ref = LocalReference(pts, np.zeros(len(pts)), k=12)
+    heights = np.array([0.0, 0.01, -0.05, 0.2])
+    base = np.array([[0.1, 0.2, 0.0], [-0.3, 0.0, 0.0], [0.0, -0.4, 0.0], [0.5, 0.5, 0.0]])
+    base[:, 2] = 0.3 * base[:, 0] - 0.2 * base[:, 1]
+    query = base + heights[:, None] * normal
+    offset, spread = ref.surface(query)
+    np.testing.assert_allclose(np.abs(offset), np.abs(heights), atol=1e-6)  # exact plane (float32 storage)
+    np.testing.assert_allclose(spread, 0.0, atol=1e-12)
+    # noisy: against the brute-force plane fit
+    noisy, _ = _tilted_plane(800, 1, noise=0.01)
+    ref = LocalReference(noisy, np.zeros(len(noisy)), k=10)
+    q = noisy[:50] + np.random.default_rng(2).normal(0, 0.02, (50, 3))
+    self_distance = 1e-6 * float(np.linalg.norm(np.ptp(np.unique(ref.points, axis=0), axis=0)))
+    exp_off, exp_spread = _naive_surface(noisy, q, 10, self_distance)
+    offset, spread = ref.surface(q)
+    np.testing.assert_allclose(np.abs(offset), np.abs(exp_off), rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(spread, exp_spread, rtol=1e-6, atol=1e-12)
+
+
+def test_surface_leaves_the_point_itself_out_and_counts_shared_points_once():
+    """A calibration view of a template shares its points with the reference's views: the point is not evidence
+    for itself, and a point in several views is one point of the surface."""
+    pts, _ = _tilted_plane(500, 3, noise=0.01)
+    ref = LocalReference(pts, np.zeros(len(pts)), k=8)
+    twice = LocalReference(np.r_[pts, pts, pts], np.zeros(3 * len(pts)), k=8)
+    offset, spread = ref.surface(pts[:40])
+    np.testing.assert_array_equal(twice.surface(pts[:40])[0], offset)
+    # brute force without the point itself (stored as float32: it lies within ~1e-8 of its float64 query)
+    exp_off, exp_spread = _naive_surface(pts, pts[:40], 8, 1e-6)
+    np.testing.assert_allclose(np.abs(offset), np.abs(exp_off), rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(spread, exp_spread, rtol=1e-5, atol=1e-12)
+    # with the point in its own plane fit, the offset would be shrunk toward 0
+    assert np.mean(np.abs(offset)) > 1.02 * np.mean(np.abs(_naive_surface(pts, pts[:40], 8, -1.0)[0]))
+    with pytest.raises(ValueError, match="distinct"):
+        LocalReference(np.zeros((20, 3)), np.zeros(20), k=4).surface(np.ones((1, 3)))
+
+
+def test_surface_scores_and_joint_score_formulae():
+    pts, normal = _tilted_plane(2000, 4, noise=0.0)
+    ref = LocalReference(pts, np.zeros(len(pts)), k=12, quantity="distance", grazing_scale=2.0)
+    q = np.array([[0.0, 0.0, 0.0]]) + 0.03 * normal
+    # spread 0 on an exact plane: 0.03 / sqrt(noise^2 (1 + 2 g))
+    assert ref.surface_scores(q, 0.01)[0] == pytest.approx(3.0, rel=1e-4)
+    assert ref.surface_scores(q, 0.01, np.array([4.0]))[0] == pytest.approx(0.03 / math.sqrt(1e-4 * 9), rel=1e-4)
+    np.testing.assert_allclose(joint_score([3.0, 0.0, 1.0], [4.0, 2.0, 1.0]), [math.sqrt(12.5), math.sqrt(2), 1.0])
+    with pytest.raises(ValueError, match="one surface score per distance score"):
+        joint_score([1.0, 2.0], [1.0])
+
+
+class _PlaneField(Field):
+    """E f = the signed height above the plane z = 0 (so the distance quantity is the height), variance 1e-4."""
+
+    def __init__(self, offset=0.0):
+        self.noise, self.offset = 0.01, offset
+
+    def mean(self, x):
+        return np.asarray(x)[:, 2] + self.offset
+
+    def variance(self, x):
+        return np.full(len(x), 1e-4)
+
+    def mean_gradient(self, x):
+        return np.tile([0.0, 0.0, 1.0], (len(x), 1))
+
+
+def test_joint_point_score_combines_the_distance_and_surface_scores():
+    rng = np.random.default_rng(5)
+    pts = np.c_[rng.uniform(-1, 1, (2000, 2)), np.zeros(2000)]
+    ref = LocalReference(pts, rng.normal(0, 0.005, 2000), k=16, quantity="distance", variance_scale=0.5)
+    x = np.c_[rng.uniform(-0.5, 0.5, (30, 2)), rng.normal(0, 0.02, 30)]
+    f = _PlaneField()
+    dist = point_scores(f, x, "distance", reference=ref)
+    surf = ref.surface_scores(x, f.noise)
+    np.testing.assert_allclose(point_scores(f, x, "joint", reference=ref), np.sqrt((dist**2 + surf**2) / 2),
+                               rtol=1e-12)
+    # a field that misses a good point (E f = 0.05 where the point lies on the good scans' plane) scores it lower
+    # under 'joint' than under 'distance': the good scans' surface explains it
+    on, off = np.c_[rng.uniform(-0.5, 0.5, (30, 2)), np.zeros(30)], _PlaneField(offset=0.05)
+    assert np.all(point_scores(off, on, "joint", reference=ref) < point_scores(off, on, "distance", reference=ref))
+
+
+def test_surface_points_beyond_the_reference_points_leave_scans_out_and_are_stored():
+    """The surface can come from more good scans than the projected reference (every training scan); cross-fitting
+    leaves a scan's surface points out with its reference points, and the calibration stores the distinct ones."""
+    import torch  # noqa: F401  (as_dict holds tensors)
+
+    left, _ = _tilted_plane(600, 6, noise=0.005)
+    right = left + np.array([0.0, 0.0, 5.0])  # a parallel patch far from the reference points
+    halves = np.arange(600) % 2  # the reference points come from good scans 0 and 1
+    ref = LocalReference(left, np.zeros(len(left)), k=8, owners=halves, quantity="distance",
+                         surface_points=np.r_[left, right, right],
+                         surface_owners=np.r_[halves, np.full(600, -3), np.full(600, -4)])
+    plain = LocalReference(left, np.zeros(len(left)), k=8, quantity="distance")
+    q = right[:20] + 0.001
+    assert np.all(ref.surface_scores(q, 0.005) < 3) and np.all(plain.surface_scores(q, 0.005) > 3)
+    alone = ref.without(0)
+    assert len(alone.surface_points) == 1500 and not np.any(alone.surface_owners == 0)
+    restored = LocalReference.from_dict(ref.as_dict())
+    assert len(restored.surface_points) == 1200  # the distinct points: 'right' counted once
+    np.testing.assert_array_equal(restored.surface_scores(q, 0.005), ref.surface_scores(q, 0.005))
+    with pytest.raises(ValueError, match="surface_owners"):
+        LocalReference(left, np.zeros(len(left)), k=8, surface_owners=np.zeros(600))
+
+
+def test_surface_with_normals_fits_the_plane_on_the_scored_points_side_of_a_thin_wall():
+    """Two faces of a wall thinner than the points' spacing, outward normals opposite: with the scored point's
+    normal the plane goes through its own face's points (offset 0 on it); without, through both (mid-wall)."""
+    rng = np.random.default_rng(7)
+    xy = rng.uniform(-1, 1, (2000, 2))
+    gap = 0.01  # the spacing is ~0.045
+    top, bottom = np.c_[xy[:1000], np.full(1000, gap)], np.c_[xy[1000:], np.zeros(1000)]
+    normals = np.r_[np.tile([0.0, 0.0, 1.0], (1000, 1)), np.tile([0.0, 0.0, -1.0], (1000, 1))]
+    ref = LocalReference(np.r_[top, bottom], np.zeros(2000), k=8, surface_points=np.r_[top, bottom],
+                         surface_normals=normals)
+    q = np.c_[rng.uniform(-0.5, 0.5, (20, 2)), np.full(20, gap)]  # on the top face
+    up = np.tile([0.0, 0.0, 2.0], (20, 1))  # any length
+    offset, spread = ref.surface(q, up)
+    np.testing.assert_allclose(offset, 0.0, atol=1e-6)
+    np.testing.assert_allclose(spread, 0.0, atol=1e-9)
+    mixed, mixed_spread = ref.surface(q)  # no normals given: both faces, the plane inside the wall
+    assert np.mean(np.abs(mixed)) > 0.3 * gap and np.all(np.abs(mixed) < gap)
+    assert np.mean(mixed_spread) > 0.1 * gap**2
+    # the bottom face's side: offset = the gap
+    np.testing.assert_allclose(np.abs(ref.surface(q, -up)[0]), gap, atol=1e-6)
+    restored = LocalReference.from_dict(ref.as_dict())
+    np.testing.assert_array_equal(restored.surface(q, up)[0], offset)
+    with pytest.raises(ValueError, match="surface_normals"):
+        LocalReference(top, np.zeros(1000), k=8, surface_normals=normals[:1000])
