@@ -408,8 +408,44 @@ class GridCovarianceNet(nn.Module):
         direct = hidden == 0 and latent_dim == 0
         self.decoder = None if direct else JetMLP(self.encoder.out_dim, features, hidden, depth, latent_dim)
         self.features = self.encoder.out_dim if direct else int(features)
+        # the codes' box the decoder reads (set_code_range); non-persistent: state dicts are unchanged
+        self.register_buffer("code_lo", None, persistent=False)
+        self.register_buffer("code_hi", None, persistent=False)
+
+    @torch.no_grad()
+    def set_code_range(self, lo=None, hi=None):
+        """Clamp every code this net reads to the box [lo, hi] (per coordinate), or stop clamping (both None).
+
+        A latent model's covariance decoder was trained only on its training codes; a code projected onto a new scan
+        can lie far outside them (a grid model's projection walks its mean's code tens of training-code norms away,
+        docs/results.md#the-latent-model-on-grids-issue-19), where the decoder extrapolates and the variance at the
+        scan's own points grows by an order of magnitude. Clamped, the covariance of such a code is that of the
+        nearest code in the training codes' box. Non-persistent buffers: not in the state dict (a checkpoint holds
+        the codes, and :class:`autodecoder.latent.model.LatentModel` sets the range from them).
+
+        Parameters
+        ----------
+        lo, hi : (L,) tensors, optional
+            Per-coordinate bounds with lo <= hi, L the decoder's latent dimension.
+        """
+        if (lo is None) != (hi is None):
+            raise ValueError("set_code_range needs both lo and hi, or neither")
+        if lo is not None:
+            lo = torch.as_tensor(lo, dtype=torch.float32).reshape(-1)
+            hi = torch.as_tensor(hi, dtype=torch.float32).reshape(-1)
+            latent = 0 if self.decoder is None else self.decoder.latent_dim
+            if lo.shape != (latent,) or hi.shape != (latent,) or not bool((lo <= hi).all()):
+                raise ValueError(f"code range must be two ({latent},) tensors with lo <= hi, got shapes "
+                                 f"{tuple(lo.shape)} and {tuple(hi.shape)}")
+        self.code_lo, self.code_hi = lo, hi
+
+    def _code(self, z):
+        if z is None or self.code_lo is None:
+            return z
+        return torch.maximum(torch.minimum(z, self.code_hi.to(z.dtype)), self.code_lo.to(z.dtype))
 
     def _phi(self, x, z, jacobian):
+        z = self._code(z)
         if jacobian:
             f, jac = self.encoder.value_and_jacobian(x)
         else:
