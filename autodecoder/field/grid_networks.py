@@ -315,10 +315,14 @@ class GridMeanNet(nn.Module):
         decoder's output, g(x, z) = s(x) + d(features(x), z) (0: none). In a latent model s is the geometry every
         code shares (it can be solved on the union of the training scans, :func:`solve_shared`) and the decoded
         part what the code changes.
+    centred : bool
+        With a decoder and a latent code: g(x, z) = s(x) + d(features(x), z) - d(features(x), 0), so that the code 0
+        gives exactly the shared level and the decoded part is only what the code changes (False: the decoder's
+        output as it is, which also holds a code-independent part).
     """
 
     def __init__(self, lo, hi, finest=128, levels=1, channels=1, base=None, hidden=0, depth=1, latent_dim=0,
-                 init_std=0.1, seed=0, shared_cells=0):
+                 init_std=0.1, seed=0, shared_cells=0, centred=False):
         super().__init__()
         self.summed = hidden == 0 and latent_dim == 0
         if self.summed and channels != 1:
@@ -329,13 +333,26 @@ class GridMeanNet(nn.Module):
         self.encoder = GridEncoder(lo, hi, finest, levels, channels, base, 0.0 if self.summed else init_std, seed)
         self.decoder = None if self.summed else JetMLP(self.encoder.out_dim, 1, hidden, depth, latent_dim)
         self.shared = BSplineGrid(int(shared_cells), 1, lo, hi) if int(shared_cells) > 0 else None
+        if centred and (self.decoder is None or self.decoder.latent_dim == 0):
+            raise ValueError("centred needs a decoder with a latent code (latent_dim > 0)")
+        self.centred = bool(centred)
+
+    def _decoded(self, f, z, jac=None):
+        """d(f, z) (B,) and its spatial gradient (B, 3) (None without ``jac``), minus d(f, 0) when centred."""
+        value, grad = self.decoder(f, z, jac)
+        if self.centred:
+            zero = torch.zeros(self.decoder.latent_dim, dtype=f.dtype, device=f.device)
+            v0, g0 = self.decoder(f, zero, jac)
+            value = value - v0
+            grad = None if grad is None else grad - g0
+        return value[:, 0], (None if grad is None else grad[:, :, 0])
 
     def forward(self, x, z=None):
         """g at x (B, 3) -> (B,)."""
         f = self.encoder(x)
         if self.decoder is None:
             return f.sum(-1)
-        value = self.decoder(f, z)[0][:, 0]
+        value = self._decoded(f, z)[0]
         if self.shared is not None:
             value = value + self.shared(x)[:, 0]
         return value
@@ -345,8 +362,7 @@ class GridMeanNet(nn.Module):
         f, jac = self.encoder.value_and_jacobian(x)
         if self.decoder is None:
             return f.sum(-1), jac.sum(-1)
-        value, grad = self.decoder(f, z, jac)
-        value, grad = value[:, 0], grad[:, :, 0]
+        value, grad = self._decoded(f, z, jac)
         if self.shared is not None:
             s, ds = self.shared.value_and_jacobian(x)
             value, grad = value + s[:, 0], grad + ds[:, :, 0]
@@ -374,8 +390,8 @@ class GridMeanNet(nn.Module):
     def value_and_gradient_from(self, cache, z=None):
         """g and grad_x g from :meth:`features_at`'s cache (rows may be indexed): the decoder alone runs, so a
         code can be fitted to fixed points without interpolating the grids again. Returns (B,), (B, 3)."""
-        value, grad = self.decoder(cache["f"], z, cache["jac"])
-        return value[:, 0] + cache["s"], grad[:, :, 0] + cache["ds"]
+        value, grad = self._decoded(cache["f"], z, cache["jac"])
+        return value + cache["s"], grad + cache["ds"]
 
 
 class GridCovarianceNet(nn.Module):
@@ -408,8 +424,44 @@ class GridCovarianceNet(nn.Module):
         direct = hidden == 0 and latent_dim == 0
         self.decoder = None if direct else JetMLP(self.encoder.out_dim, features, hidden, depth, latent_dim)
         self.features = self.encoder.out_dim if direct else int(features)
+        # the codes' box the decoder reads (set_code_range); non-persistent: state dicts are unchanged
+        self.register_buffer("code_lo", None, persistent=False)
+        self.register_buffer("code_hi", None, persistent=False)
+
+    @torch.no_grad()
+    def set_code_range(self, lo=None, hi=None):
+        """Clamp every code this net reads to the box [lo, hi] (per coordinate), or stop clamping (both None).
+
+        A latent model's covariance decoder was trained only on its training codes; a code projected onto a new scan
+        can lie far outside them (a grid model's projection walks its mean's code tens of training-code norms away,
+        docs/results.md#the-latent-model-on-grids-issue-19), where the decoder extrapolates and the variance at the
+        scan's own points grows by an order of magnitude. Clamped, the covariance of such a code is that of the
+        nearest code in the training codes' box. Non-persistent buffers: not in the state dict (a checkpoint holds
+        the codes, and :class:`autodecoder.latent.model.LatentModel` sets the range from them).
+
+        Parameters
+        ----------
+        lo, hi : (L,) tensors, optional
+            Per-coordinate bounds with lo <= hi, L the decoder's latent dimension.
+        """
+        if (lo is None) != (hi is None):
+            raise ValueError("set_code_range needs both lo and hi, or neither")
+        if lo is not None:
+            lo = torch.as_tensor(lo, dtype=torch.float32).reshape(-1)
+            hi = torch.as_tensor(hi, dtype=torch.float32).reshape(-1)
+            latent = 0 if self.decoder is None else self.decoder.latent_dim
+            if lo.shape != (latent,) or hi.shape != (latent,) or not bool((lo <= hi).all()):
+                raise ValueError(f"code range must be two ({latent},) tensors with lo <= hi, got shapes "
+                                 f"{tuple(lo.shape)} and {tuple(hi.shape)}")
+        self.code_lo, self.code_hi = lo, hi
+
+    def _code(self, z):
+        if z is None or self.code_lo is None:
+            return z
+        return torch.maximum(torch.minimum(z, self.code_hi.to(z.dtype)), self.code_lo.to(z.dtype))
 
     def _phi(self, x, z, jacobian):
+        z = self._code(z)
         if jacobian:
             f, jac = self.encoder.value_and_jacobian(x)
         else:

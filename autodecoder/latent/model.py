@@ -79,6 +79,8 @@ class LatentModel:
     codes : (T, L) float32 tensor
         Training codes.
     code_mean, code_std : (L,) float32 tensors
+        (A grid covariance net reads codes clamped to the training codes' per-coordinate box, set here:
+        :meth:`autodecoder.field.grid_networks.GridCovarianceNet.set_code_range`.)
     train_names, calibration_names : list of str
     noise : float
         Measurement noise level in collection units (RMS training residual).
@@ -100,6 +102,9 @@ class LatentModel:
         self.codes = state["codes"].detach().float()
         self.code_mean = state.get("code_mean", self.codes.mean(0)).float()
         self.code_std = state.get("code_std", self.codes.std(0) if len(self.codes) > 1 else torch.ones_like(self.code_mean)).float()
+        if hasattr(self.cov_net, "set_code_range") and len(self.codes) > 1:
+            # a grid covariance decoder reads projected codes clamped to the training codes' box (its docstring)
+            self.cov_net.set_code_range(self.codes.min(0).values, self.codes.max(0).values)
         self.train_names = list(state["train_names"])
         self.train_part_ids = list(state.get("train_part_ids", [""] * len(self.train_names)))
         self.calibration_names = list(state["calibration_names"])

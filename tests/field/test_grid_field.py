@@ -46,6 +46,9 @@ MEANS = {
     # the latent model's mean: decoded levels plus a shared level added to the decoder's output
     "latent_shared": lambda: GridMeanNet(LO, HI, finest=8, levels=2, channels=2, hidden=8, latent_dim=4,
                                          shared_cells=5),
+    # the same, centred: the decoder's output at the code 0 subtracted
+    "latent_centred": lambda: GridMeanNet(LO, HI, finest=8, levels=2, channels=2, hidden=8, latent_dim=4,
+                                          shared_cells=5, centred=True),
 }
 
 
@@ -267,3 +270,22 @@ def test_update_refits_a_grid_field_on_old_and_new_points():
         from autodecoder.field.fit import FitOptions
 
         update_field(half, RADIUS * bottom + CENTRE, bottom, options=FitOptions())
+
+
+def test_centred_mean_is_the_shared_level_at_code_zero_and_the_decoder_difference_elsewhere():
+    torch.manual_seed(0)
+    net = GridMeanNet(LO, HI, finest=8, levels=2, channels=2, hidden=8, latent_dim=4, shared_cells=5,
+                      centred=True).double()
+    with torch.no_grad():
+        net.shared.values.normal_(0.0, 0.1)
+    x = inside_points(30)
+    s, ds = net.shared.value_and_jacobian(x)
+    g0, grad0 = net.value_and_gradient(x, torch.zeros(4, dtype=torch.float64))
+    assert torch.allclose(g0, s[:, 0], atol=1e-12) and torch.allclose(grad0, ds[:, :, 0], atol=1e-12)
+    z = code_for(net)
+    f = net.encoder(x)
+    expected = s[:, 0] + net.decoder(f, z)[0][:, 0] - net.decoder(f, torch.zeros_like(z))[0][:, 0]
+    assert torch.allclose(net(x, z), expected, atol=1e-12)
+    assert not torch.allclose(net(x, z), s[:, 0], atol=1e-6)  # the code does change the field
+    with pytest.raises(ValueError, match="centred"):
+        GridMeanNet(LO, HI, finest=8, channels=2, hidden=8, centred=True)

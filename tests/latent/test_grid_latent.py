@@ -171,3 +171,39 @@ def test_grid_optimiser_groups_give_each_kind_of_parameter_its_rate():
     assert rates[id(mean_net.shared.values)] == options.shared_lr
     assert rates[id(mean_net.encoder.levels[0].values)] == rates[id(cov_net.encoder.levels[-1].values)] == options.grid_lr
     assert rates[id(mean_net.decoder.layers[0].weight)] == rates[id(cov_net.decoder.code_in.weight)] == options.lr
+
+
+def test_grid_covariance_reads_projected_codes_clamped_to_the_training_codes_box(trained, tmp_path):
+    model, out = trained
+    lo, hi = model.codes.min(0).values, model.codes.max(0).values
+    assert torch.equal(model.cov_net.code_lo, lo) and torch.equal(model.cov_net.code_hi, hi)
+    far = hi + 5.0 * (hi - lo) + 1.0  # beyond the box on every coordinate
+    clipped = torch.from_numpy(np.clip(far.numpy(), lo.numpy(), hi.numpy()))  # independent of torch's clamp
+    x = (torch.rand(40, 3, generator=torch.Generator().manual_seed(3)) - 0.5).numpy()
+    a, b = model.field(far), model.field(clipped)
+    assert np.array_equal(a.variance(x), b.variance(x))  # the covariance reads the clipped code
+    assert not np.allclose(a.mean(x), b.mean(x))  # the mean is not clamped
+    # inside the box nothing changes: a training code's variance is that of the unclamped net
+    inside = model.codes[1]
+    with torch.no_grad():
+        free = model.cov_net.variance(torch.from_numpy(x).float(), inside)
+        model.cov_net.set_code_range()
+        try:
+            assert torch.equal(model.cov_net.variance(torch.from_numpy(x).float(), inside), free)
+            unclamped = model.cov_net.variance(torch.from_numpy(x).float(), far)
+        finally:
+            model.cov_net.set_code_range(lo, hi)
+    assert not np.allclose(unclamped.numpy(), a.variance(x))  # the clamp did something for the far code
+    # the range is not in the state dict (checkpoints keep their keys); the loaded model sets it from its codes
+    assert not any(k.startswith("code_") for k in model.cov_net.state_dict())
+    assert torch.equal(load_model(out).cov_net.code_hi, hi)
+
+
+def test_grid_code_range_refuses_bad_bounds(trained):
+    net = trained[0].cov_net
+    with pytest.raises(ValueError, match="both"):
+        net.set_code_range(torch.zeros(2), None)
+    with pytest.raises(ValueError, match="lo <= hi"):
+        net.set_code_range(torch.ones(2), torch.zeros(2))
+    with pytest.raises(ValueError, match="lo <= hi"):
+        net.set_code_range(torch.zeros(3), torch.ones(3))
