@@ -130,7 +130,7 @@ def main(argv=None):
     args = p.parse_args(argv)
     # benchmarks/verdicts.py's collection parameters (its defaults): the same scans as its single-part runs
     vargs = argparse.Namespace(train=32, test_good=16, per_defect=16, points=4000, seed=args.seed, jitter=0.0,
-                               quiet=args.quiet)
+                               quiet=args.quiet, no_origins=False)
     single, work = Path(args.single), Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     print(f"load average at start: {os.getloadavg()}")
