@@ -9,38 +9,17 @@ import torch
 
 from autodecoder.latent.model import LATENT_VERSION, load_model
 from autodecoder.latent.train import LatentOptions, train_latent
-from datasets.scan import Scan
+
+from .spheres import RADII, sphere_scan, sphere_scans, zero_crossing_radius
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-RADII = (0.15, 0.2, 0.3, 0.35)
 # small grids and batches: the file runs in well under a minute on 2 cores
 GRID = dict(representation="grid", latent_dim=2, mean_samples=256, screen_samples=128, pair_clusters=8, batch=2,
             lr=3e-3, code_lr=1e-2, grid_mean={"finest": 16, "levels": 2, "channels": 4, "hidden": 32,
                                                "shared_cells": 24},
             grid_cov={"finest": 4, "levels": 2, "channels": 4, "hidden": 16, "features": 8})
 
-
-def sphere_scan(name, radius, n=500, seed=0):
-    rng = np.random.default_rng(seed)
-    d = rng.normal(size=(n, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    return Scan(name, radius * d, d, split="train")
-
-
-def sphere_scans():
-    return [sphere_scan(f"train/{i:03d}", r, seed=i) for i, r in enumerate(RADII)]
-
-
-def zero_crossing_radius(field, n_rays=64, seed=0):
-    """Median distance from the origin at which the mean turns positive, over random rays."""
-    d = np.random.default_rng(seed).normal(size=(n_rays, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    t = np.linspace(0.02, 0.48, 461)
-    values = field.mean((d[:, None, :] * t[None, :, None]).reshape(-1, 3)).reshape(n_rays, -1)
-    first = np.argmax(values > 0, axis=1)
-    ok = (values > 0).any(1) & (values[:, 0] < 0)
-    return float(np.median(t[first[ok]])) if ok.any() else float("nan")
 
 
 @pytest.fixture(scope="module")
