@@ -440,6 +440,7 @@ def _summarize(handle, insp, data, split, align, results):
 
     cal = handle.calibration
     parted = isinstance(insp, PartInspector)
+    rays_of = next(iter(insp.inspectors.values())) if parted else insp  # the parts share their ray settings and rule
     extra = {"model": str(handle.path), "model_kind": handle.kind, "data": str(data), "split": split,
              "aggregate": insp.aggregate, "point_score": insp.point_score, "noise": insp.noise,
              "projection": insp.projection, "n_calibration": insp.n_calibration_,
@@ -448,9 +449,9 @@ def _summarize(handle, insp, data, split, align, results):
              "seconds_per_scan": float(np.mean(results["seconds"])), "maps": results["maps"],
              "higher_score_means": "more anomalous",
              "rays": None if not insp.rays else {
-                 "options": insp._ray_record()["options"],
+                 "options": rays_of._ray_record()["options"],
                  "score": "the point score plus what the ray score shows beyond the good calibration scans' "
-                          "(inspection.combine, rule " + insp._combination().rule + ")"}}
+                          "(inspection.combine, rule " + rays_of._combination().rule + ")"}}
     if parted:  # thresholds per part: summary['parts']; scores compare within a part only
         extra["parts"] = insp.summary()
     summary = summarize(results["rows"], None if parted else insp.threshold_, insp.alpha, results["point_labels"],

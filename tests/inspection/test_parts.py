@@ -106,3 +106,36 @@ def _read_csv(path):
 
     with open(path) as fh:
         return list(csv.DictReader(fh))
+
+
+def test_a_two_part_model_scores_with_the_rays_when_every_scan_has_a_sensor_origin(tmp_path, one_torch_thread):
+    """The default path of scanners that record where they stood: calibrate turns the rays on (every scan has a
+    sensor origin), each part gets its own combination, and score writes the ray columns and summary for the parts
+    together (it used to fail on the two-part inspector)."""
+    import csv
+
+    from autodecoder.latent.train import train_collection
+    from datasets.collection import ScanCollection
+    from inspection.parts import PartInspector
+    from inspection.run import calibrate, score
+
+    scans = []
+    for i, (part, r) in enumerate((("a", 0.15), ("b", 0.3))):
+        scans += [_sphere(f"{part}/train/{k:03d}", r, part, 100 * i + k) for k in range(6)]
+        scans += [_sphere(f"{part}/test/good", r, part, 100 * i + 50, split="test")]
+    for k, s in enumerate(scans):  # a sensor 1.5 units away, on a different side for each scan
+        v = np.random.default_rng(k).normal(size=3)
+        s.sensor_origin = (1.5 * v / np.linalg.norm(v)).astype(np.float32)
+    data = ScanCollection.create(tmp_path / "ab.h5", scans)
+    model = tmp_path / "model.pt"
+    train_collection(data, model, calibration_fraction=0.34, quiet=True, **TINY)
+    insp, _ = calibrate(model, data, progress=False)
+    assert isinstance(insp, PartInspector) and insp.rays
+    rules = {p: one.combination_.rule for p, one in insp.inspectors.items()}
+    assert set(rules) == {"a", "b"}
+    summary = score(model, data, tmp_path / "results", progress=False, maps="none", echo=lambda line: None)
+    assert summary["rays"]["options"]["n_rays"] > 0 and rules["a"] in summary["rays"]["score"]
+    assert set(summary["parts"]) == {"a", "b"}
+    with open(tmp_path / "results" / "scores.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 2 and all(float(r["score_rays"]) >= 0 for r in rows)
