@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from sklearn.metrics import roc_auc_score
 
-import inspection.combine as combine
+from inspection.combine import LOG_GATE_CEILING_FACTOR, Combination
 from autodecoder.scanning.free_space import MAX_SURPRISAL
 from inspection.threshold import fit_threshold
 
@@ -50,16 +50,12 @@ def load_run(run):
 
 def evaluate(comps, roles, rows, factor):
     """Object AUROC per type, flagged fractions and the gate (nats) of the gated-log rule with this bound."""
-    saved = combine.LOG_GATE_CEILING_FACTOR
-    try:
-        if factor is not None:
-            combine.LOG_GATE_CEILING_FACTOR = factor
-        comb = combine.Combination(comps, names=("points", "rays"), rule="gated-log",
-                                   ceiling=None if factor is None else MAX_SURPRISAL)
-        scores = comb.score({"points": [r[2] for r in rows], "rays": [r[3] for r in rows]})
-        threshold = fit_threshold(comb.calibration_scores(), ALPHA, roles).value
-    finally:
-        combine.LOG_GATE_CEILING_FACTOR = saved
+    # the bound is log(1 + ceiling / LOG_GATE_CEILING_FACTOR): a ceiling scaled by that factor / F puts it at
+    # log(1 + MAX_SURPRISAL / F)
+    ceiling = None if factor is None else MAX_SURPRISAL * LOG_GATE_CEILING_FACTOR / factor
+    comb = Combination(comps, names=("points", "rays"), rule="gated-log", ceiling=ceiling)
+    scores = comb.score({"points": [r[2] for r in rows], "rays": [r[3] for r in rows]})
+    threshold = fit_threshold(comb.calibration_scores(), ALPHA, roles).value
     defective = np.array([r[0] != "good" for r in rows])
     kind = np.array([r[1] for r in rows])
     out = {"gate": float(np.expm1(comb.mean[1] + comb.sd[1] * comb.gate[1])),
