@@ -199,6 +199,8 @@ class StochasticField(Field):
             "info": self.info,
             "training_points": self.training_points,
             "training_normals": self.training_normals,
+            # a latent grid model's covariance clamp (set_code_range): not in the net's state dict, so kept here
+            "cov_code_range": _code_range(self.cov_net),
         }
 
     def save(self, path):
@@ -215,6 +217,8 @@ class StochasticField(Field):
         mean_net, cov_net = build_networks(state["config"])
         mean_net.load_state_dict(state["mean_state"])
         cov_net.load_state_dict(state["cov_state"])
+        if state.get("cov_code_range") is not None:
+            cov_net.set_code_range(*state["cov_code_range"])
         return cls(mean_net, cov_net, Frame.from_dict(state["normalization"]), state["config"],
                    code=state["code"], noise=state["noise"], info=state.get("info"),
                    training_points=state.get("training_points"), training_normals=state.get("training_normals"))
@@ -223,3 +227,9 @@ class StochasticField(Field):
     def load(cls, path):
         """Read a field written by :meth:`save` (``torch.load(weights_only=True)``)."""
         return cls.from_state(load_torch_file(path, what="stochastic field"), source=os.fspath(Path(path)))
+
+
+def _code_range(net):
+    """(lo, hi) of a net's code clamp (:meth:`GridCovarianceNet.set_code_range`), None when it has none."""
+    lo, hi = getattr(net, "code_lo", None), getattr(net, "code_hi", None)
+    return None if lo is None else (lo.clone(), hi.clone())

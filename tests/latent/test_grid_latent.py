@@ -176,6 +176,12 @@ def test_grid_covariance_reads_projected_codes_clamped_to_the_training_codes_box
     # the range is not in the state dict (checkpoints keep their keys); the loaded model sets it from its codes
     assert not any(k.startswith("code_") for k in model.cov_net.state_dict())
     assert torch.equal(load_model(out).cov_net.code_hi, hi)
+    # a projected field written to its own file keeps the clamp
+    a.save(tmp_path / "far.pt")
+    from autodecoder.field.stochastic_field import StochasticField
+
+    again = StochasticField.load(tmp_path / "far.pt")
+    assert torch.equal(again.cov_net.code_lo, lo) and np.array_equal(again.variance(x), a.variance(x))
 
 
 def test_grid_code_range_refuses_bad_bounds(trained):
