@@ -3,8 +3,8 @@
 A SIREN (Sitzmann et al. 2020) maps u -> sin(w0 (W u + b)) layer after layer. Because every layer is an affine map
 followed by an elementwise sine, the derivatives of the activations with respect to the input coordinates can be
 carried forward alongside the values ("jets"): an affine map acts on every derivative channel the same way (the
-bias only on the value), and the sine's chain rule is elementwise. The value and all derivative channels of a layer
-go through ONE matrix multiply, laid out as (batch, channels, width), which is what a CPU does fastest. Training then
+bias only on the value), and the sine's chain rule is elementwise. All derivative channels of a layer go through one
+matrix multiply, laid out as (batch, channels, width), which is what a CPU does fastest. Training then
 backpropagates through this forward computation once, instead of differentiating a backward pass again.
 
 Two jets are provided:
@@ -104,10 +104,13 @@ class Siren(nn.Module):
         # d pre / dx_k = w0 * first_x[:, k], the same for every sample
         jac = (self.omega0 * torch.cos(pre)).unsqueeze(1) * self.first_x.T.unsqueeze(0)  # (B, in, W)
         for lin in self.hidden:
-            stacked = torch.cat([y.unsqueeze(1), jac], dim=1) @ lin.weight.T  # (B, 1+in, W): one matmul
-            pre = self.omega * (stacked[:, 0] + lin.bias)
+            # the value and the derivative channels in two matrix products, not one over their concatenation: the
+            # slices of a concatenated product cost a zero-filled copy each in the backward pass (about a fifth of a
+            # latent training step's forward and backward, docs/results.md#latent-training-and-projection-cost)
+            pre = self.omega * torch.addmm(lin.bias, y, lin.weight.T)  # (B, W)
+            d_pre = jac @ (self.omega * lin.weight.T)  # (B, in, W)
             y = torch.sin(pre)
-            jac = (self.omega * torch.cos(pre)).unsqueeze(1) * stacked[:, 1:]
+            jac = torch.cos(pre).unsqueeze(1) * d_pre
         value = self.last(y)
         return value, jac @ self.last.weight.T
 
