@@ -32,9 +32,9 @@ def build_parser():
     p.add_argument("--latent-dim", type=int, default=DEFAULTS["latent_dim"],
                    help="dimension of each scan's latent code (default: %(default)s)")
     p.add_argument("--epochs", type=int, default=DEFAULTS["epochs"],
-                   help="passes over the training scans (default: enough for ~4800 steps per part type among the "
-                        "scans' part ids, between 150 and 600 epochs); with --resume, the new total (default: the "
-                        "checkpoint's)")
+                   help="passes over the training scans (default: 450, fewer for collections of many thousand "
+                        "scans; with --representation grid about 160 steps per part type); with --resume, the new "
+                        "total (default: the checkpoint's)")
     p.add_argument("--representation", choices=("siren", "grid"), default=None,
                    help="the nets: 'siren' (the paper's SIRENs of --width x --depth) or 'grid' (B-spline feature "
                         "grids decoded with the code; docs/model.md) (default: the library's "
@@ -63,6 +63,11 @@ def build_parser():
                         "scans are used instead (default: %(default)s)")
     p.add_argument("--checkpoint-every", type=int, default=0, metavar="N",
                    help="also write the checkpoint every N epochs (default: only at the end)")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch CPU threads of this process (0: torch's own choice, one per core). A latent training "
+                        "step is many small tensor operations, which one thread runs faster than two on a 2-core "
+                        "CPU (docs/results.md#latent-training-in-two-minutes-issue-19); use more cores with "
+                        "torchrun processes (default: the trainer's TRAINING_THREADS, one)")
     p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     return p
 
@@ -78,6 +83,8 @@ def _parse(argv):
         raise _UsageError(f"--calibration-fraction must be in [0, 1), got {args.calibration_fraction}")
     if args.checkpoint_every < 0:
         raise _UsageError(f"--checkpoint-every must be >= 0, got {args.checkpoint_every}")
+    if args.threads is not None and args.threads < 0:
+        raise _UsageError(f"--threads must be >= 0, got {args.threads}")
     return args
 
 
@@ -96,9 +103,10 @@ def options_from_args(args):
 
 def run(args):
     """Train from parsed arguments; returns the LatentModel (raises TrainingInputError on bad input files)."""
-    from autodecoder.latent.train import train_collection
+    from autodecoder.latent.train import train_collection, training_threads
 
-    return train_collection(args.data, args.out, **options_from_args(args))
+    with training_threads(args.threads):
+        return train_collection(args.data, args.out, **options_from_args(args))
 
 
 def main(argv=None):

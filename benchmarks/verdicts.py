@@ -173,7 +173,8 @@ def _print_rows(rows, kinds):
               + f" {decision.basis:>10} {far:>22} {sec:7.3f}")
 
 
-def main(argv=None):
+def main_args(argv=None):
+    """The parsed command line (also what benchmarks/latent_budget.py passes to :func:`synth`)."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--parts", default="fandisk,builtin", help="comma-separated: fandisk, bunny, builtin, or any "
                                                               "name datasets.parts.load_part knows, or a mesh file")
@@ -198,7 +199,11 @@ def main(argv=None):
     p.add_argument("--variants", action="store_true", help="also the score study (point scores x aggregates)")
     p.add_argument("--work", default="results/verdicts")
     p.add_argument("--quiet", action="store_true")
-    args = p.parse_args(argv)
+    return p.parse_args(argv)
+
+
+def main(argv=None):
+    args = main_args(argv)
     work = Path(args.work)
     print(f"load average at start: {os.getloadavg()}")
     rows, kinds = [], set()

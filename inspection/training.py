@@ -7,7 +7,7 @@ and recorded in the checkpoint, exactly as ``train_latent.py --calibration-fract
 
 
 def train_model(collection, out, calibration_fraction=0.2, seed=0, quiet=True, epochs=None, overwrite=False,
-                **options):
+                threads=None, **options):
     """Train a latent model on a collection's good training scans (minus the held-back ones) into ``out``.
 
     Parameters
@@ -19,6 +19,9 @@ def train_model(collection, out, calibration_fraction=0.2, seed=0, quiet=True, e
         Default: the trainer's.
     overwrite : bool
         Replace an existing ``out``.
+    threads : int, optional
+        torch CPU threads during the training (restored afterwards); default: the trainer's ``TRAINING_THREADS``
+        (one: faster than two on a 2-core CPU), 0: leave torch's setting.
     **options
         ``autodecoder.latent.train.LatentOptions`` fields.
 
@@ -26,7 +29,8 @@ def train_model(collection, out, calibration_fraction=0.2, seed=0, quiet=True, e
     -------
     autodecoder.latent.model.LatentModel
     """
-    from autodecoder.latent.train import train_collection
+    from autodecoder.latent.train import train_collection, training_threads
 
-    return train_collection(collection, out, calibration_fraction=calibration_fraction, overwrite=overwrite,
-                            quiet=quiet, seed=seed, epochs=epochs, **options)
+    with training_threads(threads):
+        return train_collection(collection, out, calibration_fraction=calibration_fraction, overwrite=overwrite,
+                                quiet=quiet, seed=seed, epochs=epochs, **options)

@@ -16,6 +16,7 @@ per-rank random states are gathered and rank 0 writes the file.
 collection file, holding scans back for calibration by the one rule :func:`split_training_scans` (what
 ``train_latent.py`` runs).
 """
+import contextlib
 import math
 import os
 import time
@@ -38,13 +39,16 @@ from datasets.atomic import atomic_path
 from datasets.frame import Frame
 from autodecoder.field.targets import DEFAULT_LENGTHSCALE_FACTOR, MIN_LENGTHSCALE, CloudTargets, point_spacing
 
-# Optimisation steps the default epoch count aims at: on fandisk the inspection AUROC still rose up to 2,400 steps,
-# with the loss falling slowly (docs/results.md#latent-training-and-projection-cost); collections of up to 32 scans
-# (batch 8) reach the 600-epoch cap before that. 64 template views got only 300 epochs (300 updates of each code) at
-# 2,400 steps, and 600 raised the object AUROC of every defect type on both parts of benchmarks/four_templates.py
-# (docs/results.md#training-from-4-complete-templates), hence twice the budget: the same for <= 32 scans.
-DEFAULT_STEPS = 4800
-MIN_DEFAULT_EPOCHS, MAX_DEFAULT_EPOCHS = 150, 600
+# The SIREN's default budget (default_epochs): every code is updated DEFAULT_EPOCHS times (an epoch is one pass over
+# the scans, a code moves only when its scan is in a batch), with steps of 256 mean-loss samples a scan. On
+# verdicts.py's parts (26 training scans, 1,800 steps) this matched the earlier 2,400 steps of 1,024 samples in object
+# AUROC at about a third of the time (under 2 minutes on 2 cores); fewer code updates (300) or narrower or shallower
+# nets lost the thin-walled enclosure's missing material at one of three seeds
+# (docs/results.md#latent-training-in-two-minutes-issue-19). Large collections get fewer epochs: at most
+# MAX_DEFAULT_STEPS steps per part type, and never fewer than MIN_DEFAULT_EPOCHS epochs.
+DEFAULT_EPOCHS = 450
+MAX_DEFAULT_STEPS = 20_000
+MIN_DEFAULT_EPOCHS = 150
 
 # The grid representation's nets in a latent model (``representation="grid"``; keys of
 # autodecoder.field.grid_networks.GridMeanNet / GridCovarianceNet, overridden by LatentOptions.grid_mean / grid_cov):
@@ -56,7 +60,7 @@ REPRESENTATIONS = ("siren", "grid")
 # The grid representation's step budget (default_epochs): its mean starts at the union's solved field, and on fandisk
 # its loss stopped falling within a few dozen epochs (docs/results.md#the-latent-model-on-grids-issue-19).
 GRID_DEFAULT_STEPS = 160
-GRID_MIN_DEFAULT_EPOCHS = 20
+GRID_MIN_DEFAULT_EPOCHS, GRID_MAX_DEFAULT_EPOCHS = 20, 600
 
 LOG_COLUMNS = ("epoch", "loss", "mean_dirichlet", "mean_screening", "cov_dirichlet", "cov_screening", "code_reg",
                "code_rms", "lr", "seconds")
@@ -78,9 +82,8 @@ class LatentOptions:
     omega0 : float
         SIREN first-layer frequency.
     epochs : int, optional
-        Passes over the training scans. Default (None): :func:`default_epochs`, enough for ``DEFAULT_STEPS``
-        optimisation steps per part type among the training scans (their ``part_id``), between 150 and 600 epochs
-        (grid representation: ``GRID_DEFAULT_STEPS``, at least 20 epochs).
+        Passes over the training scans. Default (None): :func:`default_epochs`: ``DEFAULT_EPOCHS`` (fewer for very
+        large collections; grid representation: ``GRID_DEFAULT_STEPS`` steps per part type, at least 20 epochs).
     batch : int
         Scans per step (per process under DDP).
     lr, code_lr : float
@@ -131,8 +134,8 @@ class LatentOptions:
     lr: float = 1e-3
     code_lr: float = 1e-3
     final_lr_fraction: float = 0.05
-    mean_samples: int = 1024
-    screen_samples: int = 512
+    mean_samples: int = 256
+    screen_samples: int = 128
     pair_clusters: int = 32
     cluster_size: int = 4
     target_refresh: int = 4
@@ -217,27 +220,51 @@ def _all_gather(obj, world):
 
 
 def default_epochs(n_scans, batch, world=1, n_parts=1, representation="siren"):
-    """Epochs for ~``DEFAULT_STEPS`` steps per part type with ``n_scans`` scans of ``n_parts`` part types,
-    ``batch`` per step and process, ``world`` processes; at least ``MIN_DEFAULT_EPOCHS`` (every code needs updates:
-    it moves only when its scan is in a batch) and at most ``MAX_DEFAULT_EPOCHS``.
+    """The default number of epochs for ``n_scans`` training scans of ``n_parts`` part types, ``batch`` scans per
+    step and process, ``world`` processes.
 
-    The budget follows the collection: a collection of several part types gets each part's single-part budget
-    (``n_parts`` x ``DEFAULT_STEPS``), within the same epoch bounds, so that every code is updated about as often as
-    in a single-part run of the same number of scans per part (one model trained on two parts with one part's budget
-    ranked each part's defects far worse than the part's own model; docs/results.md#one-model-for-several-parts-issue-19).
-    With one part type this is the single-part rule unchanged.
+    SIREN nets: ``DEFAULT_EPOCHS`` (every code gets as many updates, whatever the collection's size, so a collection
+    of several part types trains each part's codes as often as a single-part run of the same scans per part, in
+    proportionally more steps; one model of two parts trained in one part's step budget ranked each part's defects
+    far worse, docs/results.md#one-model-for-several-parts-issue-19), fewer for a collection so large that this
+    would exceed ``MAX_DEFAULT_STEPS`` steps per part type, but at least ``MIN_DEFAULT_EPOCHS``.
 
     The grid representation (``representation="grid"``) starts from the union's solved mean and needs far fewer
-    steps: ``GRID_DEFAULT_STEPS`` per part type, between ``GRID_MIN_DEFAULT_EPOCHS`` and ``MAX_DEFAULT_EPOCHS``."""
+    steps: ``GRID_DEFAULT_STEPS`` per part type, between ``GRID_MIN_DEFAULT_EPOCHS`` and
+    ``GRID_MAX_DEFAULT_EPOCHS``."""
     if int(n_parts) < 1:
         raise ValueError(f"n_parts must be >= 1, got {n_parts}")
     if representation not in REPRESENTATIONS:
         raise ValueError(f"representation must be one of {REPRESENTATIONS}, got {representation!r}")
     steps_per_epoch = math.ceil(math.ceil(n_scans / world) / max(1, min(batch, math.ceil(n_scans / world))))
-    grid = representation == "grid"
-    steps = (GRID_DEFAULT_STEPS if grid else DEFAULT_STEPS) * int(n_parts)
-    least = GRID_MIN_DEFAULT_EPOCHS if grid else MIN_DEFAULT_EPOCHS
-    return int(min(MAX_DEFAULT_EPOCHS, max(least, math.ceil(steps / steps_per_epoch))))
+    if representation == "grid":
+        steps = GRID_DEFAULT_STEPS * int(n_parts)
+        return int(min(GRID_MAX_DEFAULT_EPOCHS, max(GRID_MIN_DEFAULT_EPOCHS, math.ceil(steps / steps_per_epoch))))
+    affordable = MAX_DEFAULT_STEPS * int(n_parts) // steps_per_epoch
+    return int(max(MIN_DEFAULT_EPOCHS, min(DEFAULT_EPOCHS, affordable)))
+
+
+# torch CPU threads of a training run (train_latent.py --threads, inspection.training.train_model): a step is many
+# small tensor operations, which one thread ran faster than two on the 2-core machine (103 s against 139 s for the
+# default run on fandisk's 26 scans, docs/results.md#latent-training-in-two-minutes-issue-19); more cores are used by
+# torchrun processes, one thread each.
+TRAINING_THREADS = 1
+
+
+@contextlib.contextmanager
+def training_threads(threads=None):
+    """Run the block with ``threads`` torch CPU threads (None: ``TRAINING_THREADS``; 0: leave torch's setting),
+    restored afterwards."""
+    threads = TRAINING_THREADS if threads is None else int(threads)
+    if threads < 0:
+        raise ValueError(f"threads must be >= 0, got {threads}")
+    before = torch.get_num_threads()
+    if threads:
+        torch.set_num_threads(int(threads))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def count_parts(part_ids):

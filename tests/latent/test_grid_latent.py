@@ -123,13 +123,13 @@ def test_command_line_passes_the_representation():
 def test_grid_default_epochs_follow_the_grid_budget():
     import math
 
-    from autodecoder.latent.train import (GRID_DEFAULT_STEPS, GRID_MIN_DEFAULT_EPOCHS, MAX_DEFAULT_EPOCHS,
+    from autodecoder.latent.train import (GRID_DEFAULT_STEPS, GRID_MAX_DEFAULT_EPOCHS, GRID_MIN_DEFAULT_EPOCHS,
                                           default_epochs)
 
     assert default_epochs(26, 8, representation="grid") == math.ceil(GRID_DEFAULT_STEPS / 4)  # 4 steps an epoch
     assert default_epochs(52, 8, n_parts=2, representation="grid") == math.ceil(2 * GRID_DEFAULT_STEPS / 7)
     assert default_epochs(10_000, 8, representation="grid") == GRID_MIN_DEFAULT_EPOCHS
-    assert default_epochs(1, 8, representation="grid") == min(MAX_DEFAULT_EPOCHS, GRID_DEFAULT_STEPS)
+    assert default_epochs(1, 8, representation="grid") == min(GRID_MAX_DEFAULT_EPOCHS, GRID_DEFAULT_STEPS)
     assert default_epochs(26, 8) != default_epochs(26, 8, representation="grid")
     with pytest.raises(ValueError, match="representation"):
         default_epochs(26, 8, representation="voxels")

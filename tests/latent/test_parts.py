@@ -27,17 +27,17 @@ def _two_part_scans(per_part=4):
 
 
 def test_default_epochs_give_each_part_type_the_single_part_budget():
-    from autodecoder.latent.train import DEFAULT_STEPS, MAX_DEFAULT_EPOCHS, MIN_DEFAULT_EPOCHS, default_epochs
+    from autodecoder.latent.train import DEFAULT_EPOCHS, MAX_DEFAULT_STEPS, MIN_DEFAULT_EPOCHS, default_epochs
 
     for n in (3, 26, 100, 10_000):  # one part type: the single-part rule unchanged
         assert default_epochs(n, 8, n_parts=1) == default_epochs(n, 8)
-    for n in (64, 200, 400, 4000):  # k parts of n scans each: every code as many updates as in its part alone
+    for n in (26, 64, 200, 400, 4000, 40_000):  # k parts of n scans each: every code as many updates as in its part alone
         for k in (2, 3):
             assert default_epochs(k * n, 8, n_parts=k) == default_epochs(n, 8)
-    assert default_epochs(400, 8, n_parts=2) == min(MAX_DEFAULT_EPOCHS, max(MIN_DEFAULT_EPOCHS,
-                                                                            math.ceil(2 * DEFAULT_STEPS / 50)))
-    assert default_epochs(52, 8, n_parts=2) == MAX_DEFAULT_EPOCHS  # 7 steps an epoch: capped at 600
-    assert default_epochs(20_000, 8, n_parts=2) == MIN_DEFAULT_EPOCHS
+    assert default_epochs(52, 8, n_parts=2) == DEFAULT_EPOCHS  # two parts of 26: 450 epochs of 7 steps
+    # the step cap is per part type: 2,000 scans of two parts get the epochs of 1,000 scans of one
+    assert default_epochs(2000, 8, n_parts=2) == MAX_DEFAULT_STEPS // 125 < DEFAULT_EPOCHS
+    assert default_epochs(200_000, 8, n_parts=2) == MIN_DEFAULT_EPOCHS
     assert default_epochs(800, 8, world=2, n_parts=2) == default_epochs(400, 8, world=2)  # 400 scans a process
     with pytest.raises(ValueError, match="n_parts"):
         default_epochs(10, 8, n_parts=0)

@@ -212,7 +212,29 @@ def test_cli_trains_resumes_and_rejects_bad_input(tmp_path, capsys):
     assert main(["--data", str(junk), "--out", str(tmp_path / "x.pt")]) == 2
     assert "junk.h5" in capsys.readouterr().err
     assert main(["--data", str(data), "--out", str(tmp_path / "y.pt"), "--epochs", "0"]) == 2
+    assert main(["--data", str(data), "--out", str(tmp_path / "y.pt"), "--threads", "-1"]) == 2
+    assert "--threads" in capsys.readouterr().err
     assert main(["--help"]) == 0
+
+
+def test_cli_trains_on_the_threads_it_is_given(tmp_path, monkeypatch):
+    import torch
+
+    import train_latent
+
+    import autodecoder.latent.train as train_module
+
+    seen = []  # the threads torch has when training starts
+    monkeypatch.setattr(train_module, "train_collection", lambda *a, **k: seen.append(torch.get_num_threads()))
+    before = torch.get_num_threads()
+    try:
+        base = ["--data", "c.h5", "--out", str(tmp_path / "m.pt")]
+        train_latent.run(train_latent.build_parser().parse_args(base))  # default: one thread
+        torch.set_num_threads(2)
+        train_latent.run(train_latent.build_parser().parse_args(base + ["--threads", "0"]))  # torch's own: untouched
+    finally:
+        torch.set_num_threads(before)
+    assert seen == [1, 2]
 
 
 def test_cli_holds_back_a_calibration_fraction_without_validation_split(tmp_path):
@@ -303,17 +325,41 @@ def test_target_pools_are_a_function_of_scan_and_epoch_and_reuse_samples():
     assert len(first) == 128 and not first & {tuple(r) for r in other.mean_batch(5)[0]}
 
 
-def test_default_epochs_aim_at_a_step_budget():
-    from autodecoder.latent.train import DEFAULT_STEPS, MAX_DEFAULT_EPOCHS, MIN_DEFAULT_EPOCHS, default_epochs
+def test_default_epochs_give_every_code_the_same_number_of_updates():
+    from autodecoder.latent.train import DEFAULT_EPOCHS, MAX_DEFAULT_STEPS, MIN_DEFAULT_EPOCHS, default_epochs
 
-    assert default_epochs(26, 8) == MAX_DEFAULT_EPOCHS  # 4 steps an epoch: 600 epochs (capped) = 2,400 steps
-    assert default_epochs(100, 8) == math.ceil(DEFAULT_STEPS / 13)  # 13 steps an epoch
-    assert default_epochs(10_000, 8) == MIN_DEFAULT_EPOCHS
-    assert default_epochs(100, 8, world=2) == min(MAX_DEFAULT_EPOCHS, math.ceil(DEFAULT_STEPS / 7))  # 50, 7 steps
-    assert default_epochs(400, 8, world=2) == math.ceil(DEFAULT_STEPS / 25)  # each process: 200 scans, 25 steps
-    # 4 complete templates rendered into 16 views each: every code is updated 600 times (docs/results.md)
-    assert default_epochs(64, 8) == MAX_DEFAULT_EPOCHS
-    assert default_epochs(3, 8) == MAX_DEFAULT_EPOCHS  # a batch larger than the scans: one step an epoch
+    # every code is updated DEFAULT_EPOCHS times, whatever the collection's size and the batch
+    for n in (3, 26, 64, 100):
+        assert default_epochs(n, 8) == DEFAULT_EPOCHS
+    assert default_epochs(26, 4) == default_epochs(100, 8, world=2) == DEFAULT_EPOCHS
+    # a collection so large that this would exceed MAX_DEFAULT_STEPS steps: as many epochs as fit, at least the minimum
+    assert default_epochs(1000, 8) == MAX_DEFAULT_STEPS // 125 < DEFAULT_EPOCHS  # 125 steps an epoch
+    assert default_epochs(1000, 8) * 125 <= MAX_DEFAULT_STEPS < (default_epochs(1000, 8) + 1) * 125
+    assert default_epochs(2000, 8, world=2) == default_epochs(1000, 8)  # 1,000 scans a process
+    assert default_epochs(100_000, 8) == MIN_DEFAULT_EPOCHS
     # the resolved count is what the checkpoint records
     model = train_latent(sphere_scans()[:2], None, seed=0, quiet=True, stop_after=1, **TINY)
     assert model.config["epochs"] == default_epochs(2, TINY["batch"]) and model.epoch == 1
+
+
+def test_training_threads_sets_and_restores_torch_threads():
+    import torch
+
+    from autodecoder.latent.train import TRAINING_THREADS, training_threads
+
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        with training_threads():
+            assert torch.get_num_threads() == TRAINING_THREADS
+        assert torch.get_num_threads() == 2
+        with training_threads(0):  # torch's own setting, untouched
+            assert torch.get_num_threads() == 2
+        with pytest.raises(RuntimeError), training_threads(1):
+            assert torch.get_num_threads() == 1
+            raise RuntimeError("restored on the way out too")
+        assert torch.get_num_threads() == 2
+        with pytest.raises(ValueError, match="threads"), training_threads(-1):
+            pass
+    finally:
+        torch.set_num_threads(before)
