@@ -63,6 +63,12 @@ def build_parser():
                         "scans are used instead (default: %(default)s)")
     p.add_argument("--checkpoint-every", type=int, default=0, metavar="N",
                    help="also write the checkpoint every N epochs (default: only at the end)")
+    p.add_argument("--samples", type=int, default=None,
+                   help="mean-loss samples per scan and step (screening points: half as many). The default, 256, "
+                        "trains a 32-scan collection in under 2 minutes; 1024 with --epochs 600, the earlier budget "
+                        "(about 3x the time), ranked the subtlest real-scan defects better "
+                        "(docs/results.md#latent-training-in-two-minutes-issue-19) (default: the library's "
+                        "LatentOptions.mean_samples)")
     p.add_argument("--threads", type=int, default=None,
                    help="torch CPU threads of this process (0: torch's own choice, one per core). A latent training "
                         "step is many small tensor operations, which one thread runs faster than two on a 2-core "
@@ -74,7 +80,7 @@ def build_parser():
 
 def _parse(argv):
     args = build_parser().parse_args(argv)
-    for name in ("latent_dim", "epochs", "width", "depth", "batch"):
+    for name in ("latent_dim", "epochs", "width", "depth", "batch", "samples"):
         if getattr(args, name) is not None and getattr(args, name) < 1:
             raise _UsageError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     if not args.lr > 0 or (args.code_lr is not None and not args.code_lr > 0):
@@ -98,6 +104,8 @@ def options_from_args(args):
         options["code_lr"] = args.code_lr
     if args.representation is not None:
         options["representation"] = args.representation
+    if args.samples is not None:
+        options["mean_samples"], options["screen_samples"] = args.samples, max(1, args.samples // 2)
     return options
 
 

@@ -200,7 +200,7 @@ def main(argv=None):
     if args.field:
         field = StochasticField.load(args.field)
     else:
-        field = fit_cloud(points, normals, seed=args.seed, quiet=args.quiet, **extra)
+        field = fit_cloud(points, normals, representation="siren", seed=args.seed, quiet=args.quiet, **extra)
         field.save(out / "field.pt")
     fit_seconds = field.info["fit_seconds"]
     ours = field.mesh(args.resolution)

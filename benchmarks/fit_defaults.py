@@ -33,7 +33,8 @@ def run_one(job):
     from autodecoder.field.targets import point_spacing
 
     lengthscale = job["h_factor"] * point_spacing(points)
-    field = fit_cloud(points, mesh.face_normals[faces], seed=0, quiet=True, width=job["width"], depth=job["depth"],
+    field = fit_cloud(points, mesh.face_normals[faces], representation="siren",
+                      seed=0, quiet=True, width=job["width"], depth=job["depth"],
                       steps=job["steps"], lengthscale=lengthscale, **job["extra"])
     seconds = time.perf_counter() - t0
     diag = float(np.linalg.norm(mesh.extents))

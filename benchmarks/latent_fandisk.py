@@ -107,7 +107,7 @@ def main(argv=None):
     fit_s, chamfer_fit, chamfer_same = [], [], []
     for k, s in enumerate(held[:args.fit_scans]):
         t0 = time.perf_counter()
-        f = fit_cloud(s.points, s.normals, seed=args.seed, quiet=True, **fit_opts)
+        f = fit_cloud(s.points, s.normals, representation="siren", seed=args.seed, quiet=True, **fit_opts)
         fit_s.append(time.perf_counter() - t0)
         chamfer_fit.append(mean_surface_distance(f.mesh(args.resolution), true_mesh, args.samples, k))
         chamfer_same.append(chamfer_proj[k])

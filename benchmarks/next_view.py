@@ -115,7 +115,8 @@ def main(argv=None):
     first = scanner.random_view(radius_range=(1.8, 1.8), seed=args.seed)
     p0, n0 = scan(first.camera_position, scanner.center, 0)
     t0 = time.perf_counter()
-    field0 = fit_cloud(p0, n0, seed=args.seed, steps=args.fit_steps, lengthscale=h_of(p0), **fit_kw)
+    field0 = fit_cloud(p0, n0, representation="siren",
+                       seed=args.seed, steps=args.fit_steps, lengthscale=h_of(p0), **fit_kw)
     field0.training_points, field0.training_normals = torch.tensor(p0).float(), torch.tensor(n0).float()
     err0 = surface_error(field0, mesh, args.mesh_res)
     print(f"first fit {time.perf_counter() - t0:.1f}s, chamfer {err0:.5f}")
@@ -172,7 +173,8 @@ def main(argv=None):
           + f"; nbv below random at every step: {below}")
     pts, nrm, err_ft, t_ft = last_union
     t = time.perf_counter()
-    refit = fit_cloud(pts, nrm, seed=args.seed, steps=args.fit_steps, lengthscale=h_of(pts), **fit_kw)
+    refit = fit_cloud(pts, nrm, representation="siren",
+                      seed=args.seed, steps=args.fit_steps, lengthscale=h_of(pts), **fit_kw)
     t_refit = time.perf_counter() - t
     refit_samples = surface_distance_samples(refit.mesh(args.mesh_res), mesh)
     err_refit = 0.5 * float(refit_samples[0].mean() + refit_samples[1].mean())
@@ -206,7 +208,8 @@ def main(argv=None):
     refits = [(args.fit_steps, t_refit, err_refit)]
     for budget in (args.fit_steps // 4, args.fit_steps // 2):
         t = time.perf_counter()
-        short = fit_cloud(pts, nrm, seed=args.seed, steps=budget, lengthscale=h_of(pts), **fit_kw)
+        short = fit_cloud(pts, nrm, representation="siren",
+                          seed=args.seed, steps=budget, lengthscale=h_of(pts), **fit_kw)
         refits.append((budget, time.perf_counter() - t, surface_error(short, mesh, args.mesh_res)))
     refits.sort()
     print("refits from scratch: " + ", ".join(f"{b} steps {t_:.1f}s chamfer {e:.5f}" for b, t_, e in refits))

@@ -90,7 +90,8 @@ def main(argv=None):
     first = scanner.random_view(radius_range=(1.8, 1.8), seed=args.seed)
     scan0 = scanner.scan(first.camera_position, scanner.center, n_points=args.points, noise=0.0, seed=0)
     p0, n0 = scan0.points.astype(np.float64), scan0.normals.astype(np.float64)
-    field = fit_cloud(p0, n0, seed=args.seed, steps=args.fit_steps, quiet=True, width=64, depth=3,
+    field = fit_cloud(p0, n0, representation="siren",
+                      seed=args.seed, steps=args.fit_steps, quiet=True, width=64, depth=3,
                       lengthscale=args.h_factor * point_spacing(p0),
                       features=args.features, covariance=args.covariance,
                       mean_batch=2048, screen_batch=1024, pair_clusters=64, covariance_every=1, pool_passes=4,

@@ -258,7 +258,7 @@ def calibrate(model, data, alpha=DEFAULT_ALPHA, aggregate=None, point_score=None
         insp._check_params()  # bad ray options fail before any work
         if point_score in REFERENCE_QUANTITY:
             # the good scans' own surface from every training scan: the reference's subset of them can miss a
-            # region few views saw (docs/results.md#training-from-4-complete-templates)
+            # region few views saw (docs/results.md#training-from-4-complete-templates-benchmarksfour_templatespy)
             insp.fit_reference(tqdm(reference, desc=f"reference{desc}", unit="scan", disable=not progress),
                                surface_scans=reference_scans(handle, data, info, max_scans=None, part=part))
         insp.fit(tqdm(scans, desc=f"calibrate{desc}", unit="scan", disable=not progress),

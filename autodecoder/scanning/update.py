@@ -63,7 +63,7 @@ def update_field(field, points, normals, epochs=50, steps=None, lr_fraction=0.3,
     -------
     StochasticField, with ``training_points``/``training_normals`` the union and ``info['updates']`` extended.
 
-    A grid field (``fit_cloud(..., representation='grid')``) is refitted on the union instead, with its own grid
+    A grid field (``fit_cloud``'s default representation) is refitted on the union instead, with its own grid
     settings and options (``options`` / ``option_overrides`` are then :class:`GridFitOptions` fields; ``epochs``,
     ``steps`` and ``lr_fraction`` do not apply): its mean is the exact minimiser of the loss on its grid, solved in
     seconds, so there is nothing to fine-tune from, and the union's box and frame replace the old ones.

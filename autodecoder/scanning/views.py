@@ -23,7 +23,8 @@ is small at the covariance's scale; ``FitOptions.covariance_screening_weight`` s
 of surface already measured within a kernel support adds nothing the fit can use; the factor says so explicitly,
 and leaves the variance to rank the cameras that do look at new surface.
 
-Fit the fields of partial scans with ``fit_cloud(..., outside_weight=100, lengthscale=2 * point_spacing(points))``
+Fit the fields of partial scans with ``fit_cloud(..., representation='siren', outside_weight=100,
+lengthscale=2 * point_spacing(points))``
 (:class:`autodecoder.field.fit.FitOptions`, :func:`autodecoder.field.targets.point_spacing`): with ``fit_cloud``'s
 default kernel of 1.5 point spacings next-best-view chose worse views. The boundary term: the paper's loss leaves an
 open sheet unclosed, so far from one scan the mean sits at the surface's own level, every ray "hits" empty space at
@@ -357,7 +358,8 @@ def _warn_if_half_solid(field):
             warnings.warn(f"{inside:.0%} of the field's box boundary is likely inside the part (P(f <= 0) > 0.25): "
                           "the far field sits at the surface's own level, as for a partial scan fitted with the "
                           "paper's loss, so rays 'hit' empty space and the views rank its variance. Fit partial "
-                          "scans with fit_cloud(..., outside_weight=100).", UserWarning, stacklevel=3)
+                          "scans with fit_cloud(..., representation='siren', outside_weight=100).", UserWarning,
+                          stacklevel=3)
 
 
 def _best_starts(score_of, dirs, starts, mid):

@@ -144,7 +144,8 @@ def _sheet_cloud(thickness, n=600, seed=0):
 def _fit(points, normals):
     from autodecoder import fit_cloud
 
-    return fit_cloud(points, normals, seed=0, quiet=True, width=64, depth=2, features=32, steps=120,
+    return fit_cloud(points, normals, representation="siren",
+                     seed=0, quiet=True, width=64, depth=2, features=32, steps=120,
                      mean_batch=1024, screen_batch=512, pair_clusters=48, covariance_every=8)
 
 

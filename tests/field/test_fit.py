@@ -24,7 +24,8 @@ def sphere_cloud(n, seed=0):
 def sphere_field():
     points, normals = sphere_cloud(1500)
     # a short run: a covariance step every 8 mean steps (fit_cloud's 16 is sized for its 4000 steps)
-    return fit_cloud(points, normals, seed=0, quiet=True, width=64, depth=2, features=32, steps=250,
+    return fit_cloud(points, normals, representation="siren",
+                     seed=0, quiet=True, width=64, depth=2, features=32, steps=250,
                      mean_batch=1024, screen_batch=512, pair_clusters=48, covariance_every=8)
 
 
@@ -111,8 +112,8 @@ def test_load_rejects_foreign_and_corrupt_files(tmp_path):
 
 def test_same_seed_same_field():
     points, normals = sphere_cloud(300)
-    kwargs = dict(seed=5, quiet=True, width=16, depth=1, features=8, steps=5, mean_batch=128, screen_batch=64,
-                  pair_clusters=8)
+    kwargs = dict(representation="siren", seed=5, quiet=True, width=16, depth=1, features=8, steps=5, mean_batch=128,
+                  screen_batch=64, pair_clusters=8)
     a, b = fit_cloud(points, normals, **kwargs), fit_cloud(points, normals, **kwargs)
     x = CENTER + np.random.default_rng(6).uniform(-4, 4, (50, 3))
     np.testing.assert_array_equal(a.mean(x), b.mean(x))
@@ -126,7 +127,7 @@ def test_default_lengthscale_is_one_and_a_half_point_spacings_whatever_the_units
     kwargs = dict(seed=0, quiet=True, width=8, depth=1, features=4, steps=1, mean_batch=16, screen_batch=16,
                   pair_clusters=2)
     for scale in (1.0, 40.0):
-        field = fit_cloud(CENTER + scale * (points - CENTER), normals, **kwargs)
+        field = fit_cloud(CENTER + scale * (points - CENTER), normals, representation="siren", **kwargs)
         h_world = field.config["lengthscale"] / field.frame.scale
         expected = 1.5 * np.sqrt(4 * np.pi * (scale * RADIUS) ** 2 / len(points))
         assert abs(h_world / expected - 1) < 0.15
@@ -143,7 +144,7 @@ def test_default_lengthscale_is_one_and_a_half_point_spacings_whatever_the_units
 ])
 def test_bad_input_gives_one_clear_error(points, normals, message):
     with pytest.raises(ValueError, match=message):
-        fit_cloud(points, normals, quiet=True, steps=1)
+        fit_cloud(points, normals, representation="siren", quiet=True, steps=1)
 
 
 def test_pair_subset_estimates_the_sum_over_all_ordered_pairs():
@@ -164,7 +165,8 @@ def test_pair_subset_estimates_the_sum_over_all_ordered_pairs():
 
 def test_paper_pair_covariance_fits_and_stays_symmetric():
     points, normals = sphere_cloud(300)
-    field = fit_cloud(points, normals, seed=0, quiet=True, covariance="pair", width=16, depth=1, steps=20,
+    field = fit_cloud(points, normals, representation="siren",
+                      seed=0, quiet=True, covariance="pair", width=16, depth=1, steps=20,
                       mean_batch=128, screen_batch=64, pair_clusters=8)
     rng = np.random.default_rng(8)
     a, b = CENTER + rng.uniform(-4, 4, (30, 3)), CENTER + rng.uniform(-4, 4, (30, 3))
@@ -218,7 +220,8 @@ def test_covariance_screening_weight_pins_the_variance_at_the_points(sphere_fiel
     """A larger lambda_S on c(p, p)^2 alone (the mean's screening unchanged) lowers the variance at the cloud
     relative to the variance off it, against the shared fit with the paper's weight."""
     points, normals = sphere_cloud(1500)
-    strong = fit_cloud(points, normals, seed=0, quiet=True, width=64, depth=2, features=32, steps=250,
+    strong = fit_cloud(points, normals, representation="siren",
+                       seed=0, quiet=True, width=64, depth=2, features=32, steps=250,
                        mean_batch=1024, screen_batch=512, pair_clusters=48, covariance_screening_weight=1e6)
     assert strong.info["options"]["covariance_screening_weight"] == 1e6
     off = CENTER + 1.6 * (points - CENTER)  # 0.6 radii outside
@@ -236,7 +239,8 @@ def test_covariance_every_spreads_covariance_steps_through_the_run(steps, every,
     """covariance_every=k: the mean net takes every step, the covariance net ceil(steps / k), the first at step 0
     (counted on the optimisers' own steps)."""
     points, normals = sphere_cloud(300)
-    fit_cloud(points, normals, quiet=True, width=16, depth=1, features=8, steps=steps, mean_batch=64,
+    fit_cloud(points, normals, representation="siren",
+              quiet=True, width=16, depth=1, features=8, steps=steps, mean_batch=64,
               screen_batch=64, pair_clusters=8, covariance_every=every)
     mean_opt = adam_steps[0]  # the mean net steps first in every iteration
     assert adam_steps.count(mean_opt) == steps
@@ -257,7 +261,7 @@ def test_covariance_every_spreads_covariance_steps_through_the_run(steps, every,
 def test_bad_fit_options_give_one_clear_error(override, message):
     points, normals = sphere_cloud(200)
     with pytest.raises(ValueError, match=message):
-        fit_cloud(points, normals, quiet=True, **override)
+        fit_cloud(points, normals, representation="siren", quiet=True, **override)
 
 
 def test_mean_averager_matches_a_hand_computed_moving_average():
@@ -309,9 +313,9 @@ def test_fit_ends_on_the_averaged_mean_net(monkeypatch):
     monkeypatch.setattr(fit_module.MeanAverager, "apply", spy)
     points, normals = sphere_cloud(200)
     kw = dict(quiet=True, width=16, depth=1, features=8, steps=12, mean_batch=64, screen_batch=64, pair_clusters=8)
-    plain = fit_cloud(points, normals, average_decay=0.0, **kw)
+    plain = fit_cloud(points, normals, representation="siren", average_decay=0.0, **kw)
     assert recorded["average"] is None
-    averaged = fit_cloud(points, normals, average_decay=0.9, **kw)
+    averaged = fit_cloud(points, normals, representation="siren", average_decay=0.9, **kw)
     for p, a in zip(averaged.mean_net.parameters(), recorded["average"]):
         torch.testing.assert_close(p, a)
     assert not np.allclose(plain.mean(points[:20]), averaged.mean(points[:20]))
@@ -371,7 +375,7 @@ def test_outside_term_closes_an_open_sheet():
               pair_clusters=16)
     boundary = {}
     for weight in (0.0, 100.0):
-        field = fit_cloud(points, normals, outside_weight=weight, **kw)
+        field = fit_cloud(points, normals, representation="siren", outside_weight=weight, **kw)
         targets = CloudTargets(field.frame.to_collection(points), normals, field.config["lengthscale"])
         with torch.no_grad():
             boundary[weight] = field.mean_net(torch.from_numpy(

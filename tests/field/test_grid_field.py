@@ -223,9 +223,30 @@ def sphere_field():
     rng = np.random.default_rng(0)
     normals = rng.normal(size=(3000, 3))
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    field = fit_cloud(RADIUS * normals + CENTRE, normals, representation="grid", grid_mean={"finest": 48},
+    field = fit_cloud(RADIUS * normals + CENTRE, normals, grid_mean={"finest": 48},  # the default representation
                       grid_cov={"finest": 8, "levels": 2, "channels": 4}, cov_steps=20, mean_steps=20)
+    assert field.config["representation"] == "grid"
     return field
+
+
+def test_grid_fit_refuses_siren_settings_and_the_boundary_term():
+    from autodecoder import fit_cloud
+    from autodecoder.field.fit import FitOptions
+
+    points = np.random.default_rng(1).normal(size=(50, 3))
+    normals = points / np.linalg.norm(points, axis=1, keepdims=True)
+    with pytest.raises(ValueError, match="width is a SIREN setting.*representation='siren'"):
+        fit_cloud(points, normals, width=64)
+    with pytest.raises(ValueError, match="depth, omega0 are SIREN settings"):
+        fit_cloud(points, normals, depth=2, omega0=10.0)
+    with pytest.raises(ValueError, match="steps: not an option of the grid fit"):
+        fit_cloud(points, normals, steps=100)  # a FitOptions field
+    with pytest.raises(ValueError, match="FitOptions"):
+        fit_cloud(points, normals, options=FitOptions())
+    with pytest.raises(ValueError, match="outside_weight.*representation='siren'"):
+        fit_cloud(points, normals, outside_weight=100.0)
+    with pytest.raises(ValueError, match="representation must be"):
+        fit_cloud(points, normals, representation="voxels")
 
 
 def test_fitted_sphere_mean_surface_is_the_sphere(sphere_field):

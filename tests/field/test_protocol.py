@@ -43,7 +43,8 @@ def test_fitted_field_is_a_field_and_says_its_lengthscale_in_world_units():
     rng = np.random.default_rng(0)
     p = rng.normal(size=(300, 3))
     p /= np.linalg.norm(p, axis=1, keepdims=True)
-    field = fit_cloud(5.0 * p, p, steps=5, quiet=True, width=16, depth=2, features=8, mean_batch=256,
+    field = fit_cloud(5.0 * p, p, representation="siren",
+                      steps=5, quiet=True, width=16, depth=2, features=8, mean_batch=256,
                       screen_batch=128, pair_clusters=8)
     assert isinstance(field, Field) and check_field(field) is field
     assert field.lengthscale == pytest.approx(field.config["lengthscale"] / field.frame.scale)

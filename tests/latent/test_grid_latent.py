@@ -111,13 +111,17 @@ def test_unknown_representation_is_refused():
         LatentOptions(grid_lr=0)
 
 
-def test_command_line_passes_the_representation():
+def test_command_line_passes_the_representation_and_the_samples():
     import train_latent
 
     args = train_latent.build_parser().parse_args(["--data", "c.h5", "--out", "m.pt", "--representation", "grid"])
     assert train_latent.options_from_args(args)["representation"] == "grid"
     args = train_latent.build_parser().parse_args(["--data", "c.h5", "--out", "m.pt"])
     assert "representation" not in train_latent.options_from_args(args)  # the library's default
+    assert "mean_samples" not in train_latent.options_from_args(args)
+    args = train_latent.build_parser().parse_args(["--data", "c.h5", "--out", "m.pt", "--samples", "1024"])
+    options = train_latent.options_from_args(args)
+    assert (options["mean_samples"], options["screen_samples"]) == (1024, 512)
 
 
 def test_grid_default_epochs_follow_the_grid_budget():

@@ -22,7 +22,7 @@ def half_sphere(n, sign, seed):
 @pytest.fixture(scope="module")
 def fields():
     old_p, old_n = half_sphere(400, +1, 0)
-    field = fit_cloud(old_p, old_n, seed=0, steps=150, **TINY)
+    field = fit_cloud(old_p, old_n, representation="siren", seed=0, steps=150, **TINY)
     field.training_points, field.training_normals = torch.tensor(old_p).float(), torch.tensor(old_n).float()
     new_p, new_n = half_sphere(400, -1, 1)
     updated = update_field(field, new_p, new_n, steps=150, seed=0)

@@ -197,7 +197,7 @@ def open_sheet_fields():
     normals = np.tile([0.0, 0.0, 1.0], (1200, 1))
     kw = dict(seed=0, quiet=True, width=32, depth=2, features=16, steps=250, mean_batch=512, screen_batch=256,
               pair_clusters=16)
-    return {w: fit_cloud(points, normals, outside_weight=w, **kw) for w in (0.0, 100.0)}
+    return {w: fit_cloud(points, normals, representation="siren", outside_weight=w, **kw) for w in (0.0, 100.0)}
 
 
 def test_far_field_check_tells_an_open_sheet_from_a_closed_one(open_sheet_fields):
