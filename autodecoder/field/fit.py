@@ -76,7 +76,7 @@ def fit_cloud(points, normals, *, seed=0, lengthscale=None, noise=None, width=No
     (:func:`autodecoder.field.grid_fit.fit_grid_cloud`: the mean solved exactly on its grid, then briefly fine-tuned,
     the covariance trained with Adam); the paper's SIRENs (``representation="siren"``) are trained with Adam from
     scratch. On fandisk, the Stanford bunny and a thin-walled enclosure the grid's mean surface is 1.7-3x closer to the
-    true surface in at most the SIREN's time, and its variance follows gpytoolbox's stochastic Poisson reconstruction
+    true surface, and its variance follows gpytoolbox's stochastic Poisson reconstruction
     more closely (docs/results.md#the-single-cloud-fits-default-representation-issue-19). The SIREN remains for the
     boundary term ``outside_weight`` (partial scans for view planning), which the grid's solve does not have.
 
