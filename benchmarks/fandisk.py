@@ -1,4 +1,5 @@
-"""Fit NSSPR to fandisk (20k oriented points): time, Chamfer vs open3d screened Poisson, variance vs gpytoolbox SPSR.
+"""Fit NSSPR with the paper's SIRENs to fandisk (20k oriented points): time, Chamfer vs open3d screened Poisson,
+variance vs gpytoolbox SPSR.
 
 Run by hand (not a test):
 
