@@ -65,10 +65,9 @@ def build_parser():
                    help="also write the checkpoint every N epochs (default: only at the end)")
     p.add_argument("--samples", type=int, default=None,
                    help="mean-loss samples per scan and step (screening points: half as many). The default, 256, "
-                        "trains a 32-scan collection in under 2 minutes; 1024 with --epochs 600, the earlier budget "
-                        "(about 3x the time), ranked the subtlest real-scan defects better "
-                        "(docs/results.md#latent-training-in-two-minutes-issue-19) (default: the library's "
-                        "LatentOptions.mean_samples)")
+                        "trains a 32-scan collection in under 2 minutes; 1024 with --epochs 600 is the earlier "
+                        "budget, about 3x the time (docs/results.md#latent-training-in-two-minutes-issue-19) "
+                        "(default: the library's LatentOptions.mean_samples)")
     p.add_argument("--threads", type=int, default=None,
                    help="torch CPU threads of this process (0: torch's own choice, one per core). A latent training "
                         "step is many small tensor operations, which one thread runs faster than two on a 2-core "

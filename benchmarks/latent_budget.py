@@ -41,9 +41,15 @@ def main(argv=None):
     options = json.loads(args.options)
     if not isinstance(options, dict):
         raise SystemExit("--options must be a JSON object")
+    import dataclasses
+
     import torch
 
-    from autodecoder.latent.train import train_collection
+    from autodecoder.latent.train import LatentOptions, train_collection
+
+    unknown = sorted(set(options) - {f.name for f in dataclasses.fields(LatentOptions)})
+    if unknown:  # the trainer ignores unknown keys (old checkpoints' configurations): a typo would train the default
+        raise SystemExit(f"--options: not LatentOptions fields: {', '.join(unknown)}")
 
     work = Path(args.work) / args.name
     for seed in [int(s) for s in args.seeds.split(",")]:

@@ -33,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np
 
-from verdicts import baseline, rates, synth
+from verdicts import baseline, main_args as verdicts_args, rates, synth
 
 
 def merge(parts, work):
@@ -129,8 +129,7 @@ def main(argv=None):
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
     # benchmarks/verdicts.py's collection parameters (its defaults): the same scans as its single-part runs
-    vargs = argparse.Namespace(train=32, test_good=16, per_defect=16, points=4000, seed=args.seed, jitter=0.0,
-                               quiet=args.quiet, no_origins=False)
+    vargs = verdicts_args(["--seed", str(args.seed)] + (["--quiet"] if args.quiet else []))
     single, work = Path(args.single), Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     print(f"load average at start: {os.getloadavg()}")

@@ -210,8 +210,8 @@ def view_origin_from_normals(points, normals, distance=ESTIMATED_VIEW_DISTANCE):
     Every normal a sensor sees faces it, so the mean of a one-view scan's outward normals points roughly at the
     sensor: the origin is put ``distance`` bounding-box diagonals from the scan's centroid along it. A rough
     direction (how rough, and what the grazing term it gives is worth:
-    docs/results.md#training-from-4-complete-templates-benchmarksfour_templatespy), good enough for a noise term that grows smoothly with the angle; not a sensor origin for the ray score, which
-    needs the real one.
+    docs/results.md#training-from-4-complete-templates-benchmarksfour_templatespy), good enough for a noise term
+    that grows smoothly with the angle; not a sensor origin for the ray score, which needs the real one.
 
     Parameters
     ----------

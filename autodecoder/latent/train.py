@@ -260,7 +260,7 @@ def training_threads(threads=None):
         raise ValueError(f"threads must be >= 0, got {threads}")
     before = torch.get_num_threads()
     if threads:
-        torch.set_num_threads(int(threads))
+        torch.set_num_threads(threads)
     try:
         yield
     finally:

@@ -31,7 +31,8 @@ def test_default_epochs_give_each_part_type_the_single_part_budget():
 
     for n in (3, 26, 100, 10_000):  # one part type: the single-part rule unchanged
         assert default_epochs(n, 8, n_parts=1) == default_epochs(n, 8)
-    for n in (26, 64, 200, 400, 4000, 40_000):  # k parts of n scans each: every code as many updates as in its part alone
+    # k parts of n scans each: every code as many updates as in its part alone
+    for n in (26, 64, 200, 400, 4000, 40_000):
         for k in (2, 3):
             assert default_epochs(k * n, 8, n_parts=k) == default_epochs(n, 8)
     assert default_epochs(52, 8, n_parts=2) == DEFAULT_EPOCHS  # two parts of 26: 450 epochs of 7 steps
