@@ -3,8 +3,9 @@ from .cloud_io import read_cloud, write_cloud
 from .collection import ScanCollection
 from .frame import Frame
 from .scan import Scan
+from .validation import ScanReadError
 
-__all__ = ["Scan", "ScanCollection", "ScanDataset", "Frame", "read_cloud", "write_cloud"]
+__all__ = ["Scan", "ScanCollection", "ScanDataset", "ScanReadError", "Frame", "read_cloud", "write_cloud"]
 
 
 def __getattr__(name):

@@ -45,9 +45,24 @@ def _cmd_info(args):
     return 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose usage errors are one line on stderr (``error: ...``, then exit status 2), like every
+    other user mistake of this command line, instead of the usage block followed by the error."""
+
+    def error(self, message):
+        self.exit(2, f"error: {message} (see {self.prog} --help)\n")
+
+
+def _one_line(exc):
+    """The message of a user-facing error as one line: an OSError names its file first, then the reason."""
+    if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
+        return f"{exc.filename}: {exc.strerror}"
+    return " ".join(str(exc).split())
+
+
 def build_parser():
     """The argparse parser (only argparse is imported: ``--help`` must stay fast)."""
-    parser = argparse.ArgumentParser(prog="python -m datasets", description=__doc__)
+    parser = _Parser(prog="python -m datasets", description=__doc__)
     parser.add_argument("-v", "--verbose", action="store_true", help="log per-file details (dropped points, ...)")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -101,14 +116,21 @@ def build_parser():
 
 
 def main(argv=None):
-    """Run the command line; returns the exit code (0 ok, 2 bad input or usage)."""
+    """Run the command line; returns the exit code (0 ok, 2 bad input or usage).
+
+    Every user mistake (a bad option value, a missing or corrupt input, an existing or unwritable output) prints one
+    line ``error: ...`` naming the file or option on stderr and returns 2; no traceback.
+    """
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as e:  # --help (0) or a usage error (2, already printed as one line)
+        return e.code if isinstance(e.code, int) else 2
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s: %(message)s")
     try:
         return int(args.func(args) or 0)
     except (ValueError, OSError) as e:  # bad input or an unwritable output: one line naming the file, no traceback
-        print(f"error: {e}", file=sys.stderr)
+        print(f"error: {_one_line(e)}", file=sys.stderr)
         return 2
 
 

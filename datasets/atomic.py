@@ -20,6 +20,28 @@ def _umask():
     return umask
 
 
+def _temporary_file(path, suffix):
+    """An empty hidden temporary file beside ``path`` (Path); an OSError that names ``path`` when none can be made."""
+    try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
+    except OSError as e:  # name the destination asked for, not a temporary file nobody has heard of
+        raise OSError(e.errno, f"cannot write a file in {path.parent} ({e.strerror})", str(path)) from None
+    os.close(fd)
+    return Path(tmp)
+
+
+def check_writable(path):
+    """Raise now the OSError that writing ``path`` with :func:`atomic_path` or :func:`atomic_directory` would raise
+    at the end (folder missing or read-only), so a long job fails before its work, not after.
+
+    Creates and removes one hidden temporary file in ``path``'s folder; creates no folder.
+    """
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise FileNotFoundError(f"{path.parent}: output folder does not exist")
+    _temporary_file(path, ".tmp").unlink()
+
+
 @contextmanager
 def atomic_path(path, suffix=".tmp"):
     """A temporary path to write instead of ``path``; moved onto ``path`` when the block ends without error.
@@ -43,9 +65,7 @@ def atomic_path(path, suffix=".tmp"):
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
-    os.close(fd)
-    tmp = Path(tmp)
+    tmp = _temporary_file(path, suffix)
     try:
         yield tmp
         with open(tmp, "rb") as fh:  # on disk before it takes the destination's name (power loss, not just kill)

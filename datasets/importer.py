@@ -23,6 +23,7 @@ from typing import Optional
 
 import numpy as np
 
+from .atomic import check_writable
 from .cloud_io import CLOUD_SUFFIXES, read_cloud, write_cloud
 from .ingest import group_counts, voxel_downsample, write_scans
 from .layouts import LAYOUT_SIGNS, import_public, resolve_layout
@@ -260,8 +261,7 @@ def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, p
         raise ValueError(f"--points must be >= {MIN_POINTS}, got {n_points}")
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out}: already exists (use --overwrite to replace it)")
-    if not out.parent.is_dir():  # say so now, not after reading every file
-        raise FileNotFoundError(f"{out.parent}: output folder does not exist")
+    check_writable(out)  # say so now, not after reading every file
     layout = resolve_layout(root, layout)
     if layout != "tree":
         return import_public(root, out, layout, voxel=voxel, n_points=n_points, seed=seed, overwrite=overwrite,

@@ -70,10 +70,15 @@ def synthesise(mesh, n_train=32, n_test_good=16, n_test_defective=16, defects=DE
     counts = dict(n_train=n_train, n_validation=n_validation, n_test_good=n_test_good,
                   n_test_defective=n_test_defective, n_points=n_points)
     for key, value in counts.items():
-        if int(value) != value or value < (1 if key == "n_points" else 0):
-            raise ValueError(f"{key} must be a non-negative integer (n_points >= 1), got {value!r}")
-    if not noise >= 0:
+        low = 1 if key == "n_points" else 0
+        if int(value) != value or value < low:
+            raise ValueError(f"{key} must be an integer >= {low}, got {value!r}")
+    if not 0 <= noise < np.inf:
         raise ValueError(f"noise must be >= 0 (relative to the bounding-box diagonal), got {noise!r}")
+    if not 0 <= jitter_deg <= 180:
+        raise ValueError(f"jitter_deg must be between 0 and 180 degrees, got {jitter_deg!r}")
+    if not 0 <= jitter_translation < np.inf:
+        raise ValueError(f"jitter_translation must be >= 0 (relative to the diagonal), got {jitter_translation!r}")
 
     scanner = VirtualScanner(mesh)
     frame = Frame.fit(mesh.vertices)

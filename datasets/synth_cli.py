@@ -43,7 +43,10 @@ def run_synth(args):
         Unreadable mesh, unknown defect kind or format, a defect no view could show (the message names the file).
     FileExistsError
         ``--out`` exists and ``--overwrite`` was not given.
+    OSError
+        ``--out``'s folder does not exist or cannot be written (checked before scanning).
     """
+    from .atomic import check_writable
     from .defects import DEFECT_KINDS
 
     out = Path(args.out)
@@ -52,8 +55,7 @@ def run_synth(args):
     # Check everything cheap before the minutes of scanning.
     if out.exists() and not args.overwrite:
         raise FileExistsError(f"{out}: already exists (pass --overwrite to replace it)")
-    if not out.parent.is_dir():
-        raise ValueError(f"{out}: folder {out.parent} does not exist")
+    check_writable(out)
     defects = tuple(d.strip() for d in args.defects.split(",") if d.strip())
     unknown = [d for d in defects if d not in DEFECT_KINDS]
     if unknown:

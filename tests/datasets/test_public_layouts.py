@@ -351,7 +351,7 @@ def test_cli_prints_layout_and_voxel(tmp_path, capsys):
 
 def test_calibration_uses_the_validation_views(tmp_path):
     """The trainer trains on the templates' training views and holds the validation views back (no template is)."""
-    from autodecoder.latent.train import split_training_scans
+    from autodecoder.latent.collection_split import split_training_scans
 
     root = tmp_path / "airplane"
     make_real3d(root)
