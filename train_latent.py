@@ -17,8 +17,15 @@ class _UsageError(Exception):
     library's ``TrainingInputError``, printed the same way)."""
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser whose errors are one line (a :class:`_UsageError`) instead of the usage and the error."""
+
+    def error(self, message):
+        raise _UsageError(message)
+
+
 def build_parser():
-    p = argparse.ArgumentParser(
+    p = _Parser(
         prog="train_latent.py",
         description="Train the latent NSSPR model (mean and covariance nets conditioned on one code per scan) over "
                     "the good scans of an HDF5 scan collection, and write one checkpoint that carries everything "
@@ -26,7 +33,8 @@ def build_parser():
                     "(<out stem>.log.csv) and a loss plot (<out stem>.loss.png) are written beside it. Run under "
                     "'torchrun --nproc_per_node=N' to train with N processes (data parallel).")
     p.add_argument("--data", required=True, metavar="H5", help="scan collection file (datasets' HDF5 format)")
-    p.add_argument("--out", required=True, metavar="PT", help="checkpoint to write (atomically), e.g. runs/a/model.pt")
+    p.add_argument("--out", required=True, metavar="PT",
+                   help="checkpoint to write (atomically) in an existing folder, e.g. runs/a/model.pt")
     p.add_argument("--split", default="train",
                    help="collection split whose good scans are trained on (default: %(default)s)")
     p.add_argument("--latent-dim", type=int, default=DEFAULTS["latent_dim"],
@@ -82,8 +90,9 @@ def _parse(argv):
     for name in ("latent_dim", "epochs", "width", "depth", "batch", "samples"):
         if getattr(args, name) is not None and getattr(args, name) < 1:
             raise _UsageError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
-    if not args.lr > 0 or (args.code_lr is not None and not args.code_lr > 0):
-        raise _UsageError("--lr and --code-lr must be > 0")
+    for name in ("lr", "code_lr"):
+        if getattr(args, name) is not None and not getattr(args, name) > 0:
+            raise _UsageError(f"--{name.replace('_', '-')} must be > 0, got {getattr(args, name)}")
     if not 0 <= args.calibration_fraction < 1:
         raise _UsageError(f"--calibration-fraction must be in [0, 1), got {args.calibration_fraction}")
     if args.checkpoint_every < 0:
@@ -110,7 +119,8 @@ def options_from_args(args):
 
 def run(args):
     """Train from parsed arguments; returns the LatentModel (raises TrainingInputError on bad input files)."""
-    from autodecoder.latent.train import train_collection, training_threads
+    from autodecoder.latent.distributed import training_threads
+    from autodecoder.latent.train import train_collection
 
     with training_threads(args.threads):
         return train_collection(args.data, args.out, **options_from_args(args))
@@ -124,12 +134,12 @@ def main(argv=None):
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     try:
         args = _parse(argv)
-    except SystemExit as exc:  # argparse: --help (0) or a usage error (2), already printed
+    except SystemExit as exc:  # argparse's --help, already printed (its errors are _UsageError)
         return int(exc.code or 0)
     except _UsageError as exc:
         print(f"train_latent.py: error: {exc}", file=sys.stderr)
         return 2
-    from autodecoder.latent.train import TrainingInputError
+    from autodecoder.latent.options import TrainingInputError
 
     try:
         model = run(args)

@@ -18,7 +18,7 @@ _EXPORTS = {
     # latent model: training over collections, checkpoints, test-time projection
     "LatentModel": "autodecoder.latent.model",
     "load_model": "autodecoder.latent.model",
-    "LatentOptions": "autodecoder.latent.train",
+    "LatentOptions": "autodecoder.latent.options",
     "train_latent": "autodecoder.latent.train",
     "Projection": "autodecoder.latent.projection",
     "ProjectionOptions": "autodecoder.latent.projection",

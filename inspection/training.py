@@ -29,7 +29,8 @@ def train_model(collection, out, calibration_fraction=0.2, seed=0, quiet=True, e
     -------
     autodecoder.latent.model.LatentModel
     """
-    from autodecoder.latent.train import train_collection, training_threads
+    from autodecoder.latent.distributed import training_threads
+    from autodecoder.latent.train import train_collection
 
     with training_threads(threads):
         return train_collection(collection, out, calibration_fraction=calibration_fraction, overwrite=overwrite,

@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from autodecoder.latent.model import LATENT_VERSION, load_model
-from autodecoder.latent.train import LatentOptions, train_latent
+from autodecoder.latent.options import LatentOptions
+from autodecoder.latent.train import train_latent
 
 from .spheres import RADII, sphere_scan, sphere_scans, zero_crossing_radius
 
@@ -127,8 +128,8 @@ def test_command_line_passes_the_representation_and_the_samples():
 def test_grid_default_epochs_follow_the_grid_budget():
     import math
 
-    from autodecoder.latent.train import (GRID_DEFAULT_STEPS, GRID_MAX_DEFAULT_EPOCHS, GRID_MIN_DEFAULT_EPOCHS,
-                                          default_epochs)
+    from autodecoder.latent.options import (GRID_DEFAULT_STEPS, GRID_MAX_DEFAULT_EPOCHS, GRID_MIN_DEFAULT_EPOCHS,
+                                            default_epochs)
 
     assert default_epochs(26, 8, representation="grid") == math.ceil(GRID_DEFAULT_STEPS / 4)  # 4 steps an epoch
     assert default_epochs(52, 8, n_parts=2, representation="grid") == math.ceil(2 * GRID_DEFAULT_STEPS / 7)
@@ -141,7 +142,7 @@ def test_grid_default_epochs_follow_the_grid_budget():
 
 def test_grid_optimiser_groups_give_each_kind_of_parameter_its_rate():
     from autodecoder.field.networks import build_networks
-    from autodecoder.latent.train import _NetPair, _net_optimiser
+    from autodecoder.latent.loop import _NetPair, _net_optimiser
 
     options = LatentOptions(**{k: v for k, v in GRID.items() if k not in ("grid_mean", "grid_cov")})
     config = {"representation": "grid", "latent_dim": 2, "box_lo": [-0.5] * 3, "box_hi": [0.5] * 3,

@@ -27,7 +27,7 @@ def _two_part_scans(per_part=4):
 
 
 def test_default_epochs_give_each_part_type_the_single_part_budget():
-    from autodecoder.latent.train import DEFAULT_EPOCHS, MAX_DEFAULT_STEPS, MIN_DEFAULT_EPOCHS, default_epochs
+    from autodecoder.latent.options import DEFAULT_EPOCHS, MAX_DEFAULT_STEPS, MIN_DEFAULT_EPOCHS, default_epochs
 
     for n in (3, 26, 100, 10_000):  # one part type: the single-part rule unchanged
         assert default_epochs(n, 8, n_parts=1) == default_epochs(n, 8)
@@ -45,7 +45,7 @@ def test_default_epochs_give_each_part_type_the_single_part_budget():
 
 
 def test_count_parts():
-    from autodecoder.latent.train import count_parts
+    from autodecoder.latent.options import count_parts
 
     assert count_parts(["a", "b", "a"]) == 2
     assert count_parts(["", "", ""]) == 1 and count_parts([]) == 1
@@ -53,7 +53,7 @@ def test_count_parts():
 
 
 def test_held_back_scans_are_drawn_per_part_as_in_each_part_alone(tmp_path):
-    from autodecoder.latent.train import split_training_scans
+    from autodecoder.latent.collection_split import split_training_scans
     from datasets.collection import ScanCollection
 
     a = [_sphere(f"a/{k:03d}", 0.2, "a", n=20, seed=k) for k in range(10)]
@@ -82,7 +82,8 @@ def two_part_model(one_torch_thread):
 
 
 def test_training_records_part_ids_and_budgets_by_part(one_torch_thread):
-    from autodecoder.latent.train import default_epochs, train_latent
+    from autodecoder.latent.options import default_epochs
+    from autodecoder.latent.train import train_latent
 
     model = train_latent(_two_part_scans(), quiet=True, stop_after=1, **TINY)
     assert model.train_part_ids == ["a"] * 4 + ["b"] * 4
