@@ -1,4 +1,5 @@
-"""Turning fitted fields into decisions: per-point and per-scan scores, thresholds from good scans (conformal or a log-normal tail), reports, the CLI.
+"""Turning fitted fields into decisions: one pipeline (``Inspector``, configured by ``InspectionConfig``) from good scans to
+verdicts, per-point and per-scan scores, thresholds (conformal or a log-normal tail), reports, the CLI.
 
 Public names are imported lazily so that ``python -m inspection --help`` stays fast.
 """
@@ -7,9 +8,14 @@ import importlib
 _EXPORTS = {
     "Inspector": "inspection.estimator",
     "NotFittedError": "inspection.estimator",
-    "field_for": "inspection.estimator",
-    "DEFAULT_AGGREGATE": "inspection.estimator",
-    "DEFAULT_PROJECTION": "inspection.estimator",
+    "ScanResult": "inspection.estimator",
+    "InspectionConfig": "inspection.config",
+    "DEFAULT_AGGREGATE": "inspection.config",
+    "DEFAULT_PROJECTION": "inspection.config",
+    "field_for": "inspection.evidence",
+    "gather_evidence": "inspection.evidence",
+    "select_scans": "inspection.selection",
+    "POINT_SCORES": "inspection.scores",
     "point_scores": "inspection.scores",
     "LocalReference": "inspection.scores",
     "aggregate": "inspection.scores",

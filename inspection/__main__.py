@@ -17,6 +17,10 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 def _parser():
+    from .config import DEFAULT_AGGREGATE, DEFAULT_PROJECTION, InspectionConfig
+    from .scores import POINT_SCORES
+
+    defaults = InspectionConfig()
     p = argparse.ArgumentParser(prog="python -m inspection", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -27,25 +31,28 @@ def _parser():
     c.add_argument("--split", default=None, help="use this split's good scans (default: the model's held-back "
                                                  "scans when DATA is its training collection, else every good scan "
                                                  "the model did not train on)")
-    c.add_argument("--alpha", type=float, default=0.02,
+    c.add_argument("--alpha", type=float, default=defaults.alpha,
                    help="false-alarm rate stored with it (default %(default)s; with fewer than 1/alpha - 1 good "
                         "scans the threshold is extrapolated from a log-normal fit of their scores, and says so)")
-    c.add_argument("--aggregate", default=None, help="per-scan aggregate: top1 (default), mean, max, median, "
-                                                     "top<P>, q<P>")
-    c.add_argument("--point-score", choices=("joint", "distance", "local", "residual", "nll"), default=None,
-                   help="per-point score (default: joint when DATA is the model's training collection, whose "
-                        "training scans then give the per-location reference, else residual)")
+    c.add_argument("--aggregate", default=DEFAULT_AGGREGATE,
+                   help="per-scan aggregate: top1 (default), mean, max, median, top<P>, q<P>")
+    c.add_argument("--point-score", choices=("auto", *POINT_SCORES), default=defaults.point_score,
+                   help="per-point score (default auto: joint when DATA is the model's training collection, whose "
+                        "training scans give the per-location reference, else residual). "
+                        + "; ".join(f"{s.name}: {s.summary}" for s in POINT_SCORES.values()))
     c.add_argument("--noise", type=float, default=None, help="noise floor (model frame units; default the model's)")
-    c.add_argument("--projection", default="default", help="latent projection options as KEY=VALUE,... (fields of "
-                                                           "autodecoder.latent.projection.ProjectionOptions), 'default' "
-                                                           "(inspection's: steps=60,starts=2,explore=20,"
-                                                           "max_candidates=16) or 'model' (the projector's own)")
+    c.add_argument("--projection", default="default",
+                   help="latent projection options as KEY=VALUE,... (fields of "
+                        "autodecoder.latent.projection.ProjectionOptions), 'default' (inspection's: "
+                        + ",".join(f"{k}={v}" for k, v in DEFAULT_PROJECTION.items()) + ") or 'model' (the "
+                        "projector's own)")
     rays = c.add_mutually_exclusive_group()
-    rays.add_argument("--rays", dest="rays", action="store_const", const=True, default="auto",
+    rays.add_argument("--rays", dest="rays", action="store_const", const=True, default=defaults.rays,
                       help="add the ray score (material the model expects where the sensor saw free space, e.g. a "
                            "hole in a thin wall), combined with the point score; every scan needs a sensor origin")
     rays.add_argument("--rays-auto", dest="rays", action="store_const", const="auto",
-                      help="the ray score when every scan has a sensor origin (the default)")
+                      help="the ray score when DATA is the model's training collection and every scan has a sensor "
+                           "origin (the default)")
     rays.add_argument("--no-rays", dest="rays", action="store_const", const=False,
                       help="point score only")
     c.add_argument("--ray-options", default="", help="ray score settings as KEY=VALUE,... (n_rays=384, "
@@ -78,83 +85,65 @@ def _parser():
     return p
 
 
-def _projection(text):
-    if text in ("default", "model"):
-        return "default" if text == "default" else None
-    out = {}
-    for item in filter(None, text.split(",")):
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise ValueError(f"--projection: expected KEY=VALUE pairs, got {item!r}")
-        try:
-            out[key.strip()] = int(value)
-        except ValueError:
-            out[key.strip()] = float(value)
-    return out
+def config_from_args(args):
+    """The :class:`inspection.config.InspectionConfig` of ``calibrate``'s options, validated (a ValueError naming
+    the option before any file is read)."""
+    from .config import InspectionConfig, parse_key_values
 
-
-def _ray_options(text):
-    """KEY=VALUE,... -> dict (ints where they parse, then floats, else strings); validated by the Inspector."""
-    out = {}
-    for item in filter(None, text.split(",")):
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise ValueError(f"--ray-options: expected KEY=VALUE pairs, got {item!r}")
-        for cast in (int, float, str):
-            try:
-                out[key.strip()] = cast(value.strip())
-                break
-            except ValueError:
-                continue
-    return out
+    projection = args.projection
+    if projection == "model":
+        projection = None
+    elif projection != "default":
+        projection = parse_key_values(projection, "--projection")
+    ray_options = parse_key_values(args.ray_options, "--ray-options") or None
+    if ray_options and args.rays is False:
+        raise ValueError("--ray-options needs --rays (or --rays-auto, the default), not --no-rays")
+    return InspectionConfig(alpha=args.alpha, aggregate=args.aggregate, point_score=args.point_score,
+                            noise=args.noise, projection=projection, rays=args.rays,
+                            ray_options=ray_options).validated()
 
 
 def main(argv=None):
-    """Run the command line; returns the exit status (0 ok, 2 bad input)."""
+    """Run the command line; returns the exit status (0 ok, 1 some scans could not be scored, 2 bad input)."""
     args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s: %(message)s")
-    try:
-        from .run import InspectionError
-    except ImportError as exc:  # pragma: no cover
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    from .run import InspectionError
+
     try:
         if args.command == "calibrate":
-            from .run import calibrate
+            from .run import calibrate, describe_calibration
 
-            if args.projection not in ("default", "model"):
-                _projection(args.projection)  # validate before any work
-            ray_options = _ray_options(args.ray_options)
-            if ray_options and args.rays is False:
-                raise ValueError("--ray-options needs --rays (or --rays-auto, the default), not --no-rays")
-            if args.rays is not False:
-                from .ray_evidence import check_ray_options
-
-                check_ray_options(ray_options)  # validate before any work
-            from .run import describe_calibration
-
-            insp, info = calibrate(args.model, args.data, alpha=args.alpha, aggregate=args.aggregate,
-                                   point_score=args.point_score, noise=args.noise, split=args.split,
-                                   progress=not args.quiet, projection=_projection(args.projection),
-                                   rays=args.rays, ray_options=ray_options or None)
+            config = config_from_args(args)
+            insp, info = calibrate(args.model, args.data, config, split=args.split, progress=not args.quiet)
             print(f"{args.model}: " + "\n".join(describe_calibration(insp, info)))
         elif args.command == "score":
             from .run import score
 
-            score(args.model, args.data, args.out, split=None if args.split == "all" else args.split,
-                  alpha=args.alpha, maps=args.maps, align=args.align, reference=args.reference,
-                  progress=not args.quiet, overwrite=args.overwrite)
+            summary = score(args.model, args.data, args.out, split=None if args.split == "all" else args.split,
+                            alpha=args.alpha, maps=args.maps, align=args.align, reference=args.reference,
+                            progress=not args.quiet, overwrite=args.overwrite)
+            if summary.get("n_errors"):
+                print(f"error: {summary['n_errors']} scan(s) could not be scored (verdict 'error' in "
+                      f"{args.out}/scores.csv)", file=sys.stderr)
+                return 1
         else:
             from .demo import run_demo
 
             run_demo(args.out, seed=args.seed, quick=args.quick, progress=not args.quiet)
-    except (InspectionError, FileNotFoundError, FileExistsError, ValueError, KeyError) as exc:
-        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        if isinstance(exc, KeyError):
-            msg = msg.strip("'\"")
-        print(f"error: {msg}", file=sys.stderr)
-        return 2
+    except (InspectionError, OSError, ValueError, KeyError) as exc:
+        return _report_error(exc)
     return 0
+
+
+def _report_error(exc):
+    """One line on stderr for a user's mistake (bad option values, missing or unwritable files, bad data); exit 2."""
+    msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    if isinstance(exc, KeyError):
+        msg = msg.strip("'\"")
+    if isinstance(exc, OSError) and getattr(exc, "filename", None) and str(exc.filename) not in msg:
+        msg = f"{exc.filename}: {msg}"
+    print(f"error: {msg}", file=sys.stderr)
+    return 2
 
 
 if __name__ == "__main__":

@@ -52,6 +52,19 @@ class Calibration:
         """The :class:`inspection.threshold.Threshold` of these scores at ``alpha`` (default: the stored one)."""
         return fit_threshold(self.scores, self.alpha if alpha is None else alpha, self.roles or None)
 
+    def config(self):
+        """The :class:`inspection.config.InspectionConfig` the scores were computed with (its 'auto' settings
+        decided). Records written before the configuration was stored whole are read from their separate fields."""
+        from .config import InspectionConfig
+
+        extra = self.extra or {}
+        if extra.get("config") is not None:
+            return InspectionConfig.from_dict(extra["config"])
+        rays = extra.get("rays")
+        return InspectionConfig(alpha=self.alpha, aggregate=self.aggregate, point_score=self.point_score,
+                                noise=self.noise, projection=extra.get("projection"), rays=rays is not None,
+                                ray_options=None if rays is None else dict(rays["options"])).validated()
+
     def as_dict(self):
         d = asdict(self)
         d["scores"] = [float(s) for s in self.scores]

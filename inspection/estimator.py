@@ -1,6 +1,12 @@
-"""Inspector: a scikit-learn style outlier detector over scans, calibrated on good scans with conformal p-values."""
+"""Inspector: a scikit-learn style outlier detector over scans, calibrated on good scans; the one inspection pipeline.
+
+``Inspector(model).fit(good_scans)`` does what ``nsspr-inspect calibrate`` does, and the command line calls it: the
+settings are :class:`inspection.config.InspectionConfig`'s (its fields are the estimator's parameters, with the same
+defaults), the good scans are sorted into calibration, reference and surface scans by
+:func:`inspection.selection.select_scans`, and a model of several part types gets one calibration per part.
+"""
 import logging
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 from sklearn.base import BaseEstimator
@@ -9,23 +15,17 @@ from sklearn.exceptions import NotFittedError
 from datasets.validation import points_and_normals
 
 from .calibration import Calibration
-from .threshold import DEFAULT_ALPHA, check_alpha, fit_threshold
-from .scores import (POINT_SCORES, REFERENCE_QUANTITY, LocalReference, aggregate as aggregate_scores, check_aggregate,
-                     field_quantity, grazing_factor, point_scores, reference_scores, view_origin_from_normals)
+from .combine import RULE as COMBINATION_RULE
+from .config import DEFAULT_AGGREGATE, DEFAULT_PROJECTION, InspectionConfig
+from .evidence import ScanEvidence, field_for, gather_evidence, scan_name
+from .scores import POINT_SCORES, REFERENCE_QUANTITY, LocalReference, aggregate as aggregate_scores, point_scores, \
+    reference_scores
+from .selection import model_parts, select_scans
+from .threshold import DEFAULT_ALPHA, fit_threshold
 
 log = logging.getLogger(__name__)
 
-DEFAULT_AGGREGATE = "top1"
-DEFAULT_POINT_SCORE = "residual"
-# Projection settings for inspection (autodecoder.latent.projection.ProjectionOptions fields): a shorter run from fewer
-# starts than the trainer's defaults that reaches the same projection loss at a fraction of the time
-# (docs/results.md#latent-training-and-projection-cost).
-DEFAULT_PROJECTION = {"steps": 60, "starts": 2, "explore": 20, "max_candidates": 16}
-# how the point and ray scores combine (inspection.combine: the ray score on a log scale, gated robustly)
-COMBINATION_RULE = "gated-log"
-# rays per good scan of the ray reference (denser than a scan's inspection, which tests RAY_DEFAULTS["n_rays"])
-REFERENCE_RAYS = 1536
-
+__all__ = ["Inspector", "NotFittedError", "ScanResult", "field_for", "DEFAULT_AGGREGATE", "DEFAULT_PROJECTION"]
 
 # points of the good scans' own surface kept in a reference (LocalReference.surface), at most: every training scan of
 # a 64-view template collection (~180,000 points) or of 32 synthetic scans of 4,000 points fits
@@ -64,25 +64,6 @@ class _Named:
 
 
 @dataclass
-class _Projected:
-    """A scan projected into the model: its name, points (m, 3), field, sensor origin (None when unknown), and for
-    reference-based point scores the compared quantity (m,), the field's variance in its units (m,) and the grazing
-    factor of the sensor's rays (m,) (None without a sensor origin); ``stray`` (m,) bool marks isolated returns off
-    the surface their neighbours define (:func:`datasets.outliers.stray_points`); ``normals`` (m, 3) are the
-    scan's (None when it has none)."""
-
-    name: str
-    points: np.ndarray
-    field: object
-    origin: object = None
-    value: np.ndarray = None
-    variance: np.ndarray = None
-    grazing: np.ndarray = None
-    stray: np.ndarray = None
-    normals: np.ndarray = None
-
-
-@dataclass
 class ScanResult:
     """One scan's inspection: its anomaly score (higher = more anomalous) and per-point scores (m,).
 
@@ -99,41 +80,12 @@ class ScanResult:
     rays: object = None
 
 
-def _sensor_origin(scan, i):
-    from .ray_evidence import sensor_origin
+def _progress(items, verbose, desc):
+    if not verbose:
+        return items
+    from tqdm import tqdm
 
-    return sensor_origin(scan if hasattr(scan, "points") else None, _scan_name(scan, i))
-
-
-def _known_sensor_origin(scan, i):
-    """The scan's sensor origin (3,) when it carries a valid one, else None."""
-    if getattr(scan, "sensor_origin", None) is None:
-        return None
-    return _sensor_origin(scan, i)
-
-
-def _scan_name(scan, i):
-    return getattr(scan, "name", None) or f"scan #{i}"
-
-
-def field_for(model, points, normals=None, options=None):
-    """The stochastic field that explains one scan under ``model``.
-
-    ``model`` may be a latent model (``model.project(points, normals)`` -> a projection with ``.field``, e.g.
-    :func:`autodecoder.load_model`'s), a fixed field (anything with ``mean``/``variance``, e.g. a ``fit_cloud``
-    field: every scan is scored against the same surface), or a callable ``(points, normals) -> field``.
-    ``options`` (dict) go to ``model.project`` (e.g. ``{"steps": 60}``).
-    """
-    if hasattr(model, "project"):
-        projection = model.project(points, normals, **(options or {}))
-        return getattr(projection, "field", projection)
-    if hasattr(model, "mean") and hasattr(model, "variance"):
-        return model
-    if callable(model):
-        out = model(points, normals)
-        return getattr(out, "field", out)
-    raise TypeError(f"model must have .project(points, normals), .mean/.variance, or be callable; "
-                    f"got {type(model).__name__}")
+    return tqdm(items, desc=desc, unit="scan")
 
 
 class Inspector(BaseEstimator):
@@ -141,172 +93,191 @@ class Inspector(BaseEstimator):
     calibrated on good scans (:mod:`inspection.threshold`: split-conformal when there are at least 1 / alpha - 1 of
     them, else a log-normal tail fitted to their scores; either way a false-alarm rate of ``alpha`` on average).
 
+    The parameters are the fields of :class:`inspection.config.InspectionConfig`, with its defaults (see there);
+    ``'auto'`` settings are decided by :meth:`fit` from the good scans and recorded in ``settings_``, never in the
+    parameters.
+
     Parameters
     ----------
     model : latent model, field or callable
-        See :func:`field_for`. Scans must be in the model's frame.
-    alpha : float in (0, 1)
-        False-alarm rate: a scan is defective when its p-value is <= alpha (its score > ``threshold_``).
-    aggregate : str
-        Per-scan aggregate of the point scores (:func:`inspection.scores.aggregate`): ``'top1'`` (default: mean of
-        the worst 1 % of the points; chosen on benchmarks/inspect_fandisk.py, where it separated best: defects
-        cover a few per cent of a scan's points, so the paper's ``'mean'`` dilutes them), ``'mean'`` (the paper's),
-        ``'max'``, ``'median'``, ``'top<P>'``, ``'q<P>'``.
-    point_score : {'residual', 'joint', 'distance', 'local', 'nll'}
-        Per-point score (:func:`inspection.scores.point_scores`): the standardized residual (default here, as it
-        needs nothing more; the command line picks ``'joint'`` when it can reach the training scans), the
-        first-order distance to the mean surface standardized against good scans at the same place
-        (``'distance'``: :meth:`fit` then needs ``reference_scans``, e.g. the model's training scans), that together
-        with the point's offset from the good scans' own surface (``'joint'``, same needs), the same on E f itself
-        (``'local'``), or the paper's NLL.
-    noise : float, optional
-        Noise floor (measurement noise standard deviation, model frame units); default the field's own.
-    projection : dict, optional
-        Options of ``model.project`` (latent models), e.g. ``DEFAULT_PROJECTION``; None: the model's defaults.
-        Scores depend on them, so the calibration stores them and :meth:`set_calibration` restores them.
-    rays : bool
-        Also score the sensor's rays (:mod:`inspection.ray_evidence`: material the field expects where the
-        sensor saw free space, e.g. a hole in a thin wall; with a per-location reference, only where its good
-        scans have a surface) and combine that score with the point score (:mod:`inspection.combine`, rule
-        ``COMBINATION_RULE``: the point score plus what the ray score shows beyond the good calibration scans).
-        Scans need a ``sensor_origin``; the combined score needs calibration (:meth:`fit`) before it can be
-        computed.
-    ray_options : dict, optional
-        Settings of the ray score (keys of ``inspection.ray_evidence.RAY_DEFAULTS``: ``n_rays``, ``n_empty``,
-        ``gap``, ``aggregate``, ``seed``, ``clearance``, ``own_depth``, ``band``); stored with the calibration like
-        ``projection``.
+        See :func:`inspection.evidence.field_for`. Scans must be in the model's frame. A latent model (or a field
+        saved with its collection, :func:`inspection.model_io.load_model`) records its training and held-back scans
+        by name, which :meth:`fit` uses to sort the good scans it is given.
+    alpha, aggregate, point_score, noise, projection, rays, ray_options
+        :class:`inspection.config.InspectionConfig`.
+    verbose : bool
+        Progress bars on the long work (projecting the reference and calibration scans).
 
-    Attributes (after :meth:`fit`)
-    ------------------------------
+    Attributes (after :meth:`fit` or :meth:`from_calibration`)
+    --------------------------------------------------------
+    settings_ : InspectionConfig
+        The settings in force: ``point_score`` and ``rays`` decided, ``ray_options`` complete (or None without
+        rays), ``projection`` the ``project`` options (None for a fixed field).
     calibration_scores_ : (n,) array
         Anomaly scores of the calibration scans.
-    calibration_names_ : list of str
-    calibration_roles_ : list of str
-        ``'held-back'`` or ``'cross-fitted'`` for each calibration scan (:meth:`fit`).
+    calibration_names_, calibration_roles_ : list of str
+        Their names, and ``'held-back'`` or ``'cross-fitted'`` for each.
+    calibration_source_ : str
+        Where the calibration scans came from, in words.
+    data_fingerprint_ : str
+        The fingerprint of the collection :meth:`fit` read ('' for scans given as a list).
     threshold_ : float
         Scans with anomaly score > threshold_ are defective.
     decision_threshold_ : inspection.threshold.Threshold
-        ``threshold_`` with its basis (exact split-conformal, or the log-normal tail when there are fewer than
-        1 / alpha - 1 calibration scans), the false-alarm rate it predicts and that rate's interval.
+        ``threshold_`` with its basis, the false-alarm rate it predicts and that rate's interval.
     offset_ : float
         ``-threshold_``, so that ``decision_function = score_samples - offset_`` is negative exactly for defects.
     n_calibration_ : int
     reference_ : LocalReference or None
-        Per-location statistics of good scans (point scores ``'joint'``, ``'distance'`` and ``'local'`` only).
+        Per-location statistics of good scans (point scores with a reference).
     combination_ : Combination or None
-        The standardization of the components on the calibration scans (``rays=True`` only).
+        The standardization of the components on the calibration scans (with rays).
+    parts_ : dict of str -> Inspector, or None
+        A model of several part types: one fitted inspector per part (:meth:`for_scan` picks a scan's); this
+        inspector's own calibration attributes then hold every part's scores together (for reading, not for a
+        threshold) and ``threshold_`` is not set.
     """
 
-    def __init__(self, model, alpha=DEFAULT_ALPHA, aggregate=DEFAULT_AGGREGATE, point_score=DEFAULT_POINT_SCORE, noise=None,
-                 projection=None, rays=False, ray_options=None):
+    def __init__(self, model, alpha=DEFAULT_ALPHA, aggregate=DEFAULT_AGGREGATE, point_score="auto", noise=None,
+                 projection="default", rays="auto", ray_options=None, verbose=False):
         self.model = model
-        self.projection = projection
         self.alpha = alpha
         self.aggregate = aggregate
         self.point_score = point_score
         self.noise = noise
+        self.projection = projection
         self.rays = rays
         self.ray_options = ray_options
+        self.verbose = verbose
 
-    # ------------------------------------------------------------------------------------------------ checks
-    def _check_params(self):
-        check_alpha(self.alpha)
-        check_aggregate(self.aggregate)
-        if self.point_score not in POINT_SCORES:
-            raise ValueError(f"point_score must be one of {POINT_SCORES}, got {self.point_score!r}")
-        if self.noise is not None and not float(self.noise) >= 0:
-            raise ValueError(f"noise must be None or >= 0, got {self.noise!r}")
-        if self.rays not in (True, False):
-            raise ValueError(f"rays must be True or False, got {self.rays!r}")
-        if self.rays:
-            from .ray_evidence import check_ray_options
+    # ------------------------------------------------------------------------------------------ configuration
+    @property
+    def config(self):
+        """The parameters as an :class:`~inspection.config.InspectionConfig` (not validated)."""
+        return InspectionConfig(alpha=self.alpha, aggregate=self.aggregate, point_score=self.point_score,
+                                noise=self.noise, projection=self.projection, rays=self.rays,
+                                ray_options=self.ray_options)
 
-            check_ray_options(self.ray_options)
+    @classmethod
+    def from_config(cls, model, config=None, verbose=False):
+        """An inspector of ``model`` with the settings of ``config`` (None: the defaults)."""
+        return cls(model, **asdict(config or InspectionConfig()), verbose=verbose)
 
-    def _check_is_fitted(self):
-        if not hasattr(self, "calibration_scores_"):
-            raise NotFittedError("This Inspector is not calibrated yet: call fit(good_scans) or "
-                                 "set_calibration(...) before scoring against a threshold")
+    @classmethod
+    def from_calibration(cls, model, calibration, alpha=None, verbose=False):
+        """A new, fitted inspector from a stored :class:`~inspection.calibration.Calibration` (one per part type
+        when the model was trained on several); ``alpha`` (None: the calibration's) sets the threshold."""
+        config = replace(calibration.config(), alpha=calibration.alpha if alpha is None else alpha)
+        insp = cls.from_config(model, config, verbose)
+        parts = (calibration.extra or {}).get("parts")
+        if parts:
+            insp.parts_ = {p: cls.from_calibration(model, Calibration.from_dict(record), alpha, verbose)
+                           for p, record in sorted(parts.items())}
+            insp._gather_parts(calibration.source)
+            insp.data_fingerprint_ = calibration.fingerprint
+            return insp
+        insp.parts_ = None
+        insp._restore(calibration)
+        return insp
+
+    def _resolved(self, config, reference_available, origins_everywhere):
+        """``config`` (validated) with its 'auto' settings decided (module docstring of inspection.config)."""
+        from .ray_evidence import check_ray_options
+
+        point_score = config.point_score
+        if point_score == "auto":
+            point_score = "joint" if reference_available else "residual"
+        rays = config.rays
+        if rays == "auto":
+            rays = bool(reference_available and origins_everywhere)
+        return replace(config, point_score=point_score, rays=bool(rays),
+                       ray_options=check_ray_options(config.ray_options) if rays else None,
+                       projection=self._projection_options(config))
+
+    def _projection_options(self, config):
+        """The ``project`` options of ``config`` for this model: None for a fixed field; ``'default'`` means
+        ``DEFAULT_PROJECTION`` for the toolkit's latent models (:class:`autodecoder.latent.model.LatentModel`) and
+        the projector's own defaults for any other model with a ``project`` method."""
+        if not hasattr(self.model, "project"):
+            return None
+        if config.projection == "default":
+            from autodecoder.latent.model import LatentModel
+
+            return config.projection_options() if isinstance(self.model, LatentModel) else None
+        return config.projection_options() or None
+
+    def _settings(self):
+        """The settings in force: ``settings_`` once fitted, else the parameters with 'auto' decided as without
+        good scans (point score ``'residual'``, no rays), so that an unfitted inspector can score."""
+        settings = getattr(self, "settings_", None)
+        if settings is None:
+            settings = self._resolved(self.config.validated(), False, False)
+        return settings
 
     # ------------------------------------------------------------------------------------------------ scoring
     def for_scan(self, scan):
-        """The inspector whose threshold applies to ``scan``: this one (see :class:`inspection.parts.PartInspector`
-        for a model of several part types)."""
-        return self
+        """The inspector whose threshold applies to ``scan``: this one, or for a model of several part types the
+        fitted inspector of the scan's ``part_id`` (a ValueError naming the parts the model knows otherwise)."""
+        parts = getattr(self, "parts_", None)
+        if not parts:
+            return self
+        part = str(getattr(scan, "part_id", "") or "")
+        if part not in parts:
+            name = getattr(scan, "name", "") or "a scan"
+            what = f"part_id {part!r}" if part else "no part_id"
+            raise ValueError(f"{name}: {what}, but the model was trained on several part types {sorted(parts)} and "
+                             f"judges a scan against good scans of its own part; set the scan's part_id to one of them")
+        return parts[part]
 
-    def inspect(self, scan):
+    def inspect(self, scan, index=0):
         """Project one scan and score it. Returns a :class:`ScanResult` (score, per-point scores, field,
-        components, ray evidence). With ``rays=True`` the score is the combination, which needs calibration."""
-        combination = self._combination() if self.rays else None  # before the work: fail fast
-        result = self.inspect_components(scan)
+        components, ray evidence). With rays the score is the combination, which needs calibration."""
+        one = self.for_scan(scan)
+        if one is not self:
+            return one.inspect(scan, index)
+        settings = self._settings()
+        combination = self._combination() if settings.rays else None  # before the work: fail fast
+        result = self.inspect_components(scan, index)
         if combination is not None:
             result.score = float(combination.score([result.components])[0])
         return result
 
-    def inspect_components(self, scan):
+    def inspect_components(self, scan, index=0):
         """Like :meth:`inspect`, but ``score`` is the point score's aggregate alone; works unfitted (except for
         the per-location point scores, which need their reference)."""
-        self._check_params()
-        if self.point_score in REFERENCE_QUANTITY and getattr(self, "reference_", None) is None:
-            raise NotFittedError(f"point_score {self.point_score!r} needs the per-location reference: call "
-                                 "fit(good_scans, reference_scans=...) or fit_reference(scans) first")
-        good = self._project(scan, 0)
-        return self._score(good, getattr(self, "reference_", None))
+        one = self.for_scan(scan)
+        if one is not self:
+            return one.inspect_components(scan, index)
+        settings = self._settings()
+        if POINT_SCORES[settings.point_score].reference and getattr(self, "reference_", None) is None:
+            raise NotFittedError(f"point_score {settings.point_score!r} needs the per-location reference: call "
+                                 "fit(good_scans) with the model's training scans among them first")
+        return self._score(self._evidence(scan, index, settings), getattr(self, "reference_", None), settings)
 
-    def _project(self, scan, i, exclude_own_code=False):
-        """Project one scan: a :class:`_Projected` with its field and, for reference-based point scores, the
-        compared quantity and the field's variance in its units. ``exclude_own_code``: a training scan of a latent
-        model is projected without starting from the code it was trained with (cross-fitting)."""
-        points, normals = points_and_normals(scan)
-        name = _scan_name(scan, i)
-        if points.ndim != 2 or points.shape[-1] != 3 or len(points) == 0:
-            raise ValueError(f"{name}: a scan needs (m >= 1, 3) points, got shape {points.shape}")
-        origin = _sensor_origin(scan, i) if self.rays else _known_sensor_origin(scan, i)  # fail fast
-        options = self.projection
-        train_names = getattr(self.model, "train_names", None)
-        if exclude_own_code and train_names and name in train_names:
-            options = {**(options or {}), "exclude": (train_names.index(name),)}
-        part = getattr(scan, "part_id", "")
-        if part and getattr(self.model, "train_part_ids", None):  # a latent model: start from the part's codes
-            options = {**(options or {}), "part_id": part}
-        field = field_for(self.model, points, normals, options)
-        value = variance = grazing = None
-        if self.point_score in REFERENCE_QUANTITY:
-            value, variance = field_quantity(field, points, REFERENCE_QUANTITY[self.point_score], with_variance=True)
-            if normals is not None:
-                # no sensor origin (a public layout's test scan): the view estimated from the normals, for the
-                # grazing term alone
-                seen_from = origin if origin is not None else view_origin_from_normals(points, normals)
-                grazing = grazing_factor(points, normals, seen_from)
-        from datasets.outliers import stray_points
+    def _evidence(self, scan, index, settings, exclude_own_code=False):
+        quantity = REFERENCE_QUANTITY if POINT_SCORES[settings.point_score].reference else None
+        return gather_evidence(self.model, scan, index, quantity=quantity, projection=settings.projection,
+                               need_origin=settings.rays, exclude_own_code=exclude_own_code)
 
-        points = np.asarray(points, dtype=np.float64)
-        return _Projected(name, points, field, origin, value, variance, grazing, stray_points(points),
-                          None if normals is None else np.asarray(normals, dtype=np.float64))
-
-    def _score(self, good, reference, ray_reference=None):
-        """A :class:`ScanResult` of a projected scan against ``reference`` and ``ray_reference`` (default: the
-        fitted ray reference, if any) (components: points, rays)."""
-        if self.point_score in REFERENCE_QUANTITY:
-            noise = float(getattr(good.field, "noise", 0.0) if self.noise is None else self.noise)
-            values = reference_scores(reference, self.point_score, good.points, good.value, good.variance, noise,
-                                      good.grazing, good.normals)
+    def _score(self, evidence: ScanEvidence, reference, settings):
+        """A :class:`ScanResult` of a scan's evidence against ``reference`` (components: points, rays)."""
+        noise = float(getattr(evidence.field, "noise", 0.0) if settings.noise is None else settings.noise)
+        if POINT_SCORES[settings.point_score].reference:
+            values = reference_scores(reference, settings.point_score, evidence.points, evidence.value,
+                                      evidence.variance, noise, evidence.grazing, evidence.normals)
         else:
-            values = point_scores(good.field, good.points, kind=self.point_score, noise=self.noise)
+            values = point_scores(evidence.field, evidence.points, kind=settings.point_score, noise=settings.noise)
         # a stray point (a lone return off the surface) is not a defect unless many points agree: the scan's score
         # aggregates the others; the map keeps every point's score
-        kept = values if good.stray is None or good.stray.all() else values[~good.stray]
-        score = aggregate_scores(kept, self.aggregate)
-        result = ScanResult(score, values, good.field, components={"points": score})
-        if self.rays:
-            from .ray_evidence import check_ray_options, ray_evidence
+        kept = values if evidence.stray is None or evidence.stray.all() else values[~evidence.stray]
+        score = aggregate_scores(kept, settings.aggregate)
+        result = ScanResult(score, values, evidence.field, components={"points": score})
+        if settings.rays:
+            from .ray_evidence import ray_evidence
 
-            if ray_reference is None:
-                ray_reference = getattr(self, "ray_reference_", None)
-            result.rays = ray_evidence(good.field, good.points, good.origin, reference=ray_reference,
+            result.rays = ray_evidence(evidence.field, evidence.points, evidence.origin,
                                        surface=None if reference is None else reference.tree,
-                                       grazing=good.grazing,
-                                       **check_ray_options(self.ray_options))
+                                       grazing=evidence.grazing, **settings.ray_options)
             result.components["rays"] = result.rays.score
         return result
 
@@ -314,125 +285,146 @@ class Inspector(BaseEstimator):
         combination = getattr(self, "combination_", None)
         if combination is None:
             raise NotFittedError("rays=True: the combined score standardizes the point and ray scores on the "
-                                 "calibration scans; call fit(good_scans) or set_calibration(...) first "
+                                 "calibration scans; call fit(good_scans) or Inspector.from_calibration(...) first "
                                  "(inspect_components works unfitted)")
         return combination
 
     def anomaly_scores(self, scans):
-        """Per-scan anomaly scores (n,) (higher = more anomalous). Works unfitted, except with ``rays=True``."""
-        return np.array([self.inspect(s).score for s in scans], dtype=np.float64)
+        """Per-scan anomaly scores (n,) (higher = more anomalous), each under its part's inspector. Works unfitted,
+        except with rays."""
+        return np.array([self.inspect(s, i).score for i, s in enumerate(scans)], dtype=np.float64)
 
     def anomaly_map(self, scan):
         """Per-point scores (m,) of one scan (higher = more anomalous). Works unfitted."""
         return self.inspect_components(scan).point_scores
 
     def ray_map(self, scan):
-        """Per-point ray scores (m,) in [0, 1] of one scan (``rays=True``; see :mod:`inspection.ray_evidence`).
-        Works unfitted."""
-        if not self.rays:
-            raise ValueError("ray_map needs an Inspector made with rays=True")
-        return self.inspect_components(scan).rays.point_map
+        """Per-point ray scores (m,) in [0, 1] of one scan (with rays; see :mod:`inspection.ray_evidence`)."""
+        one = self.for_scan(scan)
+        if not one._settings().rays:
+            raise ValueError("ray_map needs an Inspector that scores the rays (rays=True, or 'auto' decided on)")
+        return one.inspect_components(scan).rays.point_map
 
     # ------------------------------------------------------------------------------------------------ fitting
-    def fit_reference(self, scans, max_points=60000, seed=0, surface_scans=None):
-        """Build ``reference_`` (for point scores ``'joint'``, ``'distance'`` and ``'local'``) from good scans, each
-        projected as a test scan would be (a training scan without starting from its own trained code); the model's
-        training scans are the natural choice. They are kept for the cross-fitted calibration of :meth:`fit`.
-        ``surface_scans`` (good scans, not projected; e.g. every training scan when ``scans`` is a subset of them):
-        the points and normals of the good scans' own surface (:meth:`LocalReference.surface`), up to
-        ``SURFACE_MAX_POINTS`` (seeded subsample); a scan named like one of ``scans`` is left out with it when
-        cross-fitting. None: ``scans`` themselves. Returns self."""
-        if self.point_score not in REFERENCE_QUANTITY:
-            raise ValueError(f"point_score {self.point_score!r} uses no per-location reference")
-        goods = [self._project(s, i, exclude_own_code=True) for i, s in enumerate(scans)]
-        if not goods:
-            raise ValueError("fit_reference needs at least one good scan, got none")
-        self.reference_ = LocalReference.from_values([(g.points, g.value) for g in goods], max_points=max_points,
-                                                     seed=seed, quantity=REFERENCE_QUANTITY[self.point_score])
-        names = [g.name for g in goods]
-        if surface_scans is None:  # the projected scans themselves, each its own owner
-            surface_scans = [_Named(g.name, g.points, g.normals) for g in goods]
-        ref = self.reference_
-        ref.surface_points, ref.surface_owners, ref.surface_normals = _surface_points(surface_scans, names, seed)
-        self._reference_scans = goods
-        self.ray_reference_ = None
-        if self.rays and all(g.origin is not None for g in goods):
-            from .ray_evidence import RayReference, check_ray_options
+    def fit(self, good_scans, y=None, reference_scans=None, split=None, cross_fit=True):
+        """Calibrate on good scans, sorted into their roles by :func:`inspection.selection.select_scans`.
 
-            options = dict(check_ray_options(self.ray_options), n_rays=REFERENCE_RAYS)
-            if options["band"] is not None:
-                # the band of good surfaces (these scans' points, ray option band) leaves out what a one-sided
-                # field extrapolates through an open part's openings; without it, good rays through them are
-                # explained by where good scans' rays enter the field's material (docs/inspection.md)
-                return self
-            self.ray_reference_ = RayReference.build(((g.points, g.origin, g.field) for g in goods), **options)
-        return self
-
-    def fit(self, good_scans, y=None, names=None, reference_scans=None, cross_fit=True, surface_scans=None):
-        """Calibrate on good scans: the ones given, which the model did NOT train on (held-back or validation
-        scans), and, with a per-location reference, the reference scans themselves, cross-fitted.
-
-        Cross-fitting: each reference scan (usually a training scan) is projected without its own trained code and
-        scored against the reference without its own points, as if it were new. Thresholds need many good scores
-        (:mod:`inspection.threshold`), and the held-back scans alone are few. The point score's noise model (the
-        weights of the field's variance and of the grazing factor, ``reference_.variance_scale`` and
-        ``grazing_scale``, :meth:`LocalReference.fit_noise_model`) is fitted on the same scans' residuals first.
+        The calibration scans are the model's held-back scans among ``good_scans`` (else every good scan it did not
+        train on); the model's training scans among them (or ``reference_scans``) give the per-location reference
+        of the point scores that need one and, cross-fitted, more calibration scores: each is projected without its
+        own trained code and scored against the reference without its own points, as if it were new. The point
+        score's noise model (``reference_.variance_scale`` and ``grazing_scale``,
+        :meth:`LocalReference.fit_noise_model`) is fitted on the same scans' residuals first. A model of several
+        part types is calibrated per part (``parts_``).
 
         Parameters
         ----------
-        good_scans : sequence of Scan (or (m, 3) arrays)
+        good_scans : datasets.ScanCollection or sequence of Scan (or (m, 3) arrays)
+            Good scans. A collection: its good scans, and its training scans count as the model's only when it is
+            the model's training collection (same fingerprint); a sequence: scans named like the model's training
+            scans are taken to be them.
         y : ignored
-        names : list of str, optional
-            Default: the scans' names.
         reference_scans : sequence of Scan, optional
-            Good scans for the per-location reference (point scores ``'joint'``, ``'distance'``, ``'local'``; required
-            then, unless ``reference_`` is already set): usually the model's training scans.
+            Good scans for the per-location reference instead of the training scans among ``good_scans``.
+        split : str, optional
+            Calibrate on this split's good scans only.
         cross_fit : bool
-            Also calibrate on the reference scans, cross-fitted (needs the scans the reference was built from
-            in this session; with rays, their sensor origins).
-        surface_scans : sequence of Scan, optional
-            With ``reference_scans``: the good scans whose points make the reference's surface
-            (:meth:`fit_reference`).
+            Also calibrate on the reference scans, cross-fitted.
 
         Returns
         -------
         self
         """
-        self._check_params()
-        if reference_scans is not None:
-            self.fit_reference(reference_scans, surface_scans=surface_scans)
-        elif self.point_score in REFERENCE_QUANTITY and getattr(self, "reference_", None) is None:
-            raise ValueError(f"point_score={self.point_score!r} needs reference_scans (good scans, e.g. the training "
-                             "scans)")
-        held = [self._project(s, i) for i, s in enumerate(good_scans)]  # lazily: good_scans may be a progress bar
-        if not held:
-            raise ValueError("fit needs at least one good calibration scan, got none")
-        names = [g.name for g in held] if names is None else list(names)
-        if self.point_score not in REFERENCE_QUANTITY:
-            return self.fit_components([self._score(g, None).components for g in held], names)
-        crossed = list(getattr(self, "_reference_scans", [])) if cross_fit else []
-        if self.rays and any(g.origin is None for g in crossed):
+        config = self.config.validated()
+        scans, training_given, origins_everywhere = _good_scans(good_scans, self.model)
+        self.data_fingerprint_ = good_scans.fingerprint() if hasattr(good_scans, "fingerprint") else ""
+        parts = model_parts(self.model)
+        if parts:
+            self.parts_ = {}
+            for part in parts:
+                selection = select_scans(self.model, scans, reference_scans, split, part, training_given)
+                if not selection.calibration:
+                    raise ValueError(f"no good calibration scans of part {part!r} (the model was trained on parts "
+                                     f"{parts} and calibrates each on its own scans)")
+                one = type(self)(**self.get_params(deep=False))
+                one.parts_ = None
+                one._fit_selection(selection, config, origins_everywhere, cross_fit, f" {part}")
+                self.parts_[part] = one
+            self._gather_parts()
+            return self
+        self.parts_ = None
+        selection = select_scans(self.model, scans, reference_scans, split, None, training_given)
+        return self._fit_selection(selection, config, origins_everywhere, cross_fit)
+
+    def _fit_selection(self, selection, config, origins_everywhere, cross_fit, desc=""):
+        if not selection.calibration:
+            raise ValueError("no good scans the model did not train on (give good scans it did not train on, a "
+                             "validation split, or a model with held-back calibration scans)")
+        reference = selection.reference
+        if config.point_score != "auto" and POINT_SCORES[config.point_score].reference and not reference:
+            raise ValueError(f"point_score {config.point_score!r} needs the model's training scans (among the good "
+                             f"scans, or as reference_scans) for its per-location reference")
+        with_origins = all(getattr(s, "sensor_origin", None) is not None for s in [*selection.calibration, *reference])
+        settings = self._resolved(config, bool(reference), with_origins and origins_everywhere)
+        if settings.rays:
+            missing = [scan_name(s, i) for i, s in enumerate(selection.calibration)
+                       if getattr(s, "sensor_origin", None) is None]
+            if missing:
+                raise ValueError(f"{len(missing)} of {len(selection.calibration)} calibration scans have no sensor "
+                                 f"origin (e.g. {missing[0]!r}); the ray score needs where the sensor was (scanner "
+                                 f"files: a <stem>.json sidecar {{\"sensor_origin\": [x, y, z]}}); calibrate "
+                                 f"without rays")
+        self.settings_ = settings
+        self.reference_ = None
+        crossed = []
+        if POINT_SCORES[settings.point_score].reference:
+            crossed = self._fit_reference(_progress(reference, self.verbose, f"reference{desc}"), selection.surface,
+                                          settings)
+        held = [self._evidence(s, i, settings) for i, s in
+                enumerate(_progress(selection.calibration, self.verbose, f"calibrate{desc}"))]
+        names = [g.name for g in held]
+        how = selection.how
+        if not POINT_SCORES[settings.point_score].reference:
+            self.calibration_source_ = how
+            return self._calibrate_from([self._score(g, None, settings).components for g in held], names)
+        crossed = crossed if cross_fit else []
+        if settings.rays and any(g.origin is None for g in crossed):
             crossed = []
         references = [self.reference_] * len(held) + [self.reference_.without(j) for j in range(len(crossed))]
-        ray_reference = getattr(self, "ray_reference_", None)
-        ray_references = [ray_reference] * len(held) + [
-            None if ray_reference is None else ray_reference.without(j) for j in range(len(crossed))]
         goods = held + crossed
-        kappa, lam = self._fit_noise_model(goods, references)
+        kappa, lam = self._fit_noise_model(goods, references, settings)
         components = []
-        for good, reference, ray_ref in zip(goods, references, ray_references):
-            reference.variance_scale, reference.grazing_scale = kappa, lam
-            components.append(self._score(good, reference, ray_ref).components)
+        for good, reference_j in zip(goods, references):
+            reference_j.variance_scale, reference_j.grazing_scale = kappa, lam
+            components.append(self._score(good, reference_j, settings).components)
         roles = ["held-back"] * len(held) + ["cross-fitted"] * len(crossed)
-        return self.fit_components(components, names + [g.name for g in crossed], roles)
+        self.calibration_source_ = how + (f" and {len(crossed)} training scans cross-fitted" if crossed else "")
+        return self._calibrate_from(components, names + [g.name for g in crossed], roles)
 
-    def _fit_noise_model(self, goods, references):
-        """:meth:`LocalReference.fit_noise_model` on the residuals of good projected scans against the references
-        they are scored with (the grazing term only when every one of them has a sensor origin)."""
+    def _fit_reference(self, scans, surface_scans, settings, max_points=60000, seed=0):
+        """Build ``reference_`` from good scans, each projected as a test scan would be (a training scan without
+        starting from its own trained code), with the points and normals of ``surface_scans`` (None: the scans
+        themselves) as the good scans' own surface (:meth:`LocalReference.surface`). Returns the scans' evidence
+        (for cross-fitting)."""
+        goods = [self._evidence(s, i, settings, exclude_own_code=True) for i, s in enumerate(scans)]
+        if not goods:
+            raise ValueError("the per-location reference needs at least one good scan, got none")
+        self.reference_ = LocalReference.from_values([(g.points, g.value) for g in goods], max_points=max_points,
+                                                     seed=seed, quantity=REFERENCE_QUANTITY)
+        names = [g.name for g in goods]
+        if not surface_scans:  # the projected scans themselves, each its own owner
+            surface_scans = [_Named(g.name, g.points, g.normals) for g in goods]
+        ref = self.reference_
+        ref.surface_points, ref.surface_owners, ref.surface_normals = _surface_points(surface_scans, names, seed)
+        return goods
+
+    def _fit_noise_model(self, goods, references, settings):
+        """:meth:`LocalReference.fit_noise_model` on the residuals of good scans' evidence against the references
+        they are scored with (the grazing term only when every one of them has a grazing factor)."""
         residuals, base, field_var, noise_var, grazing = [], [], [], [], []
         for good, reference in zip(goods, references):
             m_ref, s_ref = reference.stats(good.points)
-            noise = float(getattr(good.field, "noise", 0.0) if self.noise is None else self.noise)
+            noise = float(getattr(good.field, "noise", 0.0) if settings.noise is None else settings.noise)
             residuals.append(good.value - m_ref)
             base.append(s_ref**2)
             field_var.append(good.variance)
@@ -443,7 +435,7 @@ class Inspector(BaseEstimator):
                                               np.concatenate(field_var), np.concatenate(noise_var),
                                               np.concatenate(grazing) if with_grazing else None)
 
-    def fit_components(self, components, names, roles=None):
+    def _calibrate_from(self, components, names, roles=None):
         """Calibrate from the ``components`` of :meth:`inspect_components` (one dict per good calibration scan);
         ``roles`` says for each whether it was held back or cross-fitted (default: held back).
 
@@ -454,118 +446,159 @@ class Inspector(BaseEstimator):
         components = list(components)
         if not components:
             raise ValueError("calibration needs at least one good scan, got none")
-        self.calibration_roles_ = ["held-back"] * len(components) if roles is None else list(roles)
-        if len(self.calibration_roles_) != len(components):
-            raise ValueError(f"roles: one per calibration scan ({len(components)}), got {len(self.calibration_roles_)}")
-        if not self.rays:
+        roles = ["held-back"] * len(components) if roles is None else list(roles)
+        if not self.settings_.rays:
             self.combination_ = None
-            return self._set([c["points"] for c in components], names)
+            return self._set([c["points"] for c in components], names, roles)
         from autodecoder.scanning.free_space import MAX_SURPRISAL
 
         from .combine import Combination
 
-        missing = [i for i, c in enumerate(components) if "rays" not in c]
-        if missing:
-            raise ValueError(f"rays=True: {len(missing)} calibration scan(s) have no ray score (inspect them with "
-                             f"this Inspector)")
         self.combination_ = Combination(components, names=("points", "rays"), rule=COMBINATION_RULE,
                                         ceiling=MAX_SURPRISAL)
-        return self._set(self.combination_.calibration_scores(), names)
+        return self._set(self.combination_.calibration_scores(), names, roles)
 
-    def _set(self, scores, names):
+    def _set(self, scores, names, roles):
         scores = np.asarray(scores, dtype=np.float64).reshape(-1)
         if len(scores) == 0 or not np.all(np.isfinite(scores)):
             raise ValueError("calibration scores must be a non-empty array of finite numbers")
+        if len(roles) != len(scores):
+            raise ValueError(f"roles: one per calibration scan ({len(scores)}), got {len(roles)}")
         self.calibration_scores_ = scores
         self.calibration_names_ = list(names)
+        self.calibration_roles_ = list(roles)
         self.n_calibration_ = len(scores)
-        roles = getattr(self, "calibration_roles_", None)
-        self.decision_threshold_ = fit_threshold(scores, self.alpha,
-                                                 roles if roles is not None and len(roles) == len(scores) else None)
+        self.decision_threshold_ = fit_threshold(scores, self.alpha, self.calibration_roles_)
         self.threshold_ = self.decision_threshold_.value
         self.offset_ = -self.threshold_
         return self
 
-    def set_calibration(self, calibration):
-        """Use a stored :class:`~inspection.calibration.Calibration` (its aggregate, point score and noise floor
-        replace this inspector's; ``alpha`` stays). Returns self. A per-part calibration (a model of several part
-        types) is a :class:`inspection.parts.PartInspector`'s, not one inspector's: ValueError."""
-        if (calibration.extra or {}).get("parts"):
-            raise ValueError("this calibration holds one per part type (the model was trained on several); load it "
-                             "with inspection.parts.PartInspector.from_calibration(model, calibration)")
-        self.aggregate = calibration.aggregate
-        self.point_score = calibration.point_score
-        self.noise = calibration.noise
-        self.projection = (calibration.extra or {}).get("projection")
-        ref = (calibration.extra or {}).get("reference")
+    def _gather_parts(self, source=None):
+        """A per-part inspector's own attributes: the parts' settings (shared) and every part's calibration
+        scores together (no threshold of its own); ``source`` (None: the parts' sources joined) says where they
+        came from."""
+        parts = [self.parts_[p] for p in sorted(self.parts_)]
+        self.settings_ = parts[0].settings_
+        self.calibration_scores_ = np.concatenate([p.calibration_scores_ for p in parts])
+        self.calibration_names_ = [n for p in parts for n in p.calibration_names_]
+        self.calibration_roles_ = [r for p in parts for r in p.calibration_roles_]
+        self.n_calibration_ = len(self.calibration_scores_)
+        self.calibration_source_ = "; ".join(p.calibration_source_ for p in parts) if source is None else source
+
+    def _restore(self, calibration):
+        """This inspector's fitted state from a single-part calibration record."""
+        extra = calibration.extra or {}
+        self.settings_ = calibration.config()
+        ref = extra.get("reference")
         self.reference_ = None if ref is None else LocalReference.from_dict(ref)
-        rays = (calibration.extra or {}).get("rays")
-        self.rays = rays is not None
-        self.ray_options = None if rays is None else dict(rays["options"])
-        self.ray_reference_ = None
+        rays = extra.get("rays")
+        self.combination_ = None
         if rays is not None:
             from .combine import Combination
-            from .ray_evidence import RayReference
 
-            self.combination_ = Combination.from_dict(rays["components"])
             if rays.get("reference") is not None:
-                self.ray_reference_ = RayReference.from_dict(rays["reference"])
-        else:
-            self.combination_ = None
-        self._check_params()
-        self.calibration_roles_ = list(calibration.roles) or ["held-back"] * len(calibration.scores)
-        return self._set(calibration.scores, calibration.names)
+                raise ValueError("its ray score was calibrated with a ray reference (ray option band=None), a rule "
+                                 "that is retired")
+            self.combination_ = Combination.from_dict(rays["components"])
+        self.calibration_source_ = calibration.source
+        self.data_fingerprint_ = calibration.fingerprint
+        self._set(calibration.scores, calibration.names,
+                  list(calibration.roles) or ["held-back"] * len(calibration.scores))
 
-    def calibration(self, source="", fingerprint=""):
-        """The fitted calibration as a :class:`~inspection.calibration.Calibration`, ready to store in the model."""
+    def calibration(self, source=None, fingerprint=None):
+        """The fitted calibration as a :class:`~inspection.calibration.Calibration`, ready to store in the model
+        (one record per part type under ``extra['parts']`` for a model of several). ``source`` (None: where the
+        calibration scans came from) describes them; ``fingerprint`` (None: the collection :meth:`fit` read, '' for
+        scans given as a list) identifies their data."""
         self._check_is_fitted()
-        return Calibration(scores=self.calibration_scores_.tolist(), names=list(self.calibration_names_),
-                           roles=list(getattr(self, "calibration_roles_", [])),
-                           aggregate=self.aggregate, point_score=self.point_score,
-                           noise=None if self.noise is None else float(self.noise), alpha=float(self.alpha),
-                           source=source, fingerprint=fingerprint,
-                           extra={"projection": None if self.projection is None else dict(self.projection),
-                                  "reference": None if getattr(self, "reference_", None) is None
-                                  else self.reference_.as_dict(),
-                                  "rays": self._ray_record()})
+        source = self.calibration_source_ if source is None else source
+        fingerprint = getattr(self, "data_fingerprint_", "") if fingerprint is None else fingerprint
+        settings = self.settings_
+        common = dict(scores=self.calibration_scores_.tolist(), names=list(self.calibration_names_),
+                      roles=list(self.calibration_roles_), aggregate=settings.aggregate,
+                      point_score=settings.point_score, noise=settings.noise, alpha=float(self.alpha), source=source,
+                      fingerprint=fingerprint)
+        if getattr(self, "parts_", None):
+            records = {p: one.calibration(fingerprint=fingerprint).as_dict() for p, one in sorted(self.parts_.items())}
+            return Calibration(**common, extra={"config": settings.as_dict(), "parts": records})
+        return Calibration(**common, extra={"config": settings.as_dict(),
+                                            "reference": None if self.reference_ is None else self.reference_.as_dict(),
+                                            "rays": self._ray_record()})
 
     def _ray_record(self):
-        """What the calibration stores about rays: None, or the options and the calibration component scores."""
-        if not self.rays:
+        """What the calibration stores about rays: None, or the calibration component scores (the options are in
+        the settings)."""
+        if not self.settings_.rays:
             return None
-        from .ray_evidence import check_ray_options
+        return {"components": self._combination().as_dict()}
 
-        ray_reference = getattr(self, "ray_reference_", None)
-        return {"options": check_ray_options(self.ray_options), "components": self._combination().as_dict(),
-                "reference": None if ray_reference is None else ray_reference.as_dict()}
+    def summary(self):
+        """Per part (a model of several part types; else {}): the threshold, how it was drawn, and the number of
+        calibration scans (summary.json)."""
+        return {p: {"threshold": float(i.threshold_), "decision": i.decision_threshold_.as_dict(),
+                    "n_calibration": int(i.n_calibration_)} for p, i in sorted((self.parts_ or {}).items())}
+
+    def _check_is_fitted(self):
+        if not hasattr(self, "calibration_scores_"):
+            raise NotFittedError("This Inspector is not calibrated yet: call fit(good_scans) or use "
+                                 "Inspector.from_calibration(...) before scoring against a threshold")
 
     # ------------------------------------------------------------------------------------ sklearn outlier API
-    def p_values_from_scores(self, anomaly_scores):
+    def p_values_from_scores(self, anomaly_scores, scans=None):
         """p-values (n,) of given anomaly scores on the threshold's basis (split-conformal or the log-normal
         predictive tail, :meth:`inspection.threshold.Threshold.p_values`); ``p <= decision_threshold_.alpha_used``
-        exactly when the score exceeds ``threshold_``."""
-        self._check_is_fitted()
-        return self.decision_threshold_.p_values(anomaly_scores)
+        exactly when the score exceeds ``threshold_``. A model of several part types needs the ``scans`` (for
+        their parts)."""
+        return self._per_scan(anomaly_scores, scans, lambda one, s: one.decision_threshold_.p_values(s))
 
     def p_values(self, scans):
         """p-values (n,) of scans; small = unlike the good calibration scans."""
-        return self.p_values_from_scores(self.anomaly_scores(scans))
+        scans = list(scans)
+        return self.p_values_from_scores(self.anomaly_scores(scans), scans)
 
     def score_samples(self, scans):
         """Normality scores (n,): the negated anomaly score, so HIGHER = MORE NORMAL (scikit-learn convention)."""
         return -self.anomaly_scores(scans)
 
     def decision_function(self, scans):
-        """``score_samples(scans) - offset_``: negative for defective scans, >= 0 for good ones."""
-        self._check_is_fitted()
-        return self.score_samples(scans) - self.offset_
+        """``score_samples(scans) - offset_``: negative for defective scans, >= 0 for good ones (each against its
+        part's threshold)."""
+        scans = list(scans)
+        return self._per_scan(self.score_samples(scans), scans, lambda one, s: s - one.offset_)
 
-    def predict_from_scores(self, anomaly_scores):
-        """+1 (good) / -1 (defective) for given anomaly scores: -1 exactly when the score exceeds ``threshold_``."""
-        self._check_is_fitted()
-        s = np.asarray(anomaly_scores, dtype=np.float64)
-        return np.where(s > self.threshold_, -1, 1)
+    def predict_from_scores(self, anomaly_scores, scans=None):
+        """+1 (good) / -1 (defective) for given anomaly scores: -1 exactly when the score exceeds ``threshold_``
+        (a model of several part types: the scans' parts' thresholds; pass the ``scans``)."""
+        return self._per_scan(anomaly_scores, scans, lambda one, s: np.where(s > one.threshold_, -1, 1))
 
     def predict(self, scans):
         """+1 for good scans, -1 for defective ones (score > ``threshold_``, i.e. decision_function < 0)."""
-        return self.predict_from_scores(self.anomaly_scores(scans))
+        scans = list(scans)
+        return self.predict_from_scores(self.anomaly_scores(scans), scans)
+
+    def _per_scan(self, values, scans, fn):
+        """``fn(inspector, values)`` with each value under the inspector of its scan's part."""
+        self._check_is_fitted()
+        values = np.asarray(values, dtype=np.float64).reshape(-1)
+        if not getattr(self, "parts_", None):
+            return fn(self, values)
+        if scans is None or len(scans) != len(values):
+            raise ValueError("a model of several part types judges each scan against its own part: pass the scans")
+        return np.array([fn(self.for_scan(s), values[i:i + 1])[0] for i, s in enumerate(scans)])
+
+
+def _good_scans(good_scans, model):
+    """(scans, whether their training-named scans are the model's training scans, whether every scan of their
+    source records a sensor origin) from a collection or a sequence of scans."""
+    from datasets import ScanCollection
+
+    if isinstance(good_scans, ScanCollection):
+        coll = good_scans
+        fingerprint = getattr(model, "fingerprint", "") or ""
+        training = bool(fingerprint) and coll.fingerprint() == fingerprint
+        # a public layout's collection has rendered template views with origins and test scans without: rays
+        # calibrated on the views could not score its test scans, so 'auto' stays off there
+        origins = all(m["sensor_origin"] is not None for m in coll.metadata())
+        return coll.read_many(coll.select(label="good")), training, origins
+    scans = list(good_scans)
+    return scans, True, all(getattr(s, "sensor_origin", None) is not None for s in scans)

@@ -77,6 +77,11 @@ def load_model(path):
 
         model = StochasticField.from_state(ckpt, source=str(path))
         info = ckpt.get(COLLECTION_KEY) or {}
+        # the scans it was fitted on and held back, by name, as a latent model records them: the Inspector's scan
+        # selection (inspection.selection) reads them from the model it is given
+        model.train_names = [str(n) for n in info.get("train_names", [])]
+        model.calibration_names = [str(n) for n in info.get("heldback_names", [])]
+        model.fingerprint = str(info.get("fingerprint", ""))
         frame = Frame.from_dict(info["frame"]) if info.get("frame") else None
         return ModelHandle(path, "field", model, frame=frame, fingerprint=info.get("fingerprint", ""),
                            train_names=list(info.get("train_names", [])),

@@ -9,8 +9,10 @@ import numpy as np
 
 from datasets.atomic import atomic_path
 
-CSV_COLUMNS = ("name", "split", "label", "defect", "score", "p_value", "verdict")
+# ``reason``: why a scan whose verdict is ``error`` could not be scored (empty for the others)
+CSV_COLUMNS = ("name", "split", "label", "defect", "score", "p_value", "verdict", "reason")
 RAY_CSV_COLUMNS = CSV_COLUMNS + ("score_points", "score_rays")  # with rays: the two components of the score
+ERROR_VERDICT = "error"
 
 
 def atomic_write_text(path, text):
@@ -22,13 +24,14 @@ def atomic_write_text(path, text):
 
 def write_scores_csv(path, rows, columns=CSV_COLUMNS):
     """``rows``: dicts with the keys of ``columns`` (CSV_COLUMNS, or RAY_CSV_COLUMNS; scores and p_value
-    floats). Written atomically."""
+    floats, absent or None for a scan whose verdict is ``error``). Written atomically."""
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=columns, extrasaction="ignore", lineterminator="\n")
     writer.writeheader()
     for r in rows:
-        floats = {k: f"{r[k]:.9g}" for k in ("score", "score_points", "score_rays") if k in r}
-        writer.writerow({**r, **floats, "p_value": f"{r['p_value']:.6g}"})
+        floats = {k: "" if r.get(k) is None else f"{r[k]:.9g}" for k in ("score", "score_points", "score_rays")}
+        p_value = "" if r.get("p_value") is None else f"{r['p_value']:.6g}"
+        writer.writerow({**r, **floats, "p_value": p_value, "reason": r.get("reason", "")})
     return atomic_write_text(path, buf.getvalue())
 
 
@@ -42,7 +45,8 @@ def summarize(rows, threshold, alpha, point_labels=None, point_scores=None, extr
     Parameters
     ----------
     rows : list of dict
-        One per scan with 'label' ('good' / 'defective' / 'unknown'), 'defect', 'score', 'p_value', 'verdict'.
+        One per scan with 'label' ('good' / 'defective' / 'unknown'), 'defect', 'score', 'p_value', 'verdict'
+        (``'error'``: the scan could not be scored; counted in ``n_errors``, left out of the metrics).
     threshold, alpha : float
     point_labels, point_scores : list of (m_i,) arrays, optional
         Per-point ground truth and scores of the scans that have ground truth (pooled for the point-level AUROC).
@@ -56,9 +60,12 @@ def summarize(rows, threshold, alpha, point_labels=None, point_scores=None, extr
     from sklearn.metrics import average_precision_score, confusion_matrix, precision_recall_fscore_support, \
         roc_auc_score
 
+    errors = [r for r in rows if r["verdict"] == ERROR_VERDICT]
+    rows = [r for r in rows if r["verdict"] != ERROR_VERDICT]
     labels = [r["label"] for r in rows]
     summary = {
-        "n_scans": len(rows),
+        "n_scans": len(rows) + len(errors),
+        "n_errors": len(errors),
         "counts": {lab: labels.count(lab) for lab in ("good", "defective", "unknown")},
         "counts_by_defect": {},
         "n_flagged": sum(r["verdict"] == "defective" for r in rows),
@@ -123,8 +130,12 @@ def _json_default(o):
 def format_table(rows, summary, max_rows=60):
     """The terminal table: one line per scan (up to ``max_rows``, flagged scans first) and the metrics."""
     lines = [f"{'name':<28} {'label':<9} {'defect':<9} {'score':>10} {'p_value':>8}  verdict"]
-    shown = sorted(rows, key=lambda r: (r["verdict"] != "defective", r["name"]))
+    shown = sorted(rows, key=lambda r: ({ERROR_VERDICT: 0, "defective": 1}.get(r["verdict"], 2), r["name"]))
     for r in shown[:max_rows]:
+        if r["verdict"] == ERROR_VERDICT:
+            lines.append(f"{r['name'][:28]:<28} {r['label']:<9} {r['defect'] or '-':<9} {'-':>10} {'-':>8}  error: "
+                         f"{r.get('reason', '')}")
+            continue
         mark = "  <-- FLAGGED" if r["verdict"] == "defective" else ""
         lines.append(f"{r['name'][:28]:<28} {r['label']:<9} {r['defect'] or '-':<9} {r['score']:>10.4g} "
                      f"{r['p_value']:>8.3g}  {r['verdict']}{mark}")
@@ -136,6 +147,8 @@ def format_table(rows, summary, max_rows=60):
         else f"threshold {'none' if t is None else f'{t:.4g}'}"
     lines.append(f"{summary['n_flagged']} of {summary['n_scans']} scans flagged at alpha={summary['alpha']:g} "
                  f"({where})")
+    if summary.get("n_errors"):
+        lines.append(f"{summary['n_errors']} scan(s) could not be scored (verdict 'error', reason in scores.csv)")
     decision = summary.get("decision")
     if decision:
         from .threshold import format_rate

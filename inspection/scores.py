@@ -5,18 +5,50 @@ in the field's own (world) frame, i.e. the collection frame for a model trained 
 """
 import math
 import re
+from dataclasses import dataclass
 
 import numpy as np
 
-from autodecoder.field.protocol import check_field
 
-POINT_SCORES = ("residual", "nll", "local", "distance", "joint")
+
+
+@dataclass(frozen=True)
+class PointScore:
+    """One per-point score of the registry :data:`POINT_SCORES`.
+
+    Attributes
+    ----------
+    name : str
+    reference : bool
+        Whether it compares the scan with good scans at the same place (a :class:`LocalReference` built from the
+        model's training scans: calibration then needs them).
+    in_deviations : bool
+        Whether its values are standardized residuals, in standard deviations (the maps' fixed colour range,
+        :mod:`inspection.maps`); the NLL is in nats.
+    summary : str
+        One line for the command line's help.
+    """
+
+    name: str
+    reference: bool
+    in_deviations: bool
+    summary: str
+
+
+# The per-point scores, the one list the estimator, the command line's choices, the maps and the benchmarks read
+# (formulas: point_scores). The default is 'joint' where the training scans give a reference, else 'residual'.
+POINT_SCORES = {s.name: s for s in (
+    PointScore("joint", True, True, "the field's distance residual and the good scans' own surface together (default)"),
+    PointScore("distance", True, True, "the first-order distance to the mean surface against good scans there"),
+    PointScore("residual", False, True, "the standardized residual |E f| / sd (needs no reference)"),
+    PointScore("nll", False, False, "the paper's negative log likelihood of f = 0"),
+)}
 REFERENCE_NEIGHBOURS = 16
 # |grad E f| is unitless (~1 on the mean surface of a well-fitted field, -> 0 far from it, where E f saturates); the
 # floor keeps E f / |grad E f| finite there while still growing well past the saturation distance
 GRADIENT_FLOOR = 0.2
-# which quantity each per-location point score compares with its reference
-REFERENCE_QUANTITY = {"local": "mean", "distance": "distance", "joint": "distance"}
+# the quantity the per-location point scores compare with their reference (field_quantity)
+REFERENCE_QUANTITY = "distance"
 # a reference point within this many reference bounding-box diagonals of a scored point is that point itself (a
 # rendered view of a template shares its points with the other views of that template): the reference surface's
 # plane is fitted without it
@@ -24,9 +56,6 @@ SELF_DISTANCE = 1e-6
 # candidates per plane neighbour searched for points on the same side as the scored point (LocalReference.surface)
 SURFACE_CANDIDATES = 4
 _MIN_VARIANCE = 1e-20
-# cos^2 of the angle between the sensor's ray and the surface normal is floored here (about 87 degrees) so that the
-# grazing factor 1 / cos^2 - 1 stays finite at silhouettes
-GRAZING_COS2_FLOOR = 0.0025
 _AGGREGATE_RE = re.compile(r"^(mean|max|median|top(\d+(?:\.\d+)?)|q(\d+(?:\.\d+)?))$")
 
 
@@ -40,20 +69,19 @@ def point_scores(field, points, kind="residual", noise=None, reference=None, nor
       It drops the log-variance term, which varies from view to view with how densely training covered a region
       (measured: docs/results.md, "The per-cloud NLL") and carries no information about the point itself, and it
       is unitless (in standard deviations), so one colour range serves every part.
-    * ``'local'``: the residual standardized against good scans at the same place, |m - m_ref| /
-      sqrt(s_ref^2 + noise^2), where m_ref and s_ref are the mean and standard deviation of E f over the
-      ``REFERENCE_NEIGHBOURS`` nearest points of good scans, each under its own projected field (a
-      :class:`LocalReference`). A field that misses the part in the same way on every good scan (a rounded edge, a
-      drifting face) then stops looking anomalous there: the noise floor is modelled per location.
-    * ``'distance'`` (the default with a reference): like ``'local'``, but on d = m / max(|grad m|,
-      ``GRADIENT_FLOOR``), the first-order signed distance to the mean surface (world units), instead of m itself.
+    * ``'distance'``: d = m / max(|grad m|, ``GRADIENT_FLOOR``), the first-order signed distance to the mean
+      surface (world units), standardized against good scans at the same place, |d - d_ref| / sqrt(s_ref^2 +
+      noise^2), where d_ref and s_ref are the mean and standard deviation of d over the ``REFERENCE_NEIGHBOURS``
+      nearest points of good scans, each under its own projected field (a :class:`LocalReference`). A field that
+      misses the part in the same way on every good scan (a rounded edge, a drifting face) then stops looking
+      anomalous there: the noise floor is modelled per location. The distance rather than E f itself:
       E f is an integral of the GP's normal field, which vanishes two kernel lengthscales off the points, so E f
-      saturates there: a pit or a bump deeper than that scores no higher than a shallow one under ``'local'``,
+      saturates there: a pit or a bump deeper than that scores no higher than a shallow one under E f,
       ``'residual'`` or ``'nll'``, and no higher than the model's own error on good parts at a hard feature. d
       follows the depth while |grad m| >= the floor and then stays at |m| / floor: points off the field's shell
       are lifted by up to 1 / floor = 5 x relative to points near the mean surface (where |grad m| ~ 1), which is
       where the defects are and good scans are not (figures: docs/results.md#the-per-point-score).
-    * ``'joint'``: the ``'distance'`` score z_d and the reference surface's z_s (:meth:`LocalReference.surface_scores`:
+    * ``'joint'`` (the default with a reference): the ``'distance'`` score z_d and the reference surface's z_s (:meth:`LocalReference.surface_scores`:
       the point's offset from the plane through its nearest good-scan points) taken together as two independent
       standardized residuals, sqrt((z_d^2 + z_s^2) / 2) (:func:`joint_score`). The projected field errs at a
       scan's borders and at grazing angles, where the good scans' points still lie on the part; the good scans'
@@ -66,16 +94,16 @@ def point_scores(field, points, kind="residual", noise=None, reference=None, nor
         E.g. a :class:`autodecoder.StochasticField`.
     points : (m, 3) array
         In the field's frame.
-    kind : {'residual', 'nll', 'local', 'distance', 'joint'}
+    kind : str
+        A name of :data:`POINT_SCORES`.
     noise : float, optional
         Measurement noise standard deviation (the noise floor), in the field's length units; default
         ``field.noise``.
     reference : LocalReference
-        Needed by ``'local'``, ``'distance'`` and ``'joint'``, built on the same quantity
-        (``REFERENCE_QUANTITY[kind]``).
+        Needed by the scores with ``POINT_SCORES[kind].reference`` (``'distance'`` and ``'joint'``).
     normals, origin : (m, 3) array and (3,) array, optional
         The scan's normals and sensor origin: with both, the reference scores' noise grows where the sensor's ray
-        grazes the surface (:func:`grazing_factor`, weighted by the reference's ``grazing_scale``); with the
+        grazes the surface (:func:`autodecoder.scanning.sensor.grazing_factor`, weighted by the reference's ``grazing_scale``); with the
         normals, ``'joint'``'s reference surface is fitted through points on the same side
         (:meth:`LocalReference.surface`).
 
@@ -84,7 +112,7 @@ def point_scores(field, points, kind="residual", noise=None, reference=None, nor
     (m,) float64 array
     """
     if kind not in POINT_SCORES:
-        raise ValueError(f"point_score must be one of {POINT_SCORES}, got {kind!r}")
+        raise ValueError(f"point_score must be one of {tuple(POINT_SCORES)}, got {kind!r}")
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"points must be (m, 3), got {points.shape}")
@@ -93,13 +121,12 @@ def point_scores(field, points, kind="residual", noise=None, reference=None, nor
     noise = float(getattr(field, "noise", 0.0) if noise is None else noise)
     if not noise >= 0:
         raise ValueError(f"noise must be >= 0, got {noise}")
-    if kind in REFERENCE_QUANTITY:
+    if POINT_SCORES[kind].reference:
         if reference is None:
             raise ValueError(f"point_score {kind!r} needs a LocalReference (calibrate with the training scans)")
-        if reference.quantity != REFERENCE_QUANTITY[kind]:
-            raise ValueError(f"point_score {kind!r} needs a reference of {REFERENCE_QUANTITY[kind]!r} values, got one "
-                             f"of {reference.quantity!r} values")
         value, variance = field_quantity(field, points, reference.quantity, with_variance=True)
+        from autodecoder.scanning.sensor import grazing_factor
+
         grazing = None if origin is None or normals is None else grazing_factor(points, normals, origin)
         return reference_scores(reference, kind, points, value, variance, noise, grazing, normals)
     mean = np.asarray(field.mean(points), dtype=np.float64)
@@ -134,7 +161,7 @@ def joint_score(distance_scores, surface_scores):
 
 
 def reference_scores(reference, kind, points, value, variance, noise, grazing=None, normals=None):
-    """The per-location point score ``kind`` (``'local'``, ``'distance'`` or ``'joint'``) of (m, 3) points whose
+    """The per-location point score ``kind`` (``'distance'`` or ``'joint'``) of (m, 3) points whose
     compared quantity (m,) and field variance (m,) are given, against ``reference`` (a :class:`LocalReference`);
     ``grazing`` (m,) and the points' ``normals`` (m, 3) (for the reference surface's side) or None. Returns (m,)
     float64."""
@@ -144,92 +171,30 @@ def reference_scores(reference, kind, points, value, variance, noise, grazing=No
     return scores
 
 
-def field_quantity(field, points, quantity, with_variance=False):
-    """What a per-location reference compares, at (m, 3) points: E f (``'mean'``) or the first-order signed distance
-    d = E f / max(|grad E f|, ``GRADIENT_FLOOR``) (``'distance'``, needs ``field.mean_gradient``).
+def field_quantity(field, points, quantity=REFERENCE_QUANTITY, with_variance=False):
+    """What a per-location reference compares, at (m, 3) points: the first-order signed distance to the mean surface
+    d = E f / max(|grad E f|, ``GRADIENT_FLOOR``) (world units; needs ``field.mean_gradient``).
 
     Returns
     -------
     value : (m,) float64
     variance : (m,) float64, only with ``with_variance``
-        The field's own variance in the same units: Var f, or Var f / max(|grad E f|, ``GRADIENT_FLOOR``)^2 for the
-        distance (the first-order propagation of Var f through d).
+        The field's own variance in the same units, Var f / max(|grad E f|, ``GRADIENT_FLOOR``)^2 (the first-order
+        propagation of Var f through d).
     """
-    if quantity not in ("mean", "distance"):
-        raise ValueError(f"reference quantity must be 'mean' or 'distance', got {quantity!r}")
+    if quantity != REFERENCE_QUANTITY:
+        raise ValueError(f"reference quantity must be {REFERENCE_QUANTITY!r} (the point score 'local', on E f itself, "
+                         f"is retired), got {quantity!r}")
+    from autodecoder.field.protocol import check_field
+
     check_field(field)
     mean = np.asarray(field.mean(points), dtype=np.float64)
-    scale = 1.0
-    if quantity == "distance":
-        grad = np.linalg.norm(np.asarray(field.mean_gradient(points), dtype=np.float64), axis=1)
-        scale = np.maximum(grad, GRADIENT_FLOOR)
+    grad = np.linalg.norm(np.asarray(field.mean_gradient(points), dtype=np.float64), axis=1)
+    scale = np.maximum(grad, GRADIENT_FLOOR)
     if not with_variance:
         return mean / scale
     variance = np.maximum(np.asarray(field.variance(points), dtype=np.float64), 0.0)
     return mean / scale, variance / scale**2
-
-
-def grazing_factor(points, normals, origin):
-    """1 / cos^2(theta) - 1 at each point, theta the angle between the sensor's ray and the surface normal.
-
-    A range sensor's error grows where its ray grazes the surface: near silhouettes and sharp edges a depth error
-    moves a point off the part's edge, and real sensors' spots smear there. The reference scores model it as noise
-    that grows with this factor (:class:`LocalReference`). The scan's own normals are used (exact for synthetic
-    scans, estimated on import for scanner files): the projected field's gradient, which rounds sharp edges, finds
-    far fewer of the grazing points that set good scans' scores (docs/results.md#how-each-step-contributed).
-    cos^2 is floored at ``GRAZING_COS2_FLOOR``.
-
-    Parameters
-    ----------
-    points : (m, 3) array
-    normals : (m, 3) array
-        Unit normals (either orientation: the factor depends on cos^2).
-    origin : (3,) array
-        The sensor position, in the same frame as the points.
-
-    Returns
-    -------
-    (m,) float64 array >= 0 (0 where the ray meets the surface head-on)
-    """
-    points = np.asarray(points, dtype=np.float64)
-    rays = points - np.asarray(origin, dtype=np.float64).reshape(1, 3)
-    rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
-    normals = np.asarray(normals, dtype=np.float64)
-    normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-    cos2 = np.sum(rays * normals, axis=1) ** 2
-    return 1.0 / np.maximum(cos2, GRAZING_COS2_FLOOR) - 1.0
-
-
-# sensor distance of an estimated viewpoint (view_origin_from_normals), in the scan's bounding-box diagonals
-ESTIMATED_VIEW_DISTANCE = 2.0
-
-
-def view_origin_from_normals(points, normals, distance=ESTIMATED_VIEW_DISTANCE):
-    """A stand-in sensor origin for a scan that records none, for :func:`grazing_factor` only.
-
-    Every normal a sensor sees faces it, so the mean of a one-view scan's outward normals points roughly at the
-    sensor: the origin is put ``distance`` bounding-box diagonals from the scan's centroid along it. A rough
-    direction (how rough, and what the grazing term it gives is worth:
-    docs/results.md#training-from-4-complete-templates-benchmarksfour_templatespy), good enough for a noise term
-    that grows smoothly with the angle; not a sensor origin for the ray score, which needs the real one.
-
-    Parameters
-    ----------
-    points, normals : (m, 3) arrays
-        Normals oriented outward (their mean decides the side; a scan whose normals cancel out gets an arbitrary
-        direction, and the grazing factor is then as good as any).
-
-    Returns
-    -------
-    (3,) float64 array
-    """
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-    w = normals.mean(0)
-    norm = float(np.linalg.norm(w))
-    w = w / norm if norm > 1e-12 else np.array([0.0, 0.0, 1.0])
-    diagonal = float(np.linalg.norm(np.ptp(points, axis=0))) if len(points) else 0.0
-    return points.mean(0) + distance * max(diagonal, 1e-12) * w
 
 
 def check_aggregate(name):
@@ -276,7 +241,7 @@ def aggregate(values, how="top1"):
 
 
 class LocalReference:
-    """What good scans look like at each place: the per-location noise floor of the ``'local'`` and ``'distance'``
+    """What good scans look like at each place: the per-location noise floor of the ``'distance'`` and ``'joint'``
     point scores.
 
     A point p of a scan, with quantity v(p) under the scan's projected field (:func:`field_quantity`) and the field's
@@ -287,7 +252,7 @@ class LocalReference:
     where m_ref and s_ref are the mean and standard deviation of v over the ``k`` nearest points of good scans, each
     under its own projected field. s_ref models how much good scans vary where many of them were seen; u, the
     stochastic field's variance, is large where the training saw little (a surface seen by few views, or at a grazing
-    angle), where s_ref rests on few or distant neighbours. g = 1 / cos^2 - 1 (:func:`grazing_factor`, 0 when the
+    angle), where s_ref rests on few or distant neighbours. g = 1 / cos^2 - 1 (:func:`autodecoder.scanning.sensor.grazing_factor`, 0 when the
     sensor origin is unknown) lets the measurement noise grow where the sensor's ray grazes the surface, which is
     where good scans' worst points lie (at a view's border, near silhouettes). ``variance_scale`` and
     ``grazing_scale`` are calibrated on good scans (:meth:`fit_noise_model`); both 0 is the reference alone.
@@ -304,7 +269,7 @@ class LocalReference:
         The quantity at each point under its own scan's projected field.
     k : int
         Neighbours averaged per query point.
-    quantity : {'mean', 'distance'}
+    quantity : {'distance'}
         What ``values`` are (:func:`field_quantity`).
     variance_scale : float >= 0
         Weight of the field's own variance in the score's denominator.
@@ -324,15 +289,16 @@ class LocalReference:
         points on the same side of a thin wall (:meth:`surface`).
     """
 
-    def __init__(self, points, values, k=REFERENCE_NEIGHBOURS, quantity="mean", variance_scale=0.0, owners=None,
+    def __init__(self, points, values, k=REFERENCE_NEIGHBOURS, quantity=REFERENCE_QUANTITY, variance_scale=0.0, owners=None,
                  grazing_scale=0.0, surface_points=None, surface_owners=None, surface_normals=None):
         self.points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
         self.values = np.asarray(values, dtype=np.float32).reshape(-1)
         if len(self.points) != len(self.values) or len(self.points) < k:
             raise ValueError(f"LocalReference needs >= {k} points with one value each, got {len(self.points)} "
                              f"points and {len(self.values)} values")
-        if quantity not in ("mean", "distance"):
-            raise ValueError(f"reference quantity must be 'mean' or 'distance', got {quantity!r}")
+        if quantity != REFERENCE_QUANTITY:
+            raise ValueError(f"reference quantity must be {REFERENCE_QUANTITY!r} (the point score 'local', on E f "
+                             f"itself, is retired), got {quantity!r}")
         if not (float(variance_scale) >= 0 and float(grazing_scale) >= 0):
             raise ValueError(f"variance_scale and grazing_scale must be >= 0, got {variance_scale!r}, "
                              f"{grazing_scale!r}")
@@ -355,7 +321,7 @@ class LocalReference:
         self._surface = None
 
     @classmethod
-    def from_values(cls, scans, max_points=60000, seed=0, k=REFERENCE_NEIGHBOURS, quantity="mean"):
+    def from_values(cls, scans, max_points=60000, seed=0, k=REFERENCE_NEIGHBOURS, quantity=REFERENCE_QUANTITY):
         """Build from (points (m, 3), values (m,)) pairs of good scans, randomly subsampled to ``max_points``
         (seeded); ``owners`` records each point's scan."""
         pts = np.concatenate([np.asarray(p, dtype=np.float64) for p, _ in scans])
@@ -367,7 +333,7 @@ class LocalReference:
         return cls(pts, vals, k, quantity, owners=owners)
 
     @classmethod
-    def from_fields(cls, scans_and_fields, max_points=60000, seed=0, k=REFERENCE_NEIGHBOURS, quantity="mean"):
+    def from_fields(cls, scans_and_fields, max_points=60000, seed=0, k=REFERENCE_NEIGHBOURS, quantity=REFERENCE_QUANTITY):
         """Build from (points (m, 3), field) pairs; see :meth:`from_values`."""
         return cls.from_values([(p, field_quantity(f, np.asarray(p, dtype=np.float64), quantity))
                                 for p, f in scans_and_fields], max_points, seed, k, quantity)
@@ -550,7 +516,7 @@ class LocalReference:
     def from_dict(cls, d):
         surface, normals = d.get("surface_points"), d.get("surface_normals")
         return cls(np.asarray(d["points"]), np.asarray(d["values"]), int(d.get("k", REFERENCE_NEIGHBOURS)),
-                   str(d.get("quantity", "mean")), float(d.get("variance_scale", 0.0)),
+                   str(d.get("quantity", REFERENCE_QUANTITY)), float(d.get("variance_scale", 0.0)),
                    grazing_scale=float(d.get("grazing_scale", 0.0)),
                    surface_points=None if surface is None else np.asarray(surface),
                    surface_normals=None if normals is None else np.asarray(normals))

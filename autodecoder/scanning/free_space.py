@@ -96,8 +96,7 @@ class FreeSpaceCheck:
         Distance of the sample most likely inside (where the blocking material would be; NaN when untested).
     t_enter : (B,) float64
         Distance of the first tested sample with P(f <= 0) >= 1/2: where the ray enters the expected material
-        (NaN when it never does). Rays entering the material where good scans' rays do are what
-        :class:`inspection.ray_evidence.RayReference` discounts.
+        (NaN when it never does).
     """
 
     p_blocked: np.ndarray

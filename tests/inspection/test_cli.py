@@ -211,7 +211,7 @@ def test_latent_model_end_to_end(tmp_path, capsys):
     cal = read_calibration(model)
     assert cal.roles.count("held-back") == 3 and cal.roles.count("cross-fitted") == 3
     assert all(n.startswith("train/") for n in cal.names)
-    assert cal.extra["projection"] == {"steps": 15, "starts": 1, "max_candidates": 4}
+    assert cal.config().projection == {"steps": 15, "starts": 1, "max_candidates": 4}
     out = tmp_path / "res"
     assert main(["score", "--model", str(model), "--data", str(data), "--out", str(out), "--quiet"]) == 0
     rows = list(csv.DictReader(open(out / "scores.csv")))
@@ -223,7 +223,7 @@ def test_latent_model_end_to_end(tmp_path, capsys):
 def test_rays_auto_stays_off_when_some_scans_of_the_collection_have_no_sensor_origin(tmp_path):
     # a public layout's collection: rendered template views carry origins, its test scans none; rays calibrated on
     # the views could not score the test scans, so rays='auto' must not turn them on
-    from inspection.run import _every_scan_has_an_origin
+    from inspection.estimator import _good_scans
 
     rng = np.random.default_rng(0)
 
@@ -235,6 +235,9 @@ def test_rays_auto_stays_off_when_some_scans_of_the_collection_have_no_sensor_or
     views = [scan(f"train/t/view_{i}", "train", np.array([0, 0, 5.0])) for i in range(2)]
     ScanCollection.create(tmp_path / "all.h5", views + [scan("test/a", "test", np.array([5.0, 0, 0]))])
     ScanCollection.create(tmp_path / "public.h5", views + [scan("test/a", "test", None)])
-    assert _every_scan_has_an_origin(tmp_path / "all.h5")
-    assert not _every_scan_has_an_origin(tmp_path / "public.h5")
-    assert _every_scan_has_an_origin(tmp_path / "scans_folder")  # files: decided by the scans given
+    with ScanCollection(tmp_path / "all.h5") as c:
+        assert _good_scans(c, object())[2]
+    with ScanCollection(tmp_path / "public.h5") as c:
+        scans, training, origins = _good_scans(c, object())
+        assert not origins and not training and len(scans) == 3  # no fingerprint to match: not the training data
+    assert _good_scans(views, object())[2]  # scans given: decided by the scans themselves

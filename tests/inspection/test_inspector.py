@@ -1,5 +1,6 @@
 """inspection: per-point scores, aggregates, conformal p-values and thresholds, the Inspector estimator contract."""
 import math
+from dataclasses import replace
 import warnings
 
 import numpy as np
@@ -47,7 +48,7 @@ class SaturatingSphereField(SphereField):
 class SphereModel:
     """A one-shape 'latent' model: projecting a scan fits a sphere's centre and radius (4 numbers) to it."""
 
-    def project(self, points, normals=None):
+    def project(self, points, normals=None, **options):
         p = np.asarray(points, float)
         A = np.c_[2 * p, np.ones(len(p))]
         sol, *_ = np.linalg.lstsq(A, (p**2).sum(1), rcond=None)
@@ -157,7 +158,7 @@ def test_not_fitted_and_params_untouched():
 
 
 def test_fit_rejects_empty_and_empty_scans():
-    with pytest.raises(ValueError, match="at least one"):
+    with pytest.raises(ValueError, match="no good scans"):
         Inspector(SphereModel()).fit([])
     with pytest.raises(ValueError, match="points"):
         Inspector(SphereModel()).fit([np.zeros((0, 3))])
@@ -166,8 +167,8 @@ def test_fit_rejects_empty_and_empty_scans():
 def test_calibration_roundtrip(fitted):
     cal = fitted.calibration(source="unit test")
     again = Calibration.from_dict(cal.as_dict())
-    other = Inspector(SphereModel(), alpha=0.05).set_calibration(again)
-    assert other.threshold_ == fitted.threshold_ and other.aggregate == fitted.aggregate
+    other = Inspector.from_calibration(SphereModel(), again, alpha=0.05)
+    assert other.threshold_ == fitted.threshold_ and other.settings_ == fitted.settings_
     np.testing.assert_array_equal(other.calibration_scores_, fitted.calibration_scores_)
 
 
@@ -186,23 +187,6 @@ def test_sklearn_clone_keeps_params_drops_fit(fitted):
     assert c.get_params()["alpha"] == fitted.alpha and not hasattr(c, "threshold_")
 
 
-def test_local_point_score_by_hand():
-    from inspection.scores import LocalReference
-
-    # reference: E f = 0.02 +- 0.01 around the pole of the unit sphere (a field that is off there on good scans)
-    rng = np.random.default_rng(0)
-    pts = np.c_[rng.normal(0, 0.01, (64, 2)), np.ones(64)]
-    vals = np.where(np.arange(64) % 2 == 0, 0.01, 0.03)
-    ref = LocalReference(pts, vals, k=64)
-    m, s = ref.stats(np.array([[0.0, 0.0, 1.0]]))
-    assert m[0] == pytest.approx(0.02) and s[0] == pytest.approx(0.01)
-    f = SphereField(noise=0.0)
-    x = np.array([[0, 0, 1.02], [0, 0, 1.1]])  # E f = 0.02 (as on good scans) and 0.1
-    np.testing.assert_allclose(point_scores(f, x, "local", reference=ref), [0.0, 0.08 / 0.01], rtol=1e-5, atol=1e-5)  # float32 storage
-    with pytest.raises(ValueError, match="LocalReference"):
-        point_scores(f, x, "local")
-
-
 def test_distance_point_score_undoes_saturation():
     from inspection.scores import GRADIENT_FLOOR, LocalReference, field_quantity
 
@@ -219,14 +203,15 @@ def test_distance_point_score_undoes_saturation():
     rng = np.random.default_rng(0)
     pts = np.c_[rng.normal(0, 0.01, (64, 2)), np.ones(64)]
     vals = np.where(np.arange(64) % 2 == 0, -0.001, 0.001)
-    local = point_scores(f, x, "local", reference=LocalReference(pts, vals, k=64))
+    # E f itself against the good scans' E f = 0 (the retired point score 'local', up to its constant denominator)
+    local = np.abs(f.mean(x))
     dist = point_scores(f, x, "distance", reference=LocalReference(pts, vals, k=64, quantity="distance"))
     assert local[4] < 1.01 * local[3]  # saturated: a pit twice as deep scores the same
     assert np.all(np.diff(dist) > 0)
     # relative to a point near the surface, a deep point is lifted by ~1 / floor
     assert (dist[4] / dist[1]) > 0.7 / GRADIENT_FLOOR * (local[4] / local[1])
-    with pytest.raises(ValueError, match="'distance' values"):
-        point_scores(f, x, "distance", reference=LocalReference(pts, vals, k=64))
+    with pytest.raises(ValueError, match="retired"):
+        LocalReference(pts, vals, k=64, quantity="mean")
 
     class MeanOnly:
         noise = 0.0
@@ -238,8 +223,8 @@ def test_distance_point_score_undoes_saturation():
         field_quantity(MeanOnly(), x, "distance")
 
 
-def test_local_inspector_needs_reference():
-    insp = Inspector(SphereModel(), point_score="local")
+def test_reference_inspector_needs_reference():
+    insp = Inspector(SphereModel(), point_score="distance")
     with pytest.raises(NotFittedError, match="reference"):
         insp.anomaly_scores([sphere_scan()[0]])
     with pytest.raises(ValueError, match="reference_scans"):
@@ -247,14 +232,10 @@ def test_local_inspector_needs_reference():
     good = [sphere_scan(seed=s)[0] for s in range(5)]
     insp.fit([sphere_scan(seed=s)[0] for s in range(5, 15)], reference_scans=good)
     assert insp.reference_.points.shape == (10000, 3)
-    restored = Inspector(SphereModel()).set_calibration(insp.calibration())
-    assert restored.point_score == "local"
-    np.testing.assert_array_equal(restored.anomaly_scores(good[:2]), insp.anomaly_scores(good[:2]))
     # the distance score builds its reference on distances, and the calibration remembers which
-    insp = Inspector(SphereModel(), point_score="distance").fit(good[:3], reference_scans=good[3:])
-    assert insp.reference_.quantity == "distance"
-    restored = Inspector(SphereModel()).set_calibration(insp.calibration())
-    assert restored.point_score == "distance" and restored.reference_.quantity == "distance"
+    assert insp.reference_.quantity == "distance" and insp.point_score == "distance"
+    restored = Inspector.from_calibration(SphereModel(), insp.calibration())
+    assert restored.settings_.point_score == "distance" and restored.reference_.quantity == "distance"
     np.testing.assert_array_equal(restored.anomaly_scores(good[:2]), insp.anomaly_scores(good[:2]))
 
 
@@ -302,7 +283,7 @@ def test_noise_model_matches_the_closed_form_and_a_grid_search():
 
 
 def test_grazing_factor_is_one_over_cos_squared_minus_one():
-    from inspection.scores import GRAZING_COS2_FLOOR, grazing_factor
+    from autodecoder.scanning.sensor import GRAZING_COS2_FLOOR, grazing_factor
 
     origin = np.array([0.0, 0.0, 3.0])
     x = np.array([[0, 0, 1.0], [math.sin(0.5), 0, math.cos(0.5)], [1.0, 0, 0]])
@@ -406,7 +387,8 @@ def test_a_good_scan_whose_border_grazes_the_surface_is_not_flagged_for_it():
     score."""
     good = [_cap_scan(s, name=f"train/{s}") for s in range(16)]
     held = [_cap_scan(s, name=f"held/{s}") for s in range(20, 26)]
-    insp = Inspector(SphereModel(), point_score="distance", alpha=0.05).fit(held, reference_scans=good)
+    # the point score alone ('auto' rays would score these scans' rays too: they have sensor origins)
+    insp = Inspector(SphereModel(), point_score="distance", alpha=0.05, rays=False).fit(held, reference_scans=good)
     assert insp.reference_.grazing_scale > 0
     fitted_scale = insp.reference_.grazing_scale
     for seed in (40, 41, 42):
@@ -421,9 +403,8 @@ def test_a_good_scan_whose_border_grazes_the_surface_is_not_flagged_for_it():
 def test_a_scan_without_sensor_origin_grazes_from_the_view_its_normals_face():
     """Public layouts' test scans record no sensor: the grazing term then uses a viewpoint estimated from the
     scan's outward normals (their mean faces the sensor), not none at all."""
-    from dataclasses import replace
 
-    from inspection.scores import view_origin_from_normals
+    from autodecoder.scanning.sensor import view_origin_from_normals
 
     scan = _cap_scan(40, name="test")
     true = np.asarray(scan.sensor_origin, float) - scan.points.mean(0)
@@ -435,7 +416,8 @@ def test_a_scan_without_sensor_origin_grazes_from_the_view_its_normals_face():
 
     good = [_cap_scan(s, name=f"train/{s}") for s in range(16)]
     held = [_cap_scan(s, name=f"held/{s}") for s in range(20, 26)]
-    insp = Inspector(SphereModel(), point_score="distance", alpha=0.05).fit(held, reference_scans=good)
+    # the point score alone ('auto' rays would score these scans' rays too: they have sensor origins)
+    insp = Inspector(SphereModel(), point_score="distance", alpha=0.05, rays=False).fit(held, reference_scans=good)
     blind = replace(scan, sensor_origin=None)
     stand_in = replace(scan, sensor_origin=view_origin_from_normals(scan.points, scan.normals))
     np.testing.assert_allclose(insp.anomaly_map(blind), insp.anomaly_map(stand_in), rtol=1e-6)
@@ -456,11 +438,11 @@ def test_joint_point_score_calibrates_restores_and_ranks_a_dent():
     held = [sphere_scan(seed=s, n=800)[0] for s in range(20, 24)]
     insp = Inspector(SphereModel(), point_score="joint", alpha=0.2).fit(held, reference_scans=good)
     assert insp.reference_.quantity == "distance" and insp.calibration_roles_.count("cross-fitted") == 6
-    restored = Inspector(SphereModel()).set_calibration(insp.calibration())
-    assert restored.point_score == "joint"
+    restored = Inspector.from_calibration(SphereModel(), insp.calibration())
+    assert restored.settings_.point_score == "joint"
     np.testing.assert_array_equal(restored.anomaly_scores(held[:2]), insp.anomaly_scores(held[:2]))
-    distance = Inspector(SphereModel(), point_score="distance").set_calibration(insp.calibration())
-    distance.point_score = "distance"
+    distance = Inspector.from_calibration(SphereModel(), insp.calibration())
+    distance.settings_ = replace(distance.settings_, point_score="distance")
     scan = held[0]
     np.testing.assert_allclose(insp.anomaly_map(scan), joint_score(
         distance.anomaly_map(scan), insp.reference_.surface_scores(scan, 0.01)), rtol=1e-12)
@@ -468,19 +450,28 @@ def test_joint_point_score_calibrates_restores_and_ranks_a_dent():
     assert insp.anomaly_scores([dented])[0] > insp.calibration_scores_.max()
 
 
-def test_fit_reference_takes_the_surface_from_every_surface_scan():
-    """``surface_scans``: the reference's surface from all of them, owners matched by name to the projected
-    reference scans so that cross-fitting leaves a scan's surface points out with its values."""
+def test_the_reference_takes_its_surface_from_every_training_scan(monkeypatch):
+    """The training scans among the good scans: all of them make the reference's surface, an evenly spread subset
+    is projected for its values, and owners are matched by name so that cross-fitting leaves a scan's surface
+    points out with its values."""
     from datasets.scan import Scan
+    from inspection import selection
 
-    def scan(seed, name):
+    def scan(seed, name, split="train"):
         pts, nrm = sphere_scan(seed=seed, n=400)
-        return Scan(name=name, points=pts, normals=nrm, split="train", label="good")
+        return Scan(name=name, points=pts, normals=nrm, split=split, label="good")
 
     every = [scan(s, f"train/{s}") for s in range(6)]
-    insp = Inspector(SphereModel(), point_score="joint").fit_reference(every[:3], surface_scans=every)
+    held = [scan(s, f"validation/{s}", "validation") for s in range(10, 14)]
+    model = SphereModel()
+    model.train_names = [s.name for s in every]
+    monkeypatch.setattr(selection, "MAX_REFERENCE_SCANS", 3)
+    insp = Inspector(model).fit(every + held)
     ref = insp.reference_
+    assert insp.settings_.point_score == "joint" and not insp.settings_.rays  # 'auto' with a reference, no origins
+    assert insp.calibration_names_[:4] == [s.name for s in held]
     assert len(ref.points) == 1200 and len(ref.surface_points) == 2400
-    np.testing.assert_array_equal(np.unique(ref.surface_owners), [-6, -5, -4, 0, 1, 2])
-    np.testing.assert_array_equal(ref.surface_points[ref.surface_owners == 1], every[1].points.astype(np.float32))
+    # every[0], every[2] and every[5] were projected (owners 0, 1, 2); the others only give surface points
+    np.testing.assert_array_equal(np.unique(ref.surface_owners), [-5, -4, -2, 0, 1, 2])
+    np.testing.assert_array_equal(ref.surface_points[ref.surface_owners == 1], every[2].points.astype(np.float32))
     assert len(ref.without(1).surface_points) == 2000

@@ -12,7 +12,7 @@ from autodecoder.scanning.free_space import blocked_probability, box_interval, m
 from autodecoder.scanning.rays import monte_carlo_survival
 from inspection import Inspector, NotFittedError
 from inspection.calibration import Calibration
-from inspection.combine import GATE_MARGIN, Combination
+from inspection.combine import Combination
 from inspection.ray_evidence import check_ray_options, image_holes, ray_evidence
 from autodecoder.field.protocol import Field
 
@@ -217,47 +217,20 @@ def test_ray_options_validated():
 
 
 # ---------------------------------------------------------------------------------------------- combination
-def test_combination_by_hand():
+def test_combination_validates_and_retires_the_rules_before():
     cal = {"points": [1.0, 2.0, 3.0, 4.0], "rays": [0.0, 0.0, 0.0, 0.4]}
-    comb = Combination(cal, rule="max")
-    sd_p, sd_r = np.std([1, 2, 3, 4], ddof=1), np.std([0, 0, 0, 0.4], ddof=1)
-    np.testing.assert_allclose(comb.score({"points": [2.5, 2.5], "rays": [0.1, 0.9]}),
-                               [0.0, (0.9 - 0.1) / sd_r])
-    # leave-one-out: scan 3 against the other three (rays all 0: sd floored, its 0.4 is far out)
-    loo = comb.calibration_scores()
-    assert loo[3] == pytest.approx(0.4 / 1e-9, rel=1e-6)
-    assert loo[0] == pytest.approx(max((1 - 3) / 1.0, (0 - 0.4 / 3) / np.std([0, 0, 0.4], ddof=1)))
+    comb = Combination(cal)
+    assert comb.rule == "gated-log"
     assert Combination.from_dict(comb.as_dict()).score(cal).tolist() == comb.score(cal).tolist()
     with pytest.raises(ValueError, match="at least 3"):
         Combination({"points": [1.0, 2.0], "rays": [0.0, 0.0]})
-    with pytest.raises(ValueError, match="rule"):
-        Combination(cal, rule="sum")
-    assert sd_p > 0
-
-
-def test_gated_combination_by_hand():
-    cal = {"points": [1.0, 2.0, 3.0, 4.0], "rays": [0.0, 0.1, 0.2, 0.5]}
-    comb = Combination(cal)
-    m_p, sd_p = 2.5, np.std([1, 2, 3, 4], ddof=1)
-    m_r, sd_r = 0.2, np.std([0, 0.1, 0.2, 0.5], ddof=1)
-    tau = (0.5 - m_r) / sd_r + GATE_MARGIN  # beyond the largest standardized ray score of the good scans
-    z_p = (np.array([2.5, 6.0, 2.5]) - m_p) / sd_p
-    z_r = (np.array([0.45, 0.3, 1.2]) - m_r) / sd_r
-    # below the gate the rays change nothing (scans 0 and 1: their point scores); beyond it they add what exceeds
-    # it, in units of the point score's spread (scan 2)
-    np.testing.assert_allclose(comb.score({"points": [2.5, 6.0, 2.5], "rays": [0.45, 0.3, 1.2]}),
-                               m_p + sd_p * (z_p + np.maximum(z_r - tau, 0.0)))
-    assert comb.score({"points": [2.5], "rays": [1.2]})[0] > 2.5 and z_r[2] > tau and z_r[0] < tau
-    # leave-one-out: the scan with the largest ray score is gated by the other three, whose largest is 0.2
-    loo = comb.calibration_scores()
-    others = np.array([0.0, 0.1, 0.2])
-    z3 = (0.5 - others.mean()) / others.std(ddof=1)
-    tau3 = (0.2 - others.mean()) / others.std(ddof=1)
-    assert loo[3] == pytest.approx(4 + 1.0 * (z3 - tau3 - GATE_MARGIN))  # the others' points: sd 1
-    assert loo[0] == pytest.approx(1.0)  # its rays (0.0) are below the others' largest: its point score
-    again = Combination.from_dict(comb.as_dict())
-    assert again.rule == "gated" and again.score(cal).tolist() == comb.score(cal).tolist()
-    assert Combination.from_dict(Combination(cal, rule="max").as_dict()).rule == "max"
+    for retired in ("gated", "max", "sum"):
+        with pytest.raises(ValueError, match="retired"):
+            Combination(cal, rule=retired)
+    record = comb.as_dict()
+    del record["rule"]  # a record of the rule before, 'gated'
+    with pytest.raises(ValueError, match="retired"):
+        Combination.from_dict(record)
 
 
 # ---------------------------------------------------------------------------------------------- Inspector
@@ -300,9 +273,9 @@ def test_inspector_with_rays_flags_the_hole_and_round_trips():
     assert insp.ray_map(tests[2]).shape == (len(tests[2].points),)
     # stored and restored: the same scores without the calibration scans
     cal = Calibration.from_dict(insp.calibration(source="unit test").as_dict())
-    assert cal.extra["rays"]["options"]["n_rays"] == 256
-    again = Inspector(WallModel(), alpha=0.2).set_calibration(cal)
-    assert again.rays and again.ray_options["n_rays"] == 256
+    assert cal.config().ray_options["n_rays"] == 256
+    again = Inspector.from_calibration(WallModel(), cal, alpha=0.2)
+    assert again.settings_.rays and again.settings_.ray_options["n_rays"] == 256
     np.testing.assert_allclose(again.anomaly_scores(tests), insp.anomaly_scores(tests))
     assert again.threshold_ == insp.threshold_
 
@@ -367,7 +340,7 @@ def test_cli_calibrate_and_score_with_rays(tmp_path, capsys):
     assert "+ ray score" in capsys.readouterr().out
     cal = read_calibration(model)
     # 4 held-back scans and the 2 training scans, cross-fitted
-    assert cal.extra["rays"]["options"]["aggregate"] == "top5" and len(cal.extra["rays"]["components"]["rays"]) == 6
+    assert cal.config().ray_options["aggregate"] == "top5" and len(cal.extra["rays"]["components"]["rays"]) == 6
     out = tmp_path / "res"
     assert main(["score", "--model", str(model), "--data", str(data), "--out", str(out), "--maps", "all",
                  "--quiet"]) == 0
@@ -380,12 +353,16 @@ def test_cli_calibrate_and_score_with_rays(tmp_path, capsys):
     with ScanCollection(data) as c:
         assert len(pts) == len(c[c.index_of("test/hole/020")].points)
     assert (out / "maps" / "rays" / "legend.png").is_file()
-    # scans without a sensor origin: one line naming the data and a scan
+    # a scan without a sensor origin among others: verdict 'error' with its reason, the others scored, exit 1
     bare = tmp_path / "bare.h5"
-    ScanCollection.create(bare, scans("good", "test", [30], origin=False), frame=frame)
+    ScanCollection.create(bare, scans("good", "test", [30], origin=False) + scans("good", "test", [31]), frame=frame)
     rc = main(["score", "--model", str(model), "--data", str(bare), "--out", str(tmp_path / "r2"), "--quiet"])
     err = capsys.readouterr().err.strip()
-    assert rc == 2 and len(err.splitlines()) == 1 and "bare.h5" in err and "no sensor origin" in err
+    assert rc == 1 and len(err.splitlines()) == 1 and "1 scan(s) could not be scored" in err
+    with open(tmp_path / "r2" / "scores.csv", newline="") as f:
+        verdicts = {r["name"]: (r["verdict"], r["reason"]) for r in csv.DictReader(f)}
+    assert verdicts["test/good/030"][0] == "error" and "test/good/030: no sensor origin" in verdicts["test/good/030"][1]
+    assert verdicts["test/good/031"][0] in ("good", "defective") and verdicts["test/good/031"][1] == ""
     # --ray-options without the rays (--no-rays: on by default when the scans have sensor origins)
     rc = main(["calibrate", "--model", str(model), "--data", str(data), "--ray-options", "n_rays=5", "--no-rays",
                "--quiet"])
@@ -466,8 +443,7 @@ def test_band_leaves_out_a_one_sided_fields_cavity_but_not_a_hole_in_the_sheet()
     # ray_evidence with the good scans' points as its surface: the same, through the scan's own options
     ev_open = ray_evidence(field, through_opening, sensor, n_empty=0, surface=good_surface, band=1.0)
     ev_hole = ray_evidence(field, through_hole, sensor, n_empty=0, surface=good_surface, band=1.0)
-    ev_open_no_band = ray_evidence(field, through_opening, sensor, n_empty=0, surface=good_surface, band=None,
-                                   own_depth=0.06)
+    ev_open_no_band = ray_evidence(field, through_opening, sensor, n_empty=0, own_depth=0.06)  # no good surface
     assert ev_open.score < 1e-6 < 1.0 < ev_hole.score and ev_open_no_band.score > 1.0
 
 
@@ -487,7 +463,6 @@ def test_log_gated_combination_by_hand():
     np.testing.assert_allclose(comb.score(new), 1.5 + sd_p * w * np.maximum(z_r - tau, 0.0))
     # a scan whose rays go beyond the good scans' bulk counts, although one good scan went farther still
     assert comb.score(new)[2] > 1.5 and comb.score(new)[0] == pytest.approx(1.5)
-    assert Combination(cal).score(new)[2] == pytest.approx(1.5)  # the max gate: closed by the one outlier
     # leave-one-out, scan 7 (the outlier) against the other nine by hand
     k = np.arange(len(rays)) != 7
     m9, sd9 = lr[k].mean(), lr[k].std(ddof=1)

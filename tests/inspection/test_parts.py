@@ -39,12 +39,11 @@ def two_part_run(tmp_path_factory, one_torch_thread):
 
 
 def test_calibration_and_thresholds_are_per_part(two_part_run):
-    from inspection.parts import PartInspector
     from inspection.run import describe_calibration
 
     insp, info = two_part_run[3:]
-    assert isinstance(insp, PartInspector) and insp.parts == ["a", "b"]
-    for part, one in insp.inspectors.items():  # each part: its own held-back scans, cross-fitted training scans
+    assert sorted(insp.parts_) == ["a", "b"]
+    for part, one in insp.parts_.items():  # each part: its own held-back scans, cross-fitted training scans
         assert one.calibration_names_ and all(n.startswith(f"{part}/") for n in one.calibration_names_)
         assert one.calibration_roles_.count("held-back") == 2
     assert set(info["parts"]) == {"a", "b"}
@@ -54,8 +53,8 @@ def test_calibration_and_thresholds_are_per_part(two_part_run):
 
 
 def test_scoring_uses_each_parts_threshold_and_stored_calibration(two_part_run):
+    from inspection.estimator import Inspector
     from inspection.model_io import load_model
-    from inspection.parts import PartInspector
     from inspection.run import score
 
     data, model, tmp = two_part_run[:3]
@@ -64,10 +63,10 @@ def test_scoring_uses_each_parts_threshold_and_stored_calibration(two_part_run):
     assert "thresholds per part: a " in lines[0]
     assert set(summary["parts"]) == {"a", "b"} and summary["decision"] is None
     handle = load_model(model)
-    loaded = PartInspector.from_calibration(handle.model, handle.calibration)
+    loaded = Inspector.from_calibration(handle.model, handle.calibration)
     rows = {r["name"]: r for r in _read_csv(tmp / "results" / "scores.csv")}
     for part in ("a", "b"):
-        t = loaded.inspectors[part].threshold_
+        t = loaded.parts_[part].threshold_
         assert summary["parts"][part]["threshold"] == pytest.approx(t)
         for name in (f"{part}/test/good", f"{part}/test/bad"):
             verdict = "defective" if float(rows[name]["score"]) > t else "good"
@@ -77,15 +76,14 @@ def test_scoring_uses_each_parts_threshold_and_stored_calibration(two_part_run):
 def test_a_scan_of_an_unknown_part_is_refused(two_part_run):
     from inspection.estimator import Inspector
     from inspection.model_io import load_model
-    from inspection.parts import PartInspector
 
     handle = load_model(two_part_run[1])
-    insp = PartInspector.from_calibration(handle.model, handle.calibration)
+    insp = Inspector.from_calibration(handle.model, handle.calibration)
     for part, match in (("c", r"part_id 'c'.*\['a', 'b'\]"), ("", "no part_id")):
         with pytest.raises(ValueError, match=match):
             insp.inspect(_sphere("x", 0.2, part, 1))
-    with pytest.raises(ValueError, match="one per part type"):
-        Inspector(handle.model).set_calibration(handle.calibration)
+    with pytest.raises(ValueError, match="pass the scans"):
+        insp.predict_from_scores([1.0])  # no threshold of its own: each scan against its part's
 
 
 def test_a_single_part_model_keeps_one_inspector(tmp_path, one_torch_thread):
@@ -98,7 +96,7 @@ def test_a_single_part_model_keeps_one_inspector(tmp_path, one_torch_thread):
     data = ScanCollection.create(tmp_path / "a.h5", scans)
     train_collection(data, tmp_path / "m.pt", calibration_fraction=0.4, quiet=True, **TINY)
     insp, info = calibrate(tmp_path / "m.pt", data, progress=False)
-    assert type(insp) is Inspector and "threshold" in info and insp.for_scan(scans[0]) is insp
+    assert type(insp) is Inspector and not insp.parts_ and "threshold" in info and insp.for_scan(scans[0]) is insp
 
 
 def _read_csv(path):
@@ -116,7 +114,6 @@ def test_a_two_part_model_scores_with_the_rays_when_every_scan_has_a_sensor_orig
 
     from autodecoder.latent.train import train_collection
     from datasets.collection import ScanCollection
-    from inspection.parts import PartInspector
     from inspection.run import calibrate, score
 
     scans = []
@@ -130,8 +127,8 @@ def test_a_two_part_model_scores_with_the_rays_when_every_scan_has_a_sensor_orig
     model = tmp_path / "model.pt"
     train_collection(data, model, calibration_fraction=0.34, quiet=True, **TINY)
     insp, _ = calibrate(model, data, progress=False)
-    assert isinstance(insp, PartInspector) and insp.rays
-    rules = {p: one.combination_.rule for p, one in insp.inspectors.items()}
+    assert sorted(insp.parts_) == ["a", "b"] and insp.settings_.rays
+    rules = {p: one.combination_.rule for p, one in insp.parts_.items()}
     assert set(rules) == {"a", "b"}
     summary = score(model, data, tmp_path / "results", progress=False, maps="none", echo=lambda line: None)
     assert summary["rays"]["options"]["n_rays"] > 0 and rules["a"] in summary["rays"]["score"]
