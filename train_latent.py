@@ -5,9 +5,10 @@ Many processes: ``torchrun --nproc_per_node=N train_latent.py ...`` (gloo on CPU
 The command line only: arguments are parsed and checked here, the training is
 :func:`autodecoder.latent.train.train_collection` (imported when needed, so ``--help`` stays fast).
 """
-import argparse
 import os
 import sys
+
+from datasets.cli import OneLineParser
 
 DEFAULTS = dict(latent_dim=32, width=64, depth=3, epochs=None, lr=1e-3, batch=8, seed=0)
 
@@ -17,15 +18,8 @@ class _UsageError(Exception):
     library's ``TrainingInputError``, printed the same way)."""
 
 
-class _Parser(argparse.ArgumentParser):
-    """argparse's parser whose errors are one line (a :class:`_UsageError`) instead of the usage and the error."""
-
-    def error(self, message):
-        raise _UsageError(message)
-
-
 def build_parser():
-    p = _Parser(
+    p = OneLineParser(
         prog="train_latent.py",
         description="Train the latent NSSPR model (mean and covariance nets conditioned on one code per scan) over "
                     "the good scans of an HDF5 scan collection, and write one checkpoint that carries everything "
@@ -134,17 +128,17 @@ def main(argv=None):
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     try:
         args = _parse(argv)
-    except SystemExit as exc:  # argparse's --help, already printed (its errors are _UsageError)
+    except SystemExit as exc:  # --help, or a usage error already printed as one line (datasets.cli)
         return int(exc.code or 0)
     except _UsageError as exc:
-        print(f"train_latent.py: error: {exc}", file=sys.stderr)
+        print(f"error: {exc}", file=sys.stderr)
         return 2
     from autodecoder.latent.options import TrainingInputError
 
     try:
         model = run(args)
     except TrainingInputError as exc:
-        print(f"train_latent.py: error: {exc}", file=sys.stderr)
+        print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"train_latent.py: interrupted; continue with --resume (from the last checkpoint in {args.out})",

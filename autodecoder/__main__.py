@@ -1,12 +1,13 @@
 """Command line of the model package: ``python -m autodecoder next-view --field field.pt --n 5 --out views.json``."""
-import argparse
 import json
 import sys
 from pathlib import Path
 
+from datasets.cli import OneLineParser
+
 
 def _parser():
-    parser = argparse.ArgumentParser(prog="python -m autodecoder", description=__doc__)
+    parser = OneLineParser(prog="python -m autodecoder", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     nv = sub.add_parser("next-view", help="rank camera placements by the field's variance at their expected hits")
     nv.add_argument("--field", required=True, type=Path, help="stochastic field file (StochasticField.save)")

@@ -1,8 +1,9 @@
 """Command line of the datasets package: import / export / info of scan collections, and synth (virtual scanner)."""
-import argparse
 import json
 import logging
 import sys
+
+from .cli import OneLineParser, one_line
 
 
 def _cmd_import(args):
@@ -45,24 +46,9 @@ def _cmd_info(args):
     return 0
 
 
-class _Parser(argparse.ArgumentParser):
-    """An ArgumentParser whose usage errors are one line on stderr (``error: ...``, then exit status 2), like every
-    other user mistake of this command line, instead of the usage block followed by the error."""
-
-    def error(self, message):
-        self.exit(2, f"error: {message} (see {self.prog} --help)\n")
-
-
-def _one_line(exc):
-    """The message of a user-facing error as one line: an OSError names its file first, then the reason."""
-    if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
-        return f"{exc.filename}: {exc.strerror}"
-    return " ".join(str(exc).split())
-
-
 def build_parser():
     """The argparse parser (only argparse is imported: ``--help`` must stay fast)."""
-    parser = _Parser(prog="python -m datasets", description=__doc__)
+    parser = OneLineParser(prog="python -m datasets", description=__doc__)
     parser.add_argument("-v", "--verbose", action="store_true", help="log per-file details (dropped points, ...)")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -130,7 +116,7 @@ def main(argv=None):
     try:
         return int(args.func(args) or 0)
     except (ValueError, OSError) as e:  # bad input or an unwritable output: one line naming the file, no traceback
-        print(f"error: {_one_line(e)}", file=sys.stderr)
+        print(f"error: {one_line(e)}", file=sys.stderr)
         return 2
 
 

@@ -6,7 +6,6 @@
 
 Heavy libraries are imported inside the commands, so --help is fast.
 """
-import argparse
 import logging
 import os
 import sys
@@ -21,7 +20,9 @@ def _parser():
     from .scores import POINT_SCORES
 
     defaults = InspectionConfig()
-    p = argparse.ArgumentParser(prog="python -m inspection", description=__doc__.splitlines()[0])
+    from datasets.cli import OneLineParser
+
+    p = OneLineParser(prog="python -m inspection", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
 
     c = sub.add_parser("calibrate", help="calibrate a model's threshold on good scans it did not train on; the "
@@ -137,12 +138,9 @@ def main(argv=None):
 
 def _report_error(exc):
     """One line on stderr for a user's mistake (bad option values, missing or unwritable files, bad data); exit 2."""
-    msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-    if isinstance(exc, KeyError):
-        msg = msg.strip("'\"")
-    if isinstance(exc, OSError) and getattr(exc, "filename", None) and str(exc.filename) not in msg:
-        msg = f"{exc.filename}: {msg}"
-    print(f"error: {msg}", file=sys.stderr)
+    from datasets.cli import one_line
+
+    print(f"error: {one_line(exc)}", file=sys.stderr)
     return 2
 
 

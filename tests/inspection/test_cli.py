@@ -241,3 +241,61 @@ def test_rays_auto_stays_off_when_some_scans_of_the_collection_have_no_sensor_or
         scans, training, origins = _good_scans(c, object())
         assert not origins and not training and len(scans) == 3  # no fingerprint to match: not the training data
     assert _good_scans(views, object())[2]  # scans given: decided by the scans themselves
+
+
+def test_option_mistakes_are_one_line_before_any_work(workdir, tmp_path, capsys):
+    """Bad option values fail with one line and exit 2 before a model or scan is read (the model file is untouched)."""
+    model = tmp_path / "model.pt"
+    model.write_bytes((workdir / "model.pt").read_bytes())
+    before = model.read_bytes()
+    data = str(workdir / "tree.h5")
+    for argv, expected in (
+            (["--projection", "foo=1"], "unknown option(s) ['foo']"),
+            (["--projection", "steps=-3"], "steps must be >= 0"),
+            (["--projection", "steps"], "--projection: expected KEY=VALUE"),
+            (["--alpha", "1.5"], "alpha must be in"),
+            (["--aggregate", "worst"], "aggregate must be"),
+            (["--noise", "-1"], "noise must be"),
+            (["--ray-options", "bogus=1"], "unknown ray option"),
+            (["--ray-options", "band=0"], "band must be > 0"),
+            (["--ray-options", "n_rays=5", "--no-rays"], "--ray-options needs --rays")):
+        err = _error(["calibrate", "--model", str(model), "--data", data, "--quiet", *argv], capsys)
+        assert expected in err, (argv, err)
+    assert model.read_bytes() == before
+    # an unwritable results folder: one line naming it
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    assert main(["calibrate", "--model", str(model), "--data", data, "--quiet"]) == 0
+    capsys.readouterr()
+    err = _error(["score", "--model", str(model), "--data", data, "--out", str(blocker / "results"), "--quiet"],
+                 capsys)
+    assert "a_file" in err
+
+
+def test_a_damaged_scan_gets_verdict_error_and_the_others_are_scored(workdir, tmp_path, capsys):
+    """A point moved in one test scan without updating its stored content hash: that scan is reported (verdict
+    'error', the reason naming it and the hash), every other scan is scored, and the exit status is 1."""
+    import h5py
+
+    model, data = tmp_path / "model.pt", tmp_path / "tree.h5"
+    model.write_bytes((workdir / "model.pt").read_bytes())
+    data.write_bytes((workdir / "tree.h5").read_bytes())
+    with ScanCollection(data) as c:
+        victim = c.index_of("test/good/001")
+        offset = int(c._offsets[victim])
+    assert main(["calibrate", "--model", str(model), "--data", str(data), "--quiet"]) == 0
+    with h5py.File(data, "r+") as f:
+        f["points"][offset, 0] += 0.01
+    capsys.readouterr()
+    out = tmp_path / "res"
+    assert main(["score", "--model", str(model), "--data", str(data), "--out", str(out), "--quiet"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "1 scan(s) could not be scored" in err
+    with open(out / "scores.csv", newline="") as f:
+        rows = {r["name"]: r for r in csv.DictReader(f)}
+    assert len(rows) == 5 and rows["test/good/001"]["verdict"] == "error"
+    assert "test/good/001" in rows["test/good/001"]["reason"] and "content_sha256" in rows["test/good/001"]["reason"]
+    assert all(r["verdict"] in ("good", "defective") and r["reason"] == "" for n, r in rows.items()
+               if n != "test/good/001")
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["n_errors"] == 1 and summary["n_scans"] == 5

@@ -30,7 +30,7 @@ def _refused(argv, capsys):
     out, err = capsys.readouterr()
     lines = err.splitlines()
     assert out == "" and len(lines) == 1, err
-    assert lines[0].startswith("train_latent.py: error: ") and "Traceback" not in err
+    assert lines[0].startswith("error: ") and "Traceback" not in err
     return lines[0]
 
 
