@@ -108,7 +108,7 @@ def main(argv=None):
     """Run the command line; returns the exit status (0 ok, 1 some scans could not be scored, 2 bad input)."""
     args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s: %(message)s")
-    from .run import InspectionError
+    from .errors import InspectionError
 
     try:
         if args.command == "calibrate":

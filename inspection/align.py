@@ -6,7 +6,12 @@ the model's mean surface. ICP starts from the identity, with no centroid shift: 
 the part's, so shifting centroids would move a roughly placed scan away from its place. Large rotations (tens of
 degrees and more) need a global registration first; this module does not attempt one.
 """
+from pathlib import Path
+
 import numpy as np
+
+from .errors import InspectionError
+from .loading import COLLECTION_SUFFIXES
 
 DEFAULT_LEVELS = (4.0, 2.0, 1.0)  # ICP voxel sizes in multiples of the target's point spacing, coarse to fine
 
@@ -98,3 +103,39 @@ class Aligner:
         p, n, T = self.align(scan.points, scan.normals)
         origin = None if scan.sensor_origin is None else (T[:3, :3] @ scan.sensor_origin + T[:3, 3])
         return replace(scan, points=p, normals=n, sensor_origin=origin, extra={**scan.extra, "align": T})
+
+
+def make_aligner(handle, data_info, reference=None, seed=0):
+    """The :class:`Aligner` of ``score --align`` onto: ``reference`` (a collection: its good training scans; a cloud file),
+    else the good training scans of the data's collection, else the model's mean surface."""
+    def from_collection(path):
+        from datasets import ScanCollection
+
+        with ScanCollection(path) as c:
+            idx = c.select(split="train", label="good")
+            if not idx:
+                idx = c.select(label="good")
+            rng = np.random.default_rng(seed)
+            idx = sorted(rng.choice(idx, min(8, len(idx)), replace=False).tolist()) if idx else []
+            scans = c.read_many(idx)
+        if not scans:
+            raise InspectionError(f"{path}: no good scans to align against")
+        return (np.concatenate([s.points for s in scans]), np.concatenate([s.normals for s in scans]))
+
+    if reference is not None:
+        ref = Path(reference)
+        if ref.suffix.lower() in COLLECTION_SUFFIXES:
+            pts, nrm = from_collection(ref)
+        else:
+            from datasets import read_cloud
+
+            pts, nrm = read_cloud(ref)
+        return Aligner(pts, nrm, seed=seed)
+    if data_info.get("kind") == "collection":
+        from datasets import ScanCollection
+
+        with ScanCollection(data_info["source"]) as c:
+            has_train = bool(c.select(split="train", label="good"))
+        if has_train:
+            return Aligner(*from_collection(data_info["source"]), seed=seed)
+    return Aligner(*handle.reference_points(seed=seed), seed=seed)

@@ -33,7 +33,7 @@ class InspectionConfig:
     alpha : float in (0, 1)
         False-alarm rate: a scan is defective when its p-value is <= alpha.
     aggregate : str
-        Per-scan aggregate of the point scores (:func:`inspection.scores.aggregate`): ``'top1'`` (mean of the worst
+        Per-scan aggregate of the point scores (:func:`inspection.aggregates.aggregate`): ``'top1'`` (mean of the worst
         1 % of the points: defects cover a few per cent of a scan, so the paper's ``'mean'`` dilutes them),
         ``'mean'``, ``'max'``, ``'median'``, ``'top<P>'``, ``'q<P>'``.
     point_score : str
@@ -60,7 +60,8 @@ class InspectionConfig:
     def validated(self):
         """This configuration with every value checked (ValueError naming the setting, the expected values and the
         one received) and normalised (numbers as floats, option dicts copied). Cheap: no model is read."""
-        from .scores import POINT_SCORES, check_aggregate
+        from .aggregates import check_aggregate
+        from .scores import POINT_SCORES
 
         check_alpha(self.alpha)
         check_aggregate(self.aggregate)

@@ -18,8 +18,9 @@ from .calibration import Calibration
 from .combine import RULE as COMBINATION_RULE
 from .config import DEFAULT_AGGREGATE, DEFAULT_PROJECTION, InspectionConfig
 from .evidence import ScanEvidence, field_for, gather_evidence, scan_name
-from .scores import POINT_SCORES, REFERENCE_QUANTITY, LocalReference, aggregate as aggregate_scores, point_scores, \
-    reference_scores
+from .aggregates import aggregate as aggregate_scores
+from .reference import REFERENCE_QUANTITY, LocalReference
+from .scores import POINT_SCORES, point_scores, reference_scores
 from .selection import model_parts, select_scans
 from .threshold import DEFAULT_ALPHA, fit_threshold
 

@@ -1,7 +1,7 @@
 """A scan's evidence, computed once: its projected field and what every point score and the ray score read from it.
 
 :func:`gather_evidence` projects one scan into the model (or takes the fixed field) and reads, once, the quantities
-the per-location point scores compare (:func:`inspection.scores.field_quantity`), the grazing factor of the sensor's
+the per-location point scores compare (:func:`inspection.reference.field_quantity`), the grazing factor of the sensor's
 rays (:func:`autodecoder.scanning.sensor.grazing_factor`) and the stray returns
 (:func:`datasets.outliers.stray_points`). The scores (:mod:`inspection.scores`) and the ray score
 (:mod:`inspection.ray_evidence`) are computed from a :class:`ScanEvidence` without projecting again.
@@ -100,7 +100,7 @@ def gather_evidence(model, scan, index=0, quantity=None, projection=None, need_o
     index : int
         The scan's position in its batch (names a scan without a name).
     quantity : {'distance'} or None
-        The per-location reference's quantity (:func:`inspection.scores.field_quantity`); None: not read.
+        The per-location reference's quantity (:func:`inspection.reference.field_quantity`); None: not read.
     projection : dict, optional
         ``model.project`` options.
     need_origin : bool
@@ -115,7 +115,7 @@ def gather_evidence(model, scan, index=0, quantity=None, projection=None, need_o
     from autodecoder.scanning.sensor import grazing_factor, view_origin_from_normals
     from datasets.outliers import stray_points
 
-    from .scores import field_quantity
+    from .reference import field_quantity
 
     points, normals = points_and_normals(scan)
     name = scan_name(scan, index)

@@ -47,7 +47,7 @@ import numpy as np
 
 from autodecoder.scanning.sensor import image_holes
 
-from .scores import aggregate as aggregate_values, check_aggregate
+from .aggregates import aggregate as aggregate_values, check_aggregate
 
 log = logging.getLogger(__name__)
 
@@ -145,7 +145,7 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
     gap : float
         Empty-cell distance in mean spacings of the returns (see :func:`autodecoder.scanning.sensor.image_holes`).
     aggregate : str
-        Per-scan aggregate of the ray values (:func:`inspection.scores.aggregate`).
+        Per-scan aggregate of the ray values (:func:`inspection.aggregates.aggregate`).
     seed : int
         Subsampling (and the Genz estimator's scrambling) seed.
     clearance : float, optional

@@ -6,10 +6,10 @@ and the good scans its trainer held back for calibration (``calibration_names``)
 * **calibration scans** (scored as new scans would be; they set the threshold): the model's held-back scans when
   any of them are among the scans given; otherwise every given scan the model did not train on. With a ``split``,
   that split's good scans the model did not train on (held-back ones included).
-* **reference scans** (projected without their own trained code to give :class:`inspection.scores.LocalReference`,
+* **reference scans** (projected without their own trained code to give :class:`inspection.reference.LocalReference`,
   then cross-fitted into the calibration): up to ``MAX_REFERENCE_SCANS`` of the model's training scans among those
   given, evenly spread over the training order; with explicit reference scans, up to as many of those.
-* **surface scans** (the good scans' own points, :meth:`inspection.scores.LocalReference.surface`): every training
+* **surface scans** (the good scans' own points, :meth:`inspection.reference.LocalReference.surface`): every training
   scan given (a subset can miss a region few views saw).
 
 A model of several part types (two or more distinct ``train_part_ids``) applies the rule per part: a scan's part is

@@ -23,7 +23,7 @@ def grazing_factor(points, normals, origin):
 
     A range sensor's error grows where its ray grazes the surface: near silhouettes and sharp edges a depth error
     moves a point off the part's edge, and real sensors' spots smear there. The reference scores model it as noise
-    that grows with this factor (:class:`LocalReference`). The scan's own normals are used (exact for synthetic
+    that grows with this factor (:class:`inspection.reference.LocalReference`). The scan's own normals are used (exact for synthetic
     scans, estimated on import for scanner files): the projected field's gradient, which rounds sharp edges, finds
     far fewer of the grazing points that set good scans' scores (docs/results.md#how-each-step-contributed).
     cos^2 is floored at ``GRAZING_COS2_FLOOR``.

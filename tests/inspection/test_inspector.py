@@ -188,7 +188,7 @@ def test_sklearn_clone_keeps_params_drops_fit(fitted):
 
 
 def test_distance_point_score_undoes_saturation():
-    from inspection.scores import GRADIENT_FLOOR, LocalReference, field_quantity
+    from inspection.reference import GRADIENT_FLOOR, LocalReference, field_quantity
 
     f = SaturatingSphereField(width=0.02, noise=0.0)
     depth = np.array([0.0, 0.004, 0.03, 0.06, 0.12])
@@ -257,7 +257,7 @@ def test_aligner_recovers_a_small_rotation():
 
 # ---------------------------------------------------------------------------------------------- calibrated variance
 def test_noise_model_matches_the_closed_form_and_a_grid_search():
-    from inspection.scores import LocalReference
+    from inspection.reference import LocalReference
 
     fit = LocalReference.fit_noise_model
     rng = np.random.default_rng(0)
@@ -296,7 +296,7 @@ def test_grazing_factor_is_one_over_cos_squared_minus_one():
 
 
 def test_reference_standardizes_with_the_weighted_field_variance_and_leaves_scans_out():
-    from inspection.scores import LocalReference
+    from inspection.reference import LocalReference
 
     pts = np.r_[np.zeros((20, 3)), np.ones((20, 3))]
     vals = np.r_[np.full(20, 0.5), np.full(20, 2.0)]
@@ -319,7 +319,7 @@ def test_reference_standardizes_with_the_weighted_field_variance_and_leaves_scan
 def test_fit_cross_fits_the_reference_scans():
     """Calibration scores = held-back scans against the full reference + each reference scan against the reference
     without its own points; the field-variance weight is fitted first and stored."""
-    from inspection.scores import field_quantity
+    from inspection.reference import field_quantity
 
     good = [sphere_scan(seed=s, n=600)[0] for s in range(8)]
     held = [sphere_scan(seed=s, n=600)[0] for s in range(20, 24)]

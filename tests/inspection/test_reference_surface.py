@@ -6,7 +6,8 @@ import pytest
 
 from autodecoder.field.protocol import Field
 from inspection import point_scores
-from inspection.scores import LocalReference, joint_score
+from inspection.reference import LocalReference
+from inspection.scores import joint_score
 
 
 def _naive_surface(reference_points, query, k, self_distance):

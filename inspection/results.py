@@ -1,0 +1,97 @@
+"""Writing an inspection run's results folder: scores.csv, summary.json, roc.png, scores.png and the coloured maps."""
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InspectionError
+
+RESULT_FILES = ("scores.csv", "summary.json", "roc.png", "scores.png")
+
+
+def prepare_out(out, overwrite=False):
+    """Create the results folder. An existing folder is reused only when empty or holding an earlier inspection
+    run (its result files are replaced and its old maps removed); anything else needs ``overwrite``."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InspectionError(f"{out}: exists and is not a folder")
+    if out.is_dir():
+        entries = [p for p in out.iterdir() if not p.name.startswith(".")]
+        ours = (out / "summary.json").is_file() or (out / "scores.csv").is_file()
+        if entries and not ours and not overwrite:
+            raise InspectionError(f"{out}: folder exists and does not hold inspection results; choose another --out "
+                                  f"or pass --overwrite")
+        maps = out / "maps"
+        if maps.is_dir():
+            for p in [*maps.glob("*.ply"), *maps.glob("rays/*.ply")]:
+                p.unlink()
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def write_scan_maps(settings, scan, res, maps_dir):
+    """One scan's anomaly map (its point scores when they are standardized residuals, else the standardized
+    residual) and, with rays, its ray map."""
+    from .maps import RAY_MAP_RANGE, safe_name, write_map
+    from .scores import POINT_SCORES, point_scores
+
+    resid = res.point_scores if POINT_SCORES[settings.point_score].in_deviations else \
+        point_scores(res.field, scan.points, "residual", settings.noise)
+    write_map(maps_dir / f"{safe_name(scan.name)}.ply", scan.points, scan.normals, resid)
+    if settings.rays:
+        write_map(maps_dir / "rays" / f"{safe_name(scan.name)}.ply", scan.points, scan.normals, res.rays.point_map,
+                  vrange=RAY_MAP_RANGE)
+
+
+def summarize_run(handle, insp, data, split, align, results):
+    """summary.json's content: the verdict metrics (:func:`inspection.report.summarize`) and how they were made."""
+    from .estimator import COMBINATION_RULE
+    from .report import summarize
+
+    settings = insp.settings_
+    parted = bool(insp.parts_)
+    extra = {"model": str(handle.path), "model_kind": handle.kind, "data": str(data), "split": split,
+             "settings": settings.as_dict(), "aggregate": settings.aggregate, "point_score": settings.point_score,
+             "noise": settings.noise, "projection": settings.projection, "n_calibration": insp.n_calibration_,
+             "calibration_source": insp.calibration_source_,
+             "decision": None if parted else insp.decision_threshold_.as_dict(), "aligned": bool(align),
+             "seconds_per_scan": float(np.mean(results["seconds"])) if results["seconds"] else None,
+             "maps": results["maps"], "higher_score_means": "more anomalous",
+             "rays": None if not settings.rays else {
+                 "options": settings.ray_options,
+                 "score": "the point score plus what the ray score shows beyond the good calibration scans' "
+                          "(inspection.combine, rule " + COMBINATION_RULE + ")"}}
+    if parted:  # thresholds per part: summary['parts']; scores compare within a part only
+        extra["parts"] = insp.summary()
+    summary = summarize(results["rows"], None if parted else insp.threshold_, insp.alpha, results["point_labels"],
+                        results["point_scores"], extra)
+    if results["ray_maps"]:
+        from sklearn.metrics import roc_auc_score
+
+        yl = np.concatenate(results["point_labels"]).astype(int)
+        if 0 < yl.sum() < len(yl):
+            summary["metrics"]["ray_point_auroc"] = float(roc_auc_score(yl, np.concatenate(results["ray_maps"])))
+    return summary
+
+
+def write_results(out, insp, results, summary):
+    """scores.csv, summary.json, roc.png (scans with known labels), scores.png and the maps' legends."""
+    from .maps import RAY_MAP_LABEL, RAY_MAP_RANGE, write_legend
+    from .plots import plot_roc, plot_score_histograms
+    from .report import CSV_COLUMNS, RAY_CSV_COLUMNS, write_json, write_scores_csv
+
+    rays = insp.settings_.rays
+    rows = results["rows"]
+    write_scores_csv(out / "scores.csv", rows, RAY_CSV_COLUMNS if rays else CSV_COLUMNS)
+    write_json(out / "summary.json", summary)
+    scored = [r for r in rows if r["verdict"] != "error"]
+    labels = np.array([r["label"] for r in scored])
+    sc = np.array([r["score"] for r in scored], dtype=np.float64)
+    known = labels != "unknown"
+    plot_roc(out / "roc.png", (labels[known] == "defective").astype(int), sc[known],
+             np.array([r["defect"] for r in scored])[known])
+    plot_score_histograms(out / "scores.png", sc, labels, None if insp.parts_ else insp.decision_threshold_,
+                          insp.calibration_scores_)
+    if results["maps"]:
+        write_legend(out / "maps" / "legend.png")
+        if rays:
+            write_legend(out / "maps" / "rays" / "legend.png", RAY_MAP_RANGE, RAY_MAP_LABEL)
