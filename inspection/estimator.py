@@ -359,8 +359,10 @@ class Inspector(BaseEstimator):
 
     def _fit_selection(self, selection, config, origins_everywhere, cross_fit, desc=""):
         if not selection.calibration:
-            raise ValueError("no good scans the model did not train on (give good scans it did not train on, a "
-                             "validation split, or a model with held-back calibration scans)")
+            held = list(getattr(self.model, "calibration_names", None) or [])
+            hint = (f"the model's held-back scans (e.g. {held[0]!r}) are not among them: pass the training collection "
+                    f"itself or include them" if held else "give good scans it did not train on (a validation split)")
+            raise ValueError(f"no good scans the model did not train on to calibrate with; {hint}")
         reference = selection.reference
         if config.point_score != "auto" and POINT_SCORES[config.point_score].reference and not reference:
             raise ValueError(f"point_score {config.point_score!r} needs the model's training scans (among the good "

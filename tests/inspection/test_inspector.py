@@ -475,3 +475,17 @@ def test_the_reference_takes_its_surface_from_every_training_scan(monkeypatch):
     np.testing.assert_array_equal(np.unique(ref.surface_owners), [-5, -4, -2, 0, 1, 2])
     np.testing.assert_array_equal(ref.surface_points[ref.surface_owners == 1], every[2].points.astype(np.float32))
     assert len(ref.without(1).surface_points) == 2000
+
+
+def test_fitting_on_training_scans_alone_says_which_scans_are_missing():
+    """The obvious call with the training scans only: no scan the model did not train on; the error names a
+    held-back scan to add (calibrating on in-sample scans alone would understate the false-alarm rate)."""
+    from datasets.scan import Scan
+
+    model = SphereModel()
+    model.train_names = [f"train/{i}" for i in range(3)]
+    model.calibration_names = ["validation/0"]
+    scans = [Scan(name=n, points=sphere_scan(seed=i, n=200)[0], normals=sphere_scan(seed=i, n=200)[1])
+             for i, n in enumerate(model.train_names)]
+    with pytest.raises(ValueError, match="held-back scans \\(e.g. 'validation/0'\\) are not among them"):
+        Inspector(model).fit(scans)
