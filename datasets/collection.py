@@ -22,7 +22,7 @@ FORMAT_VERSION = 1
 # 4096 rows * 3 * 4 B = 48 KiB per points chunk: a 20k-point scan touches 5-6 chunks, so a random read decompresses
 # little beyond its own rows (larger chunks cost more CPU per read for the same file size). gzip level 1 + shuffle:
 # the size of higher levels at less write time, and unlike lzf every HDF5 build can read it (lzf is h5py-only).
-# Measurements (benchmarks/collection_io.py): docs/collection_format.md. Per-scan arrays: 4096 rows.
+# Measurements (python -m benchmarks data --mode io): docs/collection_format.md. Per-scan arrays: 4096 rows.
 POINT_CHUNK_ROWS = 4096
 SCAN_CHUNK_ROWS = 4096
 DEFAULT_COMPRESSION = ("gzip", 1)

@@ -21,8 +21,8 @@ The sensor's rays can (:mod:`autodecoder.scanning.free_space`). Two kinds of ray
   much of that is normal).
 
 On open and thin-walled parts the projected field of a partial scan is one-sided: negative everywhere behind the
-surface the scan saw, the cavity behind a sheet included (benchmarks/thin_walled.py, figures in
-``results/thin_walled/``). A point seen through a hole in the sheet then lies deep inside that "solid", and so do
+surface the scan saw, the cavity behind a sheet included (figures in docs/results_archive.md,
+thin-walled and open parts). A point seen through a hole in the sheet then lies deep inside that "solid", and so do
 the rays of good scans through the part's real openings. Two things make the rays work there: ``own_depth`` (a
 point's own surface lies at most that far before it; material farther back is tested) and the ``band``: only
 samples within ``band`` kernel lengthscales of the good (training) scans' points are tested
@@ -34,7 +34,7 @@ points (a point score with no per-location reference), ``own_depth='auto'`` test
 
 The scan's ray score aggregates the surprisals -log P(free) = -log(1 - P) of both kinds of ray together, in nats
 (the rays' negative log likelihood, as the NLL is the points'; ``aggregate`` as for point scores: ``'top1'`` is the
-mean of the worst 1 %). Measured on benchmarks/missing_material.py's thin-walled box, the surprisal separated
+mean of the worst 1 %). Measured on a thin-walled box (docs/results_archive.md), the surprisal separated
 defective from good scans far better than the probabilities themselves, which saturate near 1 on rays the field is
 merely unsure about as well as on rays through walls it is sure of. The per-point map gives every point the value of the nearest tested
 returned ray (in space) and, where larger, of the hole rays within (``gap`` + 1.5) mean spacings of it in the
@@ -166,7 +166,7 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
         ``grazing`` (m,): 1 / cos^2 - 1 of the angle between each point's ray and its surface normal
         (:func:`autodecoder.scanning.sensor.grazing_factor`); rays to points with |cos| < ``min_cos`` are not tested. A ray
         that grazes a surface runs along it, inside the band of good surfaces and beyond ``own_depth`` of its
-        point, where the field's blurred surface puts material (on benchmarks/verdicts.py's enclosure a good scan
+        point, where the field's blurred surface puts material (on the inspection benchmark's enclosure a good scan
         seen level with the top sheet scored 400 nats); a ray through a hole crosses the wall. None: every ray.
     **check_options
         Passed to :func:`autodecoder.scanning.free_space.blocked_probability` (``outside_sigma``, ``step``, ...).

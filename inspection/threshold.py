@@ -26,7 +26,7 @@ flag a new good scan with probability exactly alpha, averaged over calibration d
 own rate, F_bar(t) = Phi_bar(Z + q W) with Z = (m - mu) / sigma ~ N(0, 1/n), W = s / sigma ~ sqrt(chi2_{n-1} /
 (n - 1)) and q = t_{n-1}(1 - alpha) sqrt(1 + 1/n), has a distribution free of mu and sigma; its quantiles are what
 :class:`Threshold` reports as ``far_interval``. The log-normal shape is an assumption, not a theorem: the benchmark
-(``benchmarks/verdicts.py``) measures the rate it gives on good test scans of several parts.
+(``python -m benchmarks inspection``) measures the rate it gives on good test scans of several parts.
 """
 import logging
 import math
@@ -40,7 +40,7 @@ BASES = ("conformal", "log-normal")
 FAR_INTERVAL_LEVEL = 0.9  # probability of the reported false-alarm interval
 MIN_TAIL_SCANS = 3  # the t-predictive needs n - 1 >= 2 degrees of freedom to have a finite variance
 _TOL = 1e-9
-# The default false-alarm rate: at 0.02 no part of benchmarks/verdicts.py and benchmarks/real_bunny.py flagged more
+# The default false-alarm rate: at 0.02 no part of the inspection and real benchmark suites flagged more
 # than 1 of its 16 good test scans, and more defects were found than at 0.01 (docs/results.md)
 DEFAULT_ALPHA = 0.02
 _FAR_FLOOR = 1e-12  # rates below this are reported as 0

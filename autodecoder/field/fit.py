@@ -28,7 +28,7 @@ class FitOptions(StepOptions):
     accuracy is this training, not the loss: the loss's exact minimiser on a grid
     (:func:`autodecoder.field.grid_minimiser.grid_minimiser`) is much closer to open3d's reconstruction than the fit.
     Figures: docs/results.md#single-cloud-fit-defaults-fandisk and #what-limits-the-mean-surface
-    (``benchmarks/fit_defaults.py``, ``benchmarks/target_limit.py``).
+    (``python -m benchmarks fit --mode grid --variants ...``, ``fit --mode target-limit``).
 
     Attributes
     ----------

@@ -16,7 +16,7 @@ matrix) are solved by conjugate gradients, preconditioned by the exact inverse o
 Laplacian, diagonal in the type-II DCT). The zero level set of the solution (``zero_level_mesh``) is what an
 infinitely expressive, perfectly trained mean net would give, up to the grid's discretisation (compare two
 resolutions): it separates what the GP target itself costs from what the network and its training add
-(``benchmarks/target_limit.py``; figures in docs/results.md#what-limits-the-mean-surface).
+(``python -m benchmarks fit --mode target-limit``; figures in docs/results.md#what-limits-the-mean-surface).
 """
 import math
 import time

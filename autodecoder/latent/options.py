@@ -15,7 +15,7 @@ from autodecoder.field.targets import DEFAULT_LENGTHSCALE_FACTOR, MIN_LENGTHSCAL
 
 # The SIREN's default budget (default_epochs): every code is updated DEFAULT_EPOCHS times (an epoch is one pass over
 # the scans, a code moves only when its scan is in a batch), with steps of 256 mean-loss samples a scan. On
-# verdicts.py's parts (26 training scans, 1,800 steps) this matched the earlier 2,400 steps of 1,024 samples in object
+# the inspection benchmark's parts (26 training scans, 1,800 steps) this matched the earlier 2,400 steps of 1,024 samples in object
 # AUROC at about a third of the time (under 2 minutes on 2 cores); fewer code updates (300) or narrower or shallower
 # nets lost the thin-walled enclosure's missing material at one of three seeds
 # (docs/results.md#latent-training-in-two-minutes-issue-19). Large collections get fewer epochs: at most

@@ -24,7 +24,7 @@ Which samples of a ray are tested
   to a few lengthscales off good points at features the projection cannot follow, as deep as a pit
   (docs/results.md#free-space-along-the-sensors-rays). Without the depth limit (``own_depth=None``) the test is only for
   material *separated from the point by free space*; that misses the case the rays exist for on thin-walled parts
-  (benchmarks/thin_walled.py): seen through a hole in a sheet, a point on the far side of a cavity lies deep inside
+  (the benchmarks' thin-walled enclosure; docs/results_archive.md): seen through a hole in a sheet, a point on the far side of a cavity lies deep inside
   what a one-sided view's field calls solid (a partial scan's Poisson field is negative everywhere behind the
   surface it saw), so no sample after the sheet is clearly outside and the whole ray, sheet included, was taken
   for the point's own surface. With the limit, material more than ``own_depth`` before the point is tested

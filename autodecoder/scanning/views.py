@@ -34,8 +34,8 @@ the surface they would add.
 What limits the ranking is the score, not the learned variance: the learned variance agrees with gpytoolbox's
 stochastic Poisson variance of the same scan, and with that exact variance in its place the score ranks cameras
 about as well, while P(hit) x novelty with no variance at all ranks them better; the score's best cameras lie at a
-right angle to the first view, while the most new surface lies opposite it. Figures (``benchmarks/next_view.py``,
-``benchmarks/view_score.py``): docs/results.md#scanning-partial-scan-fields-and-next-best-view.
+right angle to the first view, while the most new surface lies opposite it. Figures (``python -m benchmarks scanning --mode next-view``,
+``--mode view-score``): docs/results.md#scanning-partial-scan-fields-and-next-best-view.
 
 The optimiser (:func:`next_best_views`) maximises the score by Adam from many starts on a sphere around the part
 (the global multi-start the paper recommends; optionally the starts are the best of a larger set of random

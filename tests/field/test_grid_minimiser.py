@@ -1,6 +1,6 @@
 """autodecoder.field.grid_minimiser, the exact grid minimiser of the mean loss, against a closed form.
 
-benchmarks/target_limit.py's figures (the exact minimiser of fit_cloud's mean loss against open3d's Chamfer) rest on
+``python -m benchmarks fit --mode target-limit``'s figures (the exact minimiser of fit_cloud's mean loss against open3d's Chamfer) rest on
 this solver, so it is checked here: for a target field that is exactly the gradient of phi(x) = (|x|^2 - R^2) / 2, a
 function that vanishes on the sphere where the screened points lie, phi itself makes both terms of the loss zero, so
 it is the minimiser; the grid solution must reproduce it up to the grid's interpolation error.
