@@ -1,8 +1,13 @@
-"""The nearest-neighbour baseline every inspection benchmark prints beside the toolkit's scores."""
+"""The nearest-neighbour baseline every inspection suite prints beside the toolkit's scores, thresholded the way the
+toolkit thresholds its own."""
+import time
+
 import numpy as np
 
+TOP_PERCENT = 5.0
 
-def nn_baseline(train_points, scans, top=5.0):
+
+def nn_baseline(train_points, scans, top=TOP_PERCENT):
     """Per scan: each point's distance to the nearest training point, and the scan score = the mean of the worst
     ``top`` % of them.
 
@@ -27,3 +32,44 @@ def nn_baseline(train_points, scans, top=5.0):
         k = max(1, int(np.ceil(top / 100 * len(d))))
         out.append((float(np.sort(d)[-k:].mean()), d))
     return out
+
+
+def nn_verdicts(collection, heldback_names, alpha):
+    """The baseline on a collection's test scans, with a threshold fitted like the toolkit's: on the held-back good
+    scans and the training scans cross-fitted (each against the other training scans' points), at ``alpha``.
+
+    Parameters
+    ----------
+    collection : str or Path
+        A scan collection with train and test splits.
+    heldback_names : collection of str
+        The scans the model held back for calibration (not part of the baseline's training points).
+    alpha : float
+
+    Returns
+    -------
+    dict
+        ``scores``, ``point_scores`` (per test scan), ``labels``, ``defects``, ``point_labels``, ``threshold``
+        (an ``inspection.threshold.Threshold``), ``seconds_per_scan`` (scoring the test scans).
+    """
+    from datasets import ScanCollection
+    from inspection.threshold import fit_threshold
+
+    held = set(heldback_names)
+    with ScanCollection(collection) as c:
+        names = c.names
+        train = c.read_many([i for i in c.select(split="train") if names[i] not in held])
+        cal = c.read_many([i for i, n in enumerate(names) if n in held])
+        test = c.read_many(c.select(split="test"))
+    train_points = np.concatenate([s.points for s in train])
+    t0 = time.perf_counter()
+    scored = nn_baseline(train_points, test)
+    seconds = (time.perf_counter() - t0) / len(test)
+    cal_scores = [v for v, _ in nn_baseline(train_points, cal)]
+    crossed = [nn_baseline(np.concatenate([t.points for j, t in enumerate(train) if j != i]), [s])[0][0]
+               for i, s in enumerate(train)]
+    threshold = fit_threshold(np.r_[cal_scores, crossed], alpha,
+                              ["held-back"] * len(cal_scores) + ["cross-fitted"] * len(crossed))
+    return {"scores": np.array([v for v, _ in scored]), "point_scores": [d for _, d in scored],
+            "labels": np.array([s.label for s in test]), "defects": np.array([s.defect for s in test]),
+            "point_labels": [s.point_labels for s in test], "threshold": threshold, "seconds_per_scan": seconds}

@@ -1,6 +1,10 @@
 """The packages' data flow, checked on the source: datasets -> autodecoder.field -> autodecoder.latent ->
 autodecoder.scanning -> inspection, no import pointing back and no import circle (imports inside functions
-included), and light modules that do not import torch or other heavy libraries they do not need."""
+included), and light modules that do not import torch or other heavy libraries they do not need.
+
+The benchmark harness too (``benchmarks/``): it imports the library and its own core modules, a suite never imports
+another suite, no module imports a script, only ``benchmarks.inspect_api`` enters the inspection package (beyond its
+training and threshold modules), no circle, no ``sys.path`` edits; the library never imports the benchmarks."""
 import ast
 import subprocess
 import sys
@@ -59,10 +63,8 @@ def test_no_import_points_against_the_data_flow():
     assert not wrong, "imports against datasets -> field -> latent -> scanning -> inspection:\n" + "\n".join(wrong)
 
 
-def test_no_import_circle_between_modules():
-    modules = _modules()
-    graph = {name: {t for t in _imports(name, path) if t in modules and t != name and not name.startswith(t + ".")}
-             for name, path in modules.items()}
+def _circles(graph):
+    """Every import circle of ``graph`` ({module: modules it imports}), as 'a -> b -> a' lines."""
     circles, state = [], {}
 
     def visit(node, stack):
@@ -77,6 +79,14 @@ def test_no_import_circle_between_modules():
     for name in sorted(graph):
         if name not in state:
             visit(name, [name])
+    return circles
+
+
+def test_no_import_circle_between_modules():
+    modules = _modules()
+    graph = {name: {t for t in _imports(name, path) if t in modules and t != name and not name.startswith(t + ".")}
+             for name, path in modules.items()}
+    circles = _circles(graph)
     assert not circles, "import circles:\n" + "\n".join(circles)
 
 
@@ -101,3 +111,110 @@ def test_light_modules_import_no_heavy_library(module):
             f"print(','.join(h for h in {HEAVY!r} if h in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "", f"importing {module} imports {out.stdout.strip()}"
+
+
+# ------------------------------------------------------------------------------------------------------ benchmarks
+BENCHMARK_CORE = ("benchmarks", "benchmarks.record", "benchmarks.cache", "benchmarks.metrics", "benchmarks.baselines",
+                  "benchmarks.inspect_api", "benchmarks.table", "benchmarks.surface_metrics", "benchmarks.suites")
+LIBRARY = ("datasets", "autodecoder", "inspection", "train_latent")
+# the inspection modules a benchmark module other than benchmarks.inspect_api may import: {module: who may}
+INSPECTION_OUTSIDE_API = {"inspection.threshold": None, "inspection.training": ("benchmarks.cache",)}
+
+
+def _benchmark_modules(root=ROOT):
+    """{module name: source path} of every module under ``root/benchmarks``."""
+    out = {}
+    for path in sorted((root / "benchmarks").rglob("*.py")):
+        parts = path.relative_to(root).with_suffix("").parts
+        out[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    return out
+
+
+def _edits_sys_path(path):
+    """Whether the source refers to ``sys.path`` at all (insert, append, assignment, ...)."""
+    tree = ast.parse(path.read_text(), str(path))
+    return any(isinstance(n, ast.Attribute) and n.attr == "path" and isinstance(n.value, ast.Name)
+               and n.value.id == "sys" for n in ast.walk(tree))
+
+
+def _scripts(modules):
+    """{stem: module name} of the files directly in benchmarks/ (a script run by path imports its neighbours by their
+    bare stem); the library's package names excepted."""
+    return {name.split(".")[1]: name for name in modules if name.count(".") == 1 and name.split(".")[1] not in LIBRARY}
+
+
+def _within(module, package):
+    return module == package or module.startswith(package + ".")
+
+
+def _benchmark_violations(modules):
+    """What breaks the harness' rules in ``modules`` ({name: path} of benchmarks' modules): a list of lines."""
+    scripts = _scripts(modules)
+    wrong = []
+    for name, path in modules.items():
+        if _edits_sys_path(path):
+            wrong.append(f"{name} edits sys.path")
+        is_suite = name.startswith("benchmarks.suites.")
+        for target in sorted(_imports(name, path)):
+            top = target.split(".")[0]
+            if top in scripts:
+                wrong.append(f"{name} imports the script {target}")
+            elif _within(target, "benchmarks.suites") and target != "benchmarks.suites" and (
+                    is_suite and not _within(target, name) or not is_suite and name != "benchmarks.__main__"):
+                wrong.append(f"{name} imports the suite {target}")
+            elif _within(target, "benchmarks") and not _within(target, "benchmarks.suites") and not any(
+                    target == core or target.startswith(core + ".") for core in BENCHMARK_CORE) \
+                    and target != "benchmarks.__main__":
+                wrong.append(f"{name} imports {target}, not a core module of the harness")
+            elif _within(target, "inspection") and target != "inspection" and name != "benchmarks.inspect_api":
+                allowed = [m for m, who in INSPECTION_OUTSIDE_API.items()
+                           if _within(target, m) and (who is None or name in who)]
+                if not allowed:
+                    wrong.append(f"{name} imports {target}: the inspection package goes through "
+                                 f"benchmarks.inspect_api")
+            elif target == "inspection" and name != "benchmarks.inspect_api":
+                wrong.append(f"{name} imports inspection: the inspection package goes through benchmarks.inspect_api")
+    return wrong
+
+
+def test_benchmarks_keep_the_harness_rules():
+    wrong = _benchmark_violations(_benchmark_modules())
+    assert not wrong, "benchmarks/ against its rules:\n" + "\n".join(wrong)
+
+
+def test_no_import_circle_in_the_benchmarks():
+    modules = _benchmark_modules()
+    scripts = _scripts(modules)
+    graph = {}
+    for name, path in modules.items():
+        targets = set()
+        for t in _imports(name, path):
+            top, _, rest = t.partition(".")
+            if top in scripts:  # a script's bare `import verdicts` is benchmarks.verdicts
+                t = scripts[top] + ("." + rest if rest else "")
+            if t in modules and t != name and not name.startswith(t + "."):
+                targets.add(t)
+        graph[name] = targets
+    circles = _circles(graph)
+    assert not circles, "import circles in benchmarks/:\n" + "\n".join(circles)
+
+
+def test_the_library_never_imports_the_benchmarks():
+    wrong = [f"{name} imports {t}" for name, path in _modules().items() for t in _imports(name, path)
+             if _within(t, "benchmarks")]
+    assert not wrong, "\n".join(wrong)
+
+
+def test_the_benchmark_checks_see_a_wrong_module(tmp_path):
+    """The checks above must be able to fail: a suite importing another suite, a script, the inspection package
+    directly, and editing sys.path is found on each count; and a circle of two modules is found."""
+    (tmp_path / "benchmarks" / "suites").mkdir(parents=True)
+    bad = tmp_path / "benchmarks" / "suites" / "probe.py"
+    bad.write_text("import sys\nsys.path.insert(0, '..')\nfrom benchmarks.suites import inspection\n"
+                   "def f():\n    from verdicts import synth\n    from inspection.run import score\n")
+    (tmp_path / "benchmarks" / "verdicts.py").write_text("from benchmarks.suites.probe import f\n")
+    wrong = "\n".join(_benchmark_violations(_benchmark_modules(tmp_path)))
+    for expected in ("benchmarks.suites.probe edits sys.path", "imports the suite benchmarks.suites.inspection",
+                     "imports the script verdicts", "imports inspection.run", "benchmarks.verdicts imports the suite"):
+        assert expected in wrong, wrong
+    assert _circles({"a": {"b"}, "b": {"a"}}) == ["a -> b -> a"]

@@ -1,12 +1,7 @@
-"""Real range scans: a benchmark built from the Stanford bunny's ten Cyberware views, scored with the public CLI.
+"""Real range scans: a benchmark built from the Stanford bunny's ten Cyberware views, scored at the defaults.
 
-Run by hand from the repository root (not a test):
-
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/real_bunny.py --build     # write the tree (a minute)
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/real_bunny.py --run       # import, train, calibrate, score
-
-``--build`` reads ``../shared/realscans/bunny/`` (ten real range images in metres, ``bun.conf`` aligning them) and
-writes WORK/tree/ (default ``results/real_bunny/tree``), the layout ``python -m datasets import`` reads:
+The tree (built once, cached by its parameters: ``benchmarks.cache``) comes from ``../shared/realscans/bunny/`` (ten
+real range images in metres, ``bun.conf`` aligning them), in the layout the datasets importer reads:
 
     train/good/*.ply, test/good/*.ply, test/{bump,dent,foreign,missing}/*.ply    points only (no normals), metres
     <same stem>.json    {"sensor_origin": [x, y, z], "view": ..., "stray_points": [...], "rotation_deg": ...}
@@ -26,36 +21,69 @@ random pose change of up to ``--jitter`` degrees about the part's centre. Defect
   point whose sensor ray meets it first is replaced by the hit plus the scan's range noise (its visible side, and
   the surface it hides).
 
-The range grid's conventions, worked out from the data (``--build`` prints the checks): ``bun.conf`` line
+The range grid's conventions, worked out from the data (printed when the tree is built): ``bun.conf`` line
 ``bmesh FILE tx ty tz qx qy qz qw`` maps a view's points by p_world = R(q)^-1 p + t with q scalar-last (the other
 readings leave the views apart; this one puts 89-99 % of each view within 0.5 mm of another view), and the scanner
 looks down -z of each view's own coordinates: 99.6-100 % of the range grid's outward normals have n_z > 0. The
 Cyberware 3030 sweeps linearly (orthographic along x), so the sensor origin stored is a point 1 m along the view's
 +z axis from the view's centre, mapped to the world like the points.
 
-``--run`` (needs the tree): ``python -m datasets import`` -> ``train_latent.py`` -> ``python -m inspection
-calibrate`` -> ``python -m inspection score --maps all``, each as a subprocess with the package defaults (so the
-benchmark follows them when they change), then prints object AUROC per defect type and overall, next to the
-nearest-neighbour baseline of ``inspect_fandisk.py`` computed in the same run, the fraction of good and defective
-test scans flagged at the calibrated default, and seconds per scan.
+The run: the tree imported (``datasets.importer.import_tree``, as ``python -m datasets import``), a model trained
+with the trainer's defaults (``benchmarks.cache.trained_model``), scored the README's way on an uncalibrated copy
+(``benchmarks.inspect_api.calibrate_and_score``, ``--maps all``). Printed: object AUROC per defect type and overall
+next to the nearest-neighbour baseline, the fractions of good and defective test scans flagged at the calibrated
+default, seconds per scan. ``--diagnose`` then reads the run's per-point scores (the inspection API, as ``score``
+computes them) and prints what the worst points of the good scans are (border, grazing, sparse, stray, rarely
+covered by training), with pictures in the run's ``diagnosis/``.
 """
-import argparse
 import json
-import os
-import subprocess
-import sys
 import time
 from pathlib import Path
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 import numpy as np
 
-BUNNY = Path(__file__).resolve().parents[2] / "shared" / "realscans" / "bunny"
-REPO = Path(__file__).resolve().parents[1]
+from benchmarks import baselines, cache, inspect_api, metrics
+from benchmarks.table import format_table
+
+DESCRIPTION = ("real range scans: a benchmark tree from the Stanford bunny's ten Cyberware views with defects made "
+               "in the real points, trained and scored at the defaults, next to the nearest-neighbour baseline")
+BUNNY = cache.REAL_SCANS / "bunny"
+WORK = "results/real"
 KINDS = ("bump", "dent", "foreign", "missing")
 SENSOR_DISTANCE = 1.0  # metres along a view's +z from its centre: the Cyberware 3030's sweep is nearly orthographic
+
+
+def add_arguments(p):
+    p.add_argument("--source", default=str(BUNNY), help="the range scans and bun.conf (default: %(default)s)")
+    p.add_argument("--train", type=int, default=32, help="good training scans (default: %(default)s)")
+    p.add_argument("--test-good", type=int, default=16, help="good test scans (default: %(default)s)")
+    p.add_argument("--per-defect", type=int, default=16, help="test scans per defect type (default: %(default)s)")
+    p.add_argument("--points", type=int, default=4000, help="points per scan (default: %(default)s)")
+    p.add_argument("--jitter", type=float, default=2.0, help="pose change, degrees (default: %(default)s)")
+    p.add_argument("--strays", type=int, default=4, help="up to this many spurious returns on half the scans "
+                                                         "(default: %(default)s)")
+    p.add_argument("--size", type=float, default=1.0, help="defect size factor on datasets.defects' ranges")
+    p.add_argument("--seed", type=int, default=0, help="the tree's seed (default: %(default)s)")
+    p.add_argument("--train-seed", type=int, default=0, help="the training's seed (default: %(default)s)")
+    p.add_argument("--epochs", type=int, default=None, help="training epochs (default: the trainer's)")
+    p.add_argument("--no-rays", action="store_true", help="calibrate without the ray score (default: the "
+                                                          "inspection's choice: with it, the scans have sensor origins)")
+    p.add_argument("--diagnose", action="store_true", help="also the per-point analysis and pictures of the run")
+    p.add_argument("--cache", default=cache.CACHE, help="tree, collection and model (default: %(default)s)")
+    p.add_argument("--work", default=WORK, help="scored runs (default: %(default)s)")
+    p.add_argument("--progress", action="store_true", help="progress bars")
+
+
+def run(args):
+    data = real_collection(args)
+    model = cache.trained_model(data, root=args.cache, seed=args.train_seed, epochs=args.epochs)
+    run_dir = Path(args.work) / data.parent.name / ("defaults" + (f"_e{args.epochs}" if args.epochs else "")
+                                                    + (f"_t{args.train_seed}" if args.train_seed else "")
+                                                    + ("_norays" if args.no_rays else ""))
+    figures = score(data, model, run_dir, args)
+    if args.diagnose:
+        diagnose(data, run_dir)
+    return figures
 
 
 # ---- reading the Stanford range data ---------------------------------------------------------------------------------
@@ -275,15 +303,27 @@ def random_rotation(max_deg, rng):
     return Rotation.from_rotvec(axis * np.radians(rng.uniform(0, max_deg))).as_matrix()
 
 
-# ---- the tree --------------------------------------------------------------------------------------------------------
-def build(args):
+# ---- the tree ----------------------------------------------------------------------------------------------------
+def real_collection(args):
+    """The bunny tree built and imported (cached by its parameters). Returns the collection's path."""
+    params = {k: getattr(args, k) for k in ("train", "test_good", "per_defect", "points", "jitter", "strays",
+                                            "size", "seed")}
+    params["source"] = str(Path(args.source).resolve())
+
+    def build(folder):
+        from datasets.importer import import_tree
+
+        build_tree(folder / "tree", args)
+        import_tree(folder / "tree", folder / "bunny.h5", progress=False)
+
+    return cache.cached_path("real", params, build, args.cache, label="bunny") / "bunny.h5"
+
+
+def build_tree(tree, args):
+    """Write the tree of PLY + JSON files (see the module docstring)."""
     from datasets.cloud_io import write_cloud
     from datasets.normals import estimate_normals
-    from inspection.report import atomic_write_text
 
-    tree = Path(args.work) / "tree"
-    if tree.exists() and any(tree.iterdir()):
-        raise SystemExit(f"{tree}: exists and is not empty; remove it to rebuild")
     t0 = time.perf_counter()
     views = load_views(Path(args.source))
     print(f"read {len(views)} views from {args.source} in {time.perf_counter() - t0:.0f} s; checks of the conventions:")
@@ -324,87 +364,54 @@ def build(args):
         angle = float(np.degrees(np.arccos(np.clip((np.trace(rot) - 1) / 2, -1, 1))))
         side = {"sensor_origin": [float(x) for x in sensor], "view": v["name"], "stray_points": at.tolist(),
                 "rotation_deg": angle, "defect": info}
-        atomic_write_text(folder / f"{stem}.json", json.dumps(side))
+        _write_text(folder / f"{stem}.json", json.dumps(side))
         if kind in KINDS:
             gt = tree / "ground_truth" / kind / f"{stem}.txt"
-            atomic_write_text(gt, "\n".join(str(int(x)) for x in lab) + "\n")
-    print(f"wrote {len(plan)} scans under {tree} in {time.perf_counter() - t0:.0f} s")
+            _write_text(gt, "\n".join(str(int(x)) for x in lab) + "\n")
+    print(f"wrote {len(plan)} scans in {time.perf_counter() - t0:.0f} s")
 
 
-# ---- the run ---------------------------------------------------------------------------------------------------------
-def _cli(cmd, log):
-    """Run one public command line (this Python), echo it, return its wall time."""
-    print("$ " + " ".join(str(c) for c in cmd), flush=True)
-    t0 = time.perf_counter()
-    with open(log, "a") as f:
-        r = subprocess.run([sys.executable, *map(str, cmd)], cwd=REPO, stdout=f, stderr=subprocess.STDOUT)
-    if r.returncode:
-        raise SystemExit(f"failed ({r.returncode}): see {log}")
-    return time.perf_counter() - t0
+def _write_text(path, text):
+    from datasets.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
 
 
-def run(args):
-    import csv
-
-    from sklearn.metrics import roc_auc_score
-
+# ---- the run -----------------------------------------------------------------------------------------------------
+def score(data, model, run_dir, args):
+    """Score the run at the defaults, print the table next to the baseline. Returns the figures."""
     from datasets import ScanCollection
-    from inspection.model_io import load_model
-    from baselines import nn_baseline
 
-    work = Path(args.work)
-    tree, data = work / "tree", work / "bunny.h5"
-    model = work / f"model{args.tag}.pt"
-    out = work / f"scores{args.tag}"
-    log = work / f"run{args.tag}.log"
-    print(f"load average at start: {os.getloadavg()}")
-    if not data.is_file():
-        _cli(["-m", "datasets", "import", tree, "--out", data], log)
-    _cli(["-m", "datasets", "info", data], log)
-    t_train = 0.0
-    if not model.is_file():
-        t_train = _cli(["train_latent.py", "--data", data, "--out", model, "--quiet"]
-                       + (["--epochs", args.epochs] if args.epochs else []), log)
-    t_cal = _cli(["-m", "inspection", "calibrate", "--model", model, "--data", data, "--quiet"]
-                 + (["--no-rays"] if args.no_rays else []), log)
-    t_score = _cli(["-m", "inspection", "score", "--model", model, "--data", data, "--out", out, "--maps", "all",
-                    "--overwrite", "--quiet"], log)
-    summary = json.loads((out / "summary.json").read_text())
-    with open(out / "scores.csv") as f:
-        rows = list(csv.DictReader(f))
-    names = [r["name"] for r in rows]
-    score = np.array([float(r["score"]) for r in rows])
-    y = np.array([r["label"] == "defective" for r in rows])
-    defect = np.array([r["defect"] for r in rows])
-    flagged = np.array([r["verdict"] == "defective" for r in rows])
-
-    held = set(load_model(model).heldback_names)
-    with ScanCollection(data) as c:
-        train = [c[i] for i in c.select(split="train") if c.names[i] not in held]
-        test = [c[c.index_of(n)] for n in names]
     t0 = time.perf_counter()
-    nn = np.array([s for s, _ in nn_baseline(np.concatenate([s.points for s in train]), test)])
+    summary = inspect_api.calibrate_and_score(model, data, run_dir, rays=False if args.no_rays else None, maps="all",
+                                              progress=args.progress, echo=lambda line: print(f"  real: {line}"))
+    t_score = time.perf_counter() - t0
+    scored = inspect_api.read_scores(run_dir / "results")
+    info = inspect_api.model_info(model)
+    held = set(info["heldback_names"])
+    with ScanCollection(data) as c:
+        train = c.read_many([i for i in c.select(split="train") if c.names[i] not in held])
+        test = c.read_many([c.index_of(n) for n in scored["name"]])
+    t0 = time.perf_counter()
+    nn = np.array([v for v, _ in baselines.nn_baseline(np.concatenate([s.points for s in train]), test)])
     t_nn = (time.perf_counter() - t0) / len(test)
-
-    def aurocs(s):
-        res = {k: roc_auc_score(y[(~y) | (defect == k)], s[(~y) | (defect == k)]) for k in KINDS if (defect == k).any()}
-        res["overall"] = roc_auc_score(y, s)
-        return res
-
-    ours, base = aurocs(score), aurocs(nn)
+    ours = metrics.auroc_per_defect(scored["score"], scored["label"], scored["defect"])
+    base = metrics.auroc_per_defect(nn, scored["label"], scored["defect"])
+    bad = scored["label"] != metrics.GOOD
+    flagged = {"good": float(scored["flagged"][~bad].mean()), "defective": float(scored["flagged"][bad].mean())}
     cols = [k for k in (*KINDS, "overall") if k in ours]
-    print(f"\nreal bunny ({len(train)} training scans for the NN baseline, {int((~y).sum())} good and {int(y.sum())} "
-          f"defective test scans); object AUROC")
-    print(f"{'':<28}" + "".join(f"{k:>9}" for k in cols))
-    print(f"{'nearest-neighbour top5%':<28}" + "".join(f"{base[k]:9.3f}" for k in cols))
-    print(f"{'toolkit (CLI defaults)':<28}" + "".join(f"{ours[k]:9.3f}" for k in cols))
-    print(f"flagged at the calibrated default (alpha {summary.get('alpha')}): good {flagged[~y].mean():.3f}, "
-          f"defective {flagged[y].mean():.3f}")
-    print(f"seconds per scan: toolkit {summary.get('seconds_per_scan', float('nan')):.2f} (score command wall "
-          f"{t_score / len(rows):.2f}); NN baseline {t_nn:.3f}; training {t_train:.0f} s; calibration {t_cal:.0f} s")
-    print(f"load average at end: {os.getloadavg()}")
-    (work / f"table{args.tag}.json").write_text(json.dumps({"toolkit": ours, "nn": base, "summary": summary,
-                                                            "train_s": t_train, "nn_s_per_scan": t_nn}, indent=1))
+    print(f"\nreal bunny ({len(train)} training scans for the NN baseline, {int((~bad).sum())} good and "
+          f"{int(bad.sum())} defective test scans); object AUROC")
+    print(format_table([{"method": "nearest-neighbour top5%", **base}, {"method": "toolkit (defaults)", **ours}],
+                       [("method", "", "")] + [(k, k, ".3f") for k in cols]))
+    print(f"flagged at the calibrated default (alpha {summary.get('alpha')}): good {flagged['good']:.3f}, "
+          f"defective {flagged['defective']:.3f}")
+    print(f"seconds per scan: toolkit {summary.get('seconds_per_scan', float('nan')):.2f} (calibration and scoring "
+          f"wall {t_score / len(test):.2f}); NN baseline {t_nn:.3f}; training {info['train_seconds'] or 0:.0f} s")
+    return {"collection": str(data), "model": str(model), "run": str(run_dir), "toolkit": ours, "nn": base,
+            "flagged": flagged, "seconds_per_scan": summary.get("seconds_per_scan"), "nn_seconds_per_scan": t_nn,
+            "train_seconds": info["train_seconds"], "summary": inspect_api.summary_figures(summary)}
 
 
 # ---- diagnosis -------------------------------------------------------------------------------------------------------
@@ -473,52 +480,40 @@ def view_picture(path, scan, values, title, labels=None, vmax=None):
     plt.close(fig)
 
 
-def diagnose(args):
-    """Per-point scores of the run's test scans (the calibrated model through the inspection API, as the CLI does),
-    what the worst points of the good scans are, and pictures of the worst good and the missed defective scans."""
+def diagnose(data, run_dir):
+    """Per-point scores of the run's test scans (the calibrated model through the inspection API, as ``score``
+    computes them), what the worst points of the good scans are, and pictures of the worst good and the missed
+    defective scans."""
     from scipy.spatial import cKDTree
+    from scipy.stats import spearmanr
 
     from datasets import ScanCollection
-    from inspection.estimator import Inspector
-    from inspection.model_io import load_model
 
-    work = Path(args.work)
-    data, model = work / "bunny.h5", work / f"model{args.tag}.pt"
-    pics = work / f"diagnosis{args.tag}"
+    model = Path(run_dir) / "model.pt"
+    pics = Path(run_dir) / "diagnosis"
     pics.mkdir(exist_ok=True)
-    handle = load_model(model)
-    insp = Inspector(handle.model).set_calibration(handle.calibration)
-    held = set(handle.heldback_names)
+    info = inspect_api.model_info(model)
+    held = set(info["heldback_names"])
     with ScanCollection(data) as c:
         train = [c[i] for i in c.select(split="train") if c.names[i] not in held]
-        test = [c[i] for i in c.select(split="test")]
+    test, results = inspect_api.point_maps(model, data, fields=True)
+    vals = [r["point_scores"] for r in results]
+    score = np.array([r["score"] for r in results])
     owner = np.concatenate([np.full(len(s), k) for k, s in enumerate(train)])
     tree = cKDTree(np.concatenate([s.points for s in train]))
-    cache = work / f"diagnosis{args.tag}.npz"
-    if cache.is_file():
-        z = np.load(cache)
-        vals = [z[f"v{i}"] for i in range(len(test))]
-    else:
-        vals = [insp.inspect(s).point_scores for s in test]
-        np.savez(cache, **{f"v{i}": v for i, v in enumerate(vals)})
-    score = np.array([np.mean(np.sort(v)[-max(1, int(np.ceil(0.01 * len(v)))):]) for v in vals])
-    good = np.array([s.label == "good" for s in test])
+    good = np.array([s.label == metrics.GOOD for s in test])
     feats = [point_features(s, tree, owner, len(train)) for s in test]
-    noise = insp.noise if insp.noise is not None else handle.model.noise
-    print(f"point score {insp.point_score}, aggregate {insp.aggregate}, noise floor {noise:.4g} (model frame), "
-          f"kernel lengthscale {handle.model.lengthscale:.4g}, median point spacing of the test scans "
+    settings = inspect_api.calibration_settings(model)
+    print(f"point score {settings['point_score']}, aggregate {settings['aggregate']}, noise floor "
+          f"{settings['noise']:.4g} (model frame), kernel lengthscale {settings['lengthscale']:.4g}, median point "
+          f"spacing of the test scans "
           f"{np.median([np.median(cKDTree(s.points).query(s.points, 2)[0][:, 1]) for s in test]):.4g}")
-    print("\ngood test scans: the worst 1 % of each scan's points (its top1 score) against all its points")
+    print("\ngood test scans: the worst 1 % of each scan's points against all its points")
     print(f"{'scan':<26}{'score':>7}" + "".join(f"{k[:14]:>16}" for k, _ in CATEGORIES))
-    rows = []
     for i in np.flatnonzero(good)[np.argsort(-score[good])]:
         v, f = vals[i], feats[i]
         top = np.argsort(v)[-max(1, len(v) // 100):]
-        cells = []
-        for _, rule in CATEGORIES:
-            m = rule(f)
-            cells.append(f"{m[top].mean():6.2f} / {m.mean():5.2f}")
-        rows.append([m[top].mean() for m in (rule(f) for _, rule in CATEGORIES)])
+        cells = [f"{rule(f)[top].mean():6.2f} / {rule(f).mean():5.2f}" for _, rule in CATEGORIES]
         print(f"{test[i].name[-24:]:<26}{score[i]:7.2f}" + "".join(f"{c:>16}" for c in cells))
     allv = np.concatenate([vals[i] for i in np.flatnonzero(good)])
     print("\nall good test points: median / 99th percentile of the point score, inside and outside each category")
@@ -527,8 +522,6 @@ def diagnose(args):
         if m.any():
             print(f"  {k:<18} in: {np.median(allv[m]):6.2f} / {np.quantile(allv[m], 0.99):6.2f}   out: "
                   f"{np.median(allv[~m]):6.2f} / {np.quantile(allv[~m], 0.99):6.2f}   ({m.mean():.3f} of the points)")
-    from scipy.stats import spearmanr
-
     print("  Spearman rank correlation of the point score with: " + ", ".join(
         f"{k} {spearmanr(allv, np.concatenate([feats[i][k] for i in np.flatnonzero(good)]))[0]:+.2f}"
         for k in ("cos", "border", "sparse", "nearest", "cover")))
@@ -553,10 +546,9 @@ def diagnose(args):
                          labels=test[i].point_labels, vmax=vmax)
     for i in [*np.flatnonzero(good)[np.argsort(-score[good])][:2],
               min((i for i, s in enumerate(test) if s.defect == "bump"), key=lambda i: score[i])]:
-        section_picture(pics / f"section_{test[i].name.split('/')[-1]}.png", test[i], vals[i],
-                        insp.inspect(test[i]).field, f"{test[i].name}: the projected mean surface (E f = 0) "
-                                                    f"through the worst non-stray point (x), real points within "
-                                                    f"1 spacing of the section")
+        section_picture(pics / f"section_{test[i].name.split('/')[-1]}.png", test[i], vals[i], results[i]["field"],
+                        f"{test[i].name}: the projected mean surface (E f = 0) through the worst non-stray point (x), "
+                        f"real points within 1 spacing of the section")
     print(f"pictures in {pics}")
 
 
@@ -605,37 +597,3 @@ def section_picture(path, scan, values, field, title):
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
-
-
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--build", action="store_true", help="write the tree of PLY + JSON files")
-    parser.add_argument("--run", action="store_true", help="import, train, calibrate and score with the CLI")
-    parser.add_argument("--diagnose", action="store_true", help="per-point analysis and pictures of a run")
-    parser.add_argument("--source", default=str(BUNNY))
-    parser.add_argument("--work", default="results/real_bunny")
-    parser.add_argument("--train", type=int, default=32)
-    parser.add_argument("--test-good", type=int, default=16)
-    parser.add_argument("--per-defect", type=int, default=16)
-    parser.add_argument("--points", type=int, default=4000)
-    parser.add_argument("--jitter", type=float, default=2.0, help="pose change, degrees (default %(default)s)")
-    parser.add_argument("--strays", type=int, default=4, help="up to this many spurious returns on half the scans")
-    parser.add_argument("--size", type=float, default=1.0, help="defect size factor on datasets.defects' ranges")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--epochs", type=int, default=None, help="train_latent.py --epochs (default: its own)")
-    parser.add_argument("--tag", default="", help="suffix of the model / results names of a run")
-    parser.add_argument("--no-rays", action="store_true", help="calibrate without the ray score (default: with it, "
-                                                               "the scans have sensor origins)")
-    args = parser.parse_args(argv)
-    if not (args.build or args.run or args.diagnose):
-        parser.error("give --build, --run and/or --diagnose")
-    if args.build:
-        build(args)
-    if args.run:
-        run(args)
-    if args.diagnose:
-        diagnose(args)
-
-
-if __name__ == "__main__":
-    main()

@@ -1,0 +1,152 @@
+"""Benchmark inputs built once and reused: scan collections and trained models, cached by their parameters.
+
+Every cached thing is a folder ``<root>/<kind>/<label>_<key>/``, ``key`` a short sha256 of the canonical JSON of the
+kind and its parameters, holding what the build wrote and ``params.json`` (the parameters). A folder is built in a
+hidden temporary folder beside it and renamed into place when the build has finished (``datasets.atomic``): an
+interrupted or failing build leaves nothing, and a folder that exists is complete.
+"""
+import hashlib
+import json
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+CACHE = "results/cache"
+SHARED = ROOT.parent / "shared"
+MESHES = SHARED / "meshes"
+REAL_SCANS = SHARED / "realscans"
+MESH_FILES = {"fandisk": MESHES / "fandisk.obj", "bunny": MESHES / "stanford-bunny.obj"}
+
+# the collection of a new user's first run: 32 good training scans, 16 good test scans, 16 per defect type, 4,000
+# points, in a fixture (datasets.synth.synthesise's keyword arguments)
+COLLECTION_DEFAULTS = dict(n_train=32, n_test_good=16, n_test_defective=16, n_points=4000, jitter_deg=0.0)
+
+
+def cache_key(kind, params):
+    """The short sha256 (12 hex digits) of the canonical JSON of ``kind`` and ``params``."""
+    text = json.dumps({"kind": kind, "params": params}, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+def cached_path(kind, params, build, root=CACHE, label=""):
+    """The folder of ``kind`` with ``params``, built by ``build(tmp_folder)`` when it does not exist yet.
+
+    Parameters
+    ----------
+    kind : str
+        What is cached (``'collection'``, ``'model'``, ...): a sub-folder of ``root``.
+    params : dict
+        Everything the result depends on (JSON-serialisable; paths are keyed as strings). Stored as params.json.
+    build : callable (Path) -> None
+        Fills the empty temporary folder it is given; an exception leaves nothing behind and propagates.
+    root : str or Path
+    label : str
+        Readable prefix of the folder's name (e.g. the part); not part of the key.
+
+    Returns
+    -------
+    Path
+        The complete folder.
+    """
+    from datasets.atomic import atomic_directory
+
+    key = cache_key(kind, params)
+    path = Path(root) / kind / (f"{label}_{key}" if label else key)
+    if (path / "params.json").is_file():
+        return path
+    with atomic_directory(path) as tmp:
+        build(tmp)
+        (tmp / "params.json").write_text(json.dumps({"kind": kind, "params": params}, indent=1, sort_keys=True,
+                                                    default=str) + "\n")
+    return path
+
+
+def part_mesh(part):
+    """The mesh of ``part``: ``fandisk`` and ``bunny`` (../shared/meshes), a built-in part's name
+    (``datasets.parts.BUILTIN_PARTS``: builtin, enclosure, cup) or a mesh file."""
+    from datasets.parts import load_part
+
+    return load_part(str(MESH_FILES.get(part, part)))
+
+
+def synth_collection(part, seed=0, root=CACHE, progress=False, **params):
+    """The synthetic scan collection of ``part`` (``datasets.synth.synthesise``), cached. Returns its ``tree.h5``.
+
+    Parameters
+    ----------
+    part : str
+        See :func:`part_mesh`.
+    seed : int
+    **params
+        ``synthesise``'s keyword arguments (defaults: :data:`COLLECTION_DEFAULTS`), and ``sensor_origins=False``
+        for the same scans without sensor origins (a scanner that does not record where it stood).
+    """
+    params = {**COLLECTION_DEFAULTS, **params}
+    origins = params.pop("sensor_origins", True)
+    keyed = {"part": part, "seed": seed, **params, **({} if origins else {"sensor_origins": False})}
+
+    def build(folder):
+        from datasets import ScanCollection
+        from datasets.synth import synthesise
+
+        scans, frame = synthesise(part_mesh(part), seed=seed, progress=progress, **params)
+        if not origins:
+            for scan in scans:
+                scan.sensor_origin = None
+        ScanCollection.create(folder / "tree.h5", scans, frame=frame, provenance={"benchmark": "cache", **keyed})
+
+    return cached_path("collection", keyed, build, root, label=Path(str(part)).stem) / "tree.h5"
+
+
+def trained_model(collection_path, root=CACHE, **train_options):
+    """A latent model trained on a collection (``inspection.training.train_model``: the trainer's defaults for
+    everything not given), cached by the collection's fingerprint and the options. Returns its ``model.pt``
+    (uncalibrated: copy it before calibrating).
+
+    ``train_options``: ``train_model``'s keyword arguments (``seed`` default 0, ``epochs``, ``calibration_fraction``,
+    ``representation`` and the other ``LatentOptions`` fields); None values mean the default and are not keyed.
+    """
+    from datasets import ScanCollection
+
+    collection_path = Path(collection_path)
+    with ScanCollection(collection_path) as c:
+        fingerprint = c.fingerprint()
+    options = {"seed": 0, **{k: v for k, v in train_options.items() if v is not None}}
+    options.pop("quiet", None)
+
+    def build(folder):
+        from inspection.training import train_model
+
+        train_model(collection_path, folder / "model.pt", quiet=True, **options)
+
+    label = collection_path.parent.name.rsplit("_", 1)[0]
+    return cached_path("model", {"collection": fingerprint, **options}, build, root, label=label) / "model.pt"
+
+
+def merged_collection(collections, root=CACHE):
+    """One collection of several parts' collections, cached by their fingerprints. Returns its ``tree.h5``.
+
+    ``collections`` {part: tree.h5}: the same scans, each named ``<part>/<name>`` with ``part_id`` = the part. Each
+    part keeps the coordinates of its own collection's unit-cube frame (each sits in its own fixture frame, centred
+    in the same cube; the part id tells them apart) and the merged collection records the identity frame.
+    """
+    from datasets import ScanCollection
+
+    fingerprints = {}
+    for part, path in collections.items():
+        with ScanCollection(path) as c:
+            fingerprints[part] = c.fingerprint()
+
+    def build(folder):
+        from dataclasses import replace
+
+        from datasets.frame import Frame
+
+        scans = []
+        for part, path in collections.items():
+            with ScanCollection(path) as c:
+                scans += [replace(s, name=f"{part}/{s.name}", part_id=part) for s in c.read_many(range(len(c)))]
+        ScanCollection.create(folder / "tree.h5", scans, frame=Frame.identity(),
+                              provenance={"benchmark": "cache", "parts": {p: str(s) for p, s in collections.items()},
+                                          "frame": "each part in its own collection's unit-cube frame"})
+
+    return cached_path("merged", fingerprints, build, root, label="+".join(collections)) / "tree.h5"

@@ -1,0 +1,227 @@
+"""The benchmarks' one door into the inspection package: every suite that calibrates, scores or reads a scored run
+goes through these functions, so a change of the inspection API is met here once.
+
+Written against ``inspection.run.calibrate`` / ``inspection.run.score`` (what ``python -m inspection calibrate`` and
+``score`` run) with an ``inspection.config.InspectionConfig``, ``inspection.Inspector.from_calibration`` and the
+files ``score`` writes (``scores.csv``, ``summary.json``).
+"""
+import csv
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+# the lines of the inspection's own output a benchmark repeats: what calibration did and any note on the threshold
+_ECHOED = ("note:", "threshold basis", "calibrated on", "part ")
+
+
+def model_info(model_path):
+    """What a benchmark needs to know of a trained model: ``train_names``, ``heldback_names``, ``kind``,
+    ``train_seconds`` and ``epoch`` (None where the checkpoint does not say)."""
+    from inspection.model_io import load_model
+
+    handle = load_model(model_path)
+    info = getattr(handle.model, "info", None) or {}
+    return {"train_names": list(handle.train_names), "heldback_names": list(handle.heldback_names),
+            "kind": handle.kind, "train_seconds": info.get("train_seconds"),
+            "epoch": getattr(handle.model, "epoch", None)}
+
+
+def point_score_names():
+    """The point scores the inspection package offers (its registry), in its order."""
+    from inspection.scores import POINT_SCORES
+
+    return list(POINT_SCORES)
+
+
+def defaults():
+    """The inspection's defaults: ``alpha``, ``aggregate``, ``point_score`` (the point score the command line picks
+    on a model's training collection), ``combination`` (the ray rule), ``projection`` (the options of a latent
+    model's ``project`` / ``project_many`` that inspection uses)."""
+    from inspection.combine import RULE
+    from inspection.config import DEFAULT_AGGREGATE, DEFAULT_PROJECTION, InspectionConfig
+
+    config = InspectionConfig()
+    # point score 'auto': 'joint' where the model's training scans give the reference (its training collection)
+    return {"alpha": config.alpha, "aggregate": DEFAULT_AGGREGATE, "point_score": "joint", "combination": RULE,
+            "projection": dict(DEFAULT_PROJECTION)}
+
+
+def calibrate_and_score(model_path, data_path, out_dir, *, rays=None, point_score=None, aggregate=None,
+                        alpha=None, align=False, maps="flagged", progress=False, echo=print):
+    """The README's shortest path on an uncalibrated copy of a model: ``python -m inspection score`` on the model's
+    training collection (which calibrates on the held-back scans by itself), after ``python -m inspection calibrate``
+    when any setting is given.
+
+    Parameters
+    ----------
+    model_path : str or Path
+        A trained model; it is copied to ``out_dir/model.pt`` (the calibration is written into the copy).
+    data_path : str or Path
+        The model's training collection; its test split is scored.
+    out_dir : str or Path
+        The run's folder: ``model.pt`` and ``results/`` (scores.csv, summary.json, plots, maps).
+    rays : bool, optional
+        Calibrate with (True) or without (False) the ray score; None: the inspection's own choice.
+    point_score, aggregate, alpha : optional
+        Calibration settings; None: the inspection's defaults.
+    align : bool
+        Score with ``--align`` (ICP onto the training scans first).
+    maps : {'flagged', 'all', 'none'}
+    echo : callable (str) -> None, optional
+        Receives the inspection's lines on calibration and threshold notes (None: silent).
+
+    Returns
+    -------
+    dict
+        summary.json's content.
+    """
+    from inspection.config import InspectionConfig
+    from inspection.run import calibrate, describe_calibration, score
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    copy = out_dir / "model.pt"
+    shutil.copyfile(model_path, copy)  # uncalibrated: the cached model stays as trained
+    lines = []
+    settings = {k: v for k, v in dict(rays=rays, point_score=point_score, aggregate=aggregate, alpha=alpha).items()
+                if v is not None}
+    if settings:
+        insp, info = calibrate(copy, data_path, config=InspectionConfig(**settings), progress=progress)
+        lines += describe_calibration(insp, info)
+    summary = score(copy, data_path, out_dir / "results", split="test", progress=progress, maps=maps,
+                    echo=lines.append, overwrite=True, align=align)
+    if echo is not None:
+        for line in lines:
+            if line.startswith(_ECHOED) or "not calibrated" in line:
+                echo(line)
+    return summary
+
+
+def read_scores(results_dir):
+    """The per-scan rows a scored run wrote (``results/scores.csv``), as arrays: ``name``, ``label``, ``defect``,
+    ``verdict`` ('good', 'defective', 'uncertain' (within the threshold's own uncertainty) or 'error': a scan that
+    could not be scored, score NaN), ``score``, ``flagged`` (bool: the score exceeds the threshold, whatever the
+    verdict) and, with rays, ``score_points``, ``score_rays``."""
+    with open(Path(results_dir) / "scores.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    out = {k: np.array([r[k] for r in rows]) for k in ("name", "label", "defect")}
+    out["verdict"] = np.array([r["verdict"] for r in rows])
+    out["flagged"] = np.array([r["flagged"] == "true" for r in rows])
+    for k in ("score", "score_points", "score_rays"):
+        if rows and k in rows[0]:
+            out[k] = np.array([float(r[k]) if r[k] not in ("", None) else np.nan for r in rows])
+    return out
+
+
+def summary_figures(summary):
+    """The figures of a summary: ``auroc`` (overall and per defect type), ``point_auroc``, ``flagged`` (fractions
+    of defective and good test scans), ``threshold`` (value, basis, predicted false-alarm rate and its interval;
+    None for a model of several parts, thresholded per part), ``point_score``, ``aggregate``, ``rays``,
+    ``seconds_per_scan``, ``alpha``."""
+    metrics = summary["metrics"]
+    confusion = metrics.get("confusion_matrix", {})
+    decision = summary.get("decision")
+    threshold = None
+    if decision is not None:
+        threshold = {"value": decision.get("value"), "basis": decision.get("basis"),
+                     "predicted_far": decision.get("predicted_far"), "far_interval": decision.get("far_interval")}
+    return {"auroc": {"overall": metrics.get("auroc"), **metrics.get("auroc_per_defect", {})},
+            "point_auroc": metrics.get("point_auroc"),
+            "flagged": {"defective": metrics.get("detection_rate"), "good": metrics.get("false_alarm_rate"),
+                        "n_good": confusion.get("tn", 0) + confusion.get("fp", 0)},
+            "threshold": threshold, "point_score": summary.get("point_score"), "aggregate": summary.get("aggregate"),
+            "rays": summary.get("rays") is not None, "seconds_per_scan": summary.get("seconds_per_scan"),
+            "alpha": summary.get("alpha")}
+
+
+def point_maps(model_path, data_path, split="test", fields=False):
+    """Per-point scores of a collection's scans under a calibrated model (``inspection.Inspector`` with the model's
+    stored calibration, as ``score`` computes them).
+
+    Returns
+    -------
+    scans : list of datasets.Scan
+    results : list of dict
+        Per scan: ``score`` (float), ``point_scores`` ((m_i,) array) and, with ``fields``, ``field`` (the projected
+        stochastic field).
+    """
+    from datasets import ScanCollection
+
+    insp = _inspector(model_path)
+    with ScanCollection(data_path) as c:
+        scans = c.read_many(c.select(split=split))
+    results = []
+    for s in scans:
+        r = insp.inspect(s)
+        results.append({"score": float(r.score), "point_scores": np.asarray(r.point_scores),
+                        **({"field": r.field} if fields else {})})
+    return scans, results
+
+
+def calibration_settings(model_path):
+    """How a calibrated model scores: ``point_score``, ``aggregate``, ``noise`` (the floor used: the calibration's or
+    the model's own), ``lengthscale`` (the model's kernel lengthscale), ``alpha``."""
+    from inspection import load_model
+
+    handle = load_model(model_path)
+    cal = handle.calibration
+    settings = _inspector(model_path).settings_
+    return {"point_score": settings.point_score, "aggregate": settings.aggregate, "alpha": cal.alpha,
+            "noise": settings.noise if settings.noise is not None else handle.model.noise,
+            "lengthscale": handle.model.lengthscale}
+
+
+def _inspector(model_path):
+    """The Inspector of a calibrated model, with its stored calibration."""
+    from inspection import Inspector, load_model
+
+    handle = load_model(model_path)
+    return Inspector.from_calibration(handle.model, handle.calibration)
+
+
+def ray_gate(run_dir, factors, alpha=None):
+    """The ``gated-log`` combination of a scored run with rays, rebuilt with its gate's ceiling at
+    log(1 + MAX_SURPRISAL / F) for each F of ``factors`` (None: no ceiling), the threshold refitted as the
+    Inspector does. Seconds: only the combination changes, the stored point and ray scores are reused.
+
+    Parameters
+    ----------
+    run_dir : str or Path
+        A :func:`calibrate_and_score` folder (``model.pt`` calibrated with rays, ``results/scores.csv``).
+    factors : sequence of float or None
+    alpha : float, optional
+        Default: the calibration's.
+
+    Returns
+    -------
+    list of dict
+        Per factor: ``factor``, ``gate`` (nats), ``scores`` (per test scan), ``threshold``, ``default`` (whether
+        this is the inspection's own ceiling).
+    """
+    from autodecoder.scanning.free_space import MAX_SURPRISAL
+    from inspection.combine import LOG_GATE_CEILING_FACTOR, Combination
+    from inspection.model_io import load_model
+    from inspection.threshold import fit_threshold
+
+    run_dir = Path(run_dir)
+    calibration = load_model(run_dir / "model.pt").calibration
+    rays = ((calibration.extra if calibration is not None else None) or {}).get("rays")
+    if not rays:
+        raise ValueError(f"{run_dir}: not calibrated with the ray score")
+    stored = Combination.from_dict(rays["components"])  # the calibration scans' component scores
+    comps = {name: stored.matrix[:, j] for j, name in enumerate(stored.names)}
+    rows = read_scores(run_dir / "results")
+    alpha = calibration.alpha if alpha is None else alpha
+    out = []
+    for factor in factors:
+        # the rule bounds the gate at log(1 + ceiling / LOG_GATE_CEILING_FACTOR): this ceiling puts it at
+        # log(1 + MAX_SURPRISAL / factor)
+        ceiling = None if factor is None else MAX_SURPRISAL * LOG_GATE_CEILING_FACTOR / factor
+        comb = Combination(comps, names=("points", "rays"), ceiling=ceiling)
+        scores = comb.score({"points": rows["score_points"], "rays": rows["score_rays"]})
+        threshold = fit_threshold(comb.calibration_scores(), alpha, calibration.roles)
+        out.append({"factor": factor, "gate": float(np.expm1(comb.mean[1] + comb.sd[1] * comb.gate[1])),
+                    "scores": np.asarray(scores), "threshold": threshold.value,
+                    "default": factor == LOG_GATE_CEILING_FACTOR})
+    return out

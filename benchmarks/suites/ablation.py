@@ -1,0 +1,115 @@
+"""The defaults taken apart: one trained model per part rescored with each point score and each aggregate.
+
+Per part, the collection and model of the ``inspection`` suite (the same cache keys: the same seed and sizes give the
+same files), then :func:`benchmarks.inspect_api.calibrate_and_score` once per setting: each point score the
+inspection package offers at the default aggregate, and each aggregate of ``--aggregates`` at the default point
+score (``--grid``: every pair), without the ray score unless ``--rays`` (so that the point score is measured alone).
+Every score is the library's: nothing is re-implemented here. Printed per setting: object AUROC overall and per
+defect type, the fractions of defective and good test scans flagged at alpha, the threshold's basis and predicted
+false-alarm rate, seconds per scan.
+
+``--ray-gate``: the ``gated-log`` combination of the point and ray scores re-evaluated offline on a scored run with
+rays, with its gate's ceiling at log(1 + MAX_SURPRISAL / F) for F = 2, 4 (the default) and 8, and without the
+ceiling (the rule before it); the threshold refitted as the Inspector does. Run folders may be given (any
+``calibrate_and_score`` folder calibrated with rays); without them each part is scored with rays first.
+"""
+from pathlib import Path
+
+from benchmarks import cache, inspect_api, metrics
+from benchmarks.table import format_table, verdicts_table
+
+DESCRIPTION = ("the same trained model rescored with each point score and aggregate of the inspection package "
+               "(--grid: every pair); --ray-gate: the rays' combination gate with and without its ceiling")
+WORK = "results/ablation"
+AGGREGATES = "top1,top2,top5,mean,q99"
+GATE_FACTORS = (None, 2.0, 4.0, 8.0)
+
+
+def add_arguments(p):
+    p.add_argument("--parts", default="fandisk,builtin", help="comma-separated parts (default: %(default)s); see "
+                                                              "the inspection suite")
+    p.add_argument("--seed", type=int, default=0, help="synthesis and training seed (default: %(default)s)")
+    p.add_argument("--point-scores", default=None,
+                   help="comma-separated point scores (default: every one the inspection package offers)")
+    p.add_argument("--aggregates", default=AGGREGATES, help="comma-separated aggregates (default: %(default)s)")
+    p.add_argument("--grid", action="store_true", help="every point score with every aggregate")
+    p.add_argument("--rays", action="store_true", help="calibrate every setting with the ray score too")
+    p.add_argument("--ray-gate", nargs="*", type=Path, default=None, metavar="RUN",
+                   help="only the rays' combination gate, re-evaluated on these scored runs (none given: each part "
+                        "scored with rays at the defaults first)")
+    p.add_argument("--cache", default=cache.CACHE, help="collections and models (default: %(default)s)")
+    p.add_argument("--work", default=WORK, help="scored runs (default: %(default)s)")
+    p.add_argument("--progress", action="store_true", help="progress bars")
+
+
+def settings(point_scores, aggregates, default_score, default_aggregate, grid=False):
+    """The (point score, aggregate) pairs to score: every pair with ``grid``, else each point score at the default
+    aggregate and each aggregate at the default point score (the defaults' pair once, first)."""
+    if grid:
+        return [(s, a) for s in point_scores for a in aggregates]
+    pairs = [(default_score, default_aggregate)]
+    pairs += [(s, default_aggregate) for s in point_scores if s != default_score]
+    pairs += [(default_score, a) for a in aggregates if a != default_aggregate]
+    return pairs
+
+
+def run(args):
+    if args.ray_gate is not None:
+        return {"ray_gate": _ray_gates(args)}
+    defaults = inspect_api.defaults()
+    scores = args.point_scores.split(",") if args.point_scores else inspect_api.point_score_names()
+    pairs = settings(scores, args.aggregates.split(","), defaults["point_score"], defaults["aggregate"], args.grid)
+    figures, rows = {}, []
+    for part in args.parts.split(","):
+        data, model = _inputs(part, args)
+        figures[part] = {}
+        for point_score, aggregate in pairs:
+            run_dir = Path(args.work) / data.parent.name / f"{point_score}_{aggregate}{'_rays' if args.rays else ''}"
+            summary = inspect_api.calibrate_and_score(model, data, run_dir, rays=args.rays, point_score=point_score,
+                                                      aggregate=aggregate, maps="none", progress=args.progress,
+                                                      echo=None)
+            one = inspect_api.summary_figures(summary)
+            figures[part][f"{point_score}/{aggregate}"] = one
+            rows.append(dict(part=part, method=f"{point_score}/{aggregate}" + (" +rays" if args.rays else ""), **one))
+            print(f"{part}: {point_score}/{aggregate}: AUROC {one['auroc']['overall']:.3f}", flush=True)
+    print()
+    print(verdicts_table(rows))
+    return {"parts": figures}
+
+
+def _inputs(part, args):
+    """The inspection suite's collection and model of ``part`` (same cache keys). Returns (tree.h5, model.pt)."""
+    data = cache.synth_collection(part, args.seed, root=args.cache, progress=args.progress)
+    return data, cache.trained_model(data, root=args.cache, seed=args.seed)
+
+
+def _ray_gates(args):
+    """The gate tables of the given runs, else of each part scored with rays at the defaults."""
+    runs = list(args.ray_gate)
+    if not runs:
+        for part in args.parts.split(","):
+            data, model = _inputs(part, args)
+            runs.append(Path(args.work) / data.parent.name / "defaults_rays")
+            inspect_api.calibrate_and_score(model, data, runs[-1], rays=True, maps="none", progress=args.progress,
+                                            echo=None)
+    return {str(r): _ray_gate(r) for r in runs}
+
+
+def _ray_gate(run_dir):
+    """The gate table of one scored run with rays; returns its figures per F."""
+    scored = inspect_api.read_scores(Path(run_dir) / "results")
+    out, rows = {}, []
+    for g in inspect_api.ray_gate(run_dir, GATE_FACTORS):
+        name = "no bound" if g["factor"] is None else f"F = {g['factor']:g}" + (" (default)" if g["default"] else "")
+        one = {"gate": g["gate"], "auroc": metrics.auroc_per_defect(g["scores"], scored["label"], scored["defect"]),
+               "flagged": metrics.flagged(g["scores"], scored["label"], g["threshold"])}
+        out[name] = one
+        rows.append({"rule": name, "gate": g["gate"], **one["auroc"], "def": one["flagged"]["defective"],
+                     "good": f"{round(one['flagged']['good'] * one['flagged']['n_good'])} of "
+                             f"{one['flagged']['n_good']}"})
+    kinds = sorted(k for k in rows[0] if k not in ("rule", "gate", "overall", "def", "good"))
+    print(f"\n{run_dir}: the gated-log gate with and without its ceiling")
+    print(format_table(rows, [("rule", "gate", ""), ("gate", "nats", ".1f"), ("overall", "AUROC", ".3f"),
+                              *[(k, k, ".3f") for k in kinds], ("def", "def flagged", ".3f"),
+                              ("good", "good flagged", ">")]))
+    return out

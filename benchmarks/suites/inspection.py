@@ -1,0 +1,261 @@
+"""What a new user's first run decides, per part, next to the nearest-neighbour baseline.
+
+Per part: a synthetic collection (:func:`benchmarks.cache.synth_collection`: 32 good training scans, 16 good test
+scans, 16 per defect type, 4,000 points), a model trained with the trainer's defaults
+(:func:`benchmarks.cache.trained_model`), then the README's shortest path on an uncalibrated copy of it:
+``python -m inspection score``, which calibrates on the held-back scans and the cross-fitted training scans by itself
+(:func:`benchmarks.inspect_api.calibrate_and_score`). Printed per part: object AUROC overall and per defect type,
+the fractions of defective and of good test scans flagged, the threshold's basis and predicted false-alarm rate with
+its 90 % interval, seconds per scan; beside it the nearest-neighbour baseline thresholded the same way
+(:func:`benchmarks.baselines.nn_verdicts`).
+
+Two other regimes, as options:
+
+- ``--multi-part``: the parts' collections merged into one (each scan's ``part_id`` its part) and one model trained
+  on it with the defaults; per part, its scans' figures under the two-part model next to its own model's.
+- ``--templates``: the Real3D-AD / Anomaly-ShapeNet regime: 4 complete clouds sampled from the part's mesh (each
+  ``--template-points``, depth noise 0.002 x the diagonal along the normal) and partial test scans with defects
+  (the synthetic collection's test scans), written as a Real3D-AD class folder and imported by the datasets
+  importer (the templates become ``--views`` partial training views and ``--validation-views`` held-back views
+  each); trained, calibrated and scored as above; object and point AUROC per defect type next to the baseline.
+"""
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks import baselines, cache, inspect_api, metrics
+from benchmarks.table import format_table, verdicts_table
+
+DESCRIPTION = ("a new user's first run per part (synthesise, train, score at the defaults): object AUROC per defect "
+               "type, flagged fractions, threshold, s/scan, next to the nearest-neighbour baseline; --multi-part, "
+               "--templates")
+WORK = "results/inspection"
+
+
+def add_arguments(p):
+    p.add_argument("--parts", default="fandisk,builtin",
+                   help="comma-separated: fandisk, bunny, builtin, enclosure, cup, or a mesh file (default: %(default)s)")
+    p.add_argument("--train", type=int, default=32, help="good training scans (default: %(default)s)")
+    p.add_argument("--test-good", type=int, default=16, help="good test scans (default: %(default)s)")
+    p.add_argument("--per-defect", type=int, default=None,
+                   help="test scans per defect type (default: 16; 8 with --templates)")
+    p.add_argument("--points", type=int, default=4000, help="points per scan (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="synthesis and training seed (default: %(default)s)")
+    p.add_argument("--jitter", type=float, default=0.0, help="pose jitter of every scan, degrees (default: none)")
+    p.add_argument("--align", action="store_true", help="score with --align (ICP onto the training scans first)")
+    rays = p.add_mutually_exclusive_group()
+    rays.add_argument("--rays", dest="rays", action="store_const", const=True, default=None,
+                      help="calibrate with the ray score (default: the inspection's choice, the rays when every "
+                           "scan has a sensor origin)")
+    rays.add_argument("--no-rays", dest="rays", action="store_const", const=False, help="calibrate without it")
+    p.add_argument("--no-origins", action="store_true",
+                   help="the same scans without sensor origins (a collection and model of their own): no rays, the "
+                        "grazing term's viewpoint estimated from the normals")
+    p.add_argument("--epochs", type=int, default=None, help="training epochs (default: the trainer's)")
+    p.add_argument("--representation", choices=("siren", "grid"), default=None,
+                   help="the model's nets (default: the trainer's); cached per representation")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--multi-part", action="store_true",
+                      help="also one model trained on all the parts' scans, per part next to its own model")
+    mode.add_argument("--templates", action="store_true",
+                      help="the Real3D-AD regime: train on views of 4 complete templates, test on partial scans")
+    p.add_argument("--template-points", type=int, default=10000, help="--templates: points per template")
+    p.add_argument("--views", type=int, default=16, help="--templates: training views per template")
+    p.add_argument("--validation-views", type=int, default=4, help="--templates: held-back views per template")
+    p.add_argument("--cache", default=cache.CACHE, help="collections and models (default: %(default)s)")
+    p.add_argument("--work", default=WORK, help="scored runs (default: %(default)s)")
+    p.add_argument("--progress", action="store_true", help="progress bars")
+
+
+def run(args):
+    parts = args.parts.split(",")
+    figures = {"parts": {}, "multi_part": None}
+    if args.templates:
+        for part in parts:
+            figures["parts"][part] = _templates(part, args)
+        return figures
+    rows, collections = [], {}
+    for part in parts:
+        collections[part], one, part_rows = _single(part, args)
+        figures["parts"][part] = one
+        rows += part_rows
+    print()
+    print(verdicts_table(rows))
+    if args.multi_part:
+        figures["multi_part"] = _multi_part(collections, figures["parts"], args)
+    return figures
+
+
+# ---------------------------------------------------------------------------------------------------- one part
+def _train_options(args):
+    return dict(seed=args.seed, epochs=args.epochs, representation=args.representation)
+
+
+def _run_name(args):
+    """The scoring run's folder: what sets it apart from the defaults' (``defaults`` alone for the defaults)."""
+    return ("defaults" + (f"_e{args.epochs}" if args.epochs else "")
+            + (f"_{args.representation}" if args.representation else "") + ("_aligned" if args.align else "")
+            + {True: "_rays", False: "_norays", None: ""}[args.rays])
+
+
+def _single(part, args):
+    """One part at the defaults. Returns (collection path, figures, table rows)."""
+    t0 = time.perf_counter()
+    data = cache.synth_collection(part, args.seed, root=args.cache, progress=args.progress, n_train=args.train,
+                                  n_test_good=args.test_good, n_test_defective=args.per_defect or 16,
+                                  n_points=args.points, jitter_deg=args.jitter,
+                                  **({"sensor_origins": False} if args.no_origins else {}))
+    model = cache.trained_model(data, root=args.cache, **_train_options(args))
+    info = inspect_api.model_info(model)
+    print(f"{part}: collection {data}, model {model} (trained in {info['train_seconds'] or float('nan'):.0f} s; "
+          f"collection and model ready after {time.perf_counter() - t0:.0f} s here)", flush=True)
+    run_dir = Path(args.work) / data.parent.name / _run_name(args)
+    summary = inspect_api.calibrate_and_score(model, data, run_dir, rays=args.rays, align=args.align,
+                                              progress=args.progress, echo=lambda line: print(f"  {part}: {line}"))
+    toolkit = inspect_api.summary_figures(summary)
+    toolkit["method"] = (f"toolkit {toolkit['point_score']}/{toolkit['aggregate']}" + (" +rays" if toolkit["rays"]
+                         else "") + (f" {args.representation}" if args.representation else ""))
+    nn = baselines.nn_verdicts(data, info["heldback_names"], summary["alpha"])
+    nn_figures = {"method": "nearest-neighbour top5%",
+                  "auroc": metrics.auroc_per_defect(nn["scores"], nn["labels"], nn["defects"]),
+                  "point_auroc": metrics.point_auroc(nn["point_labels"], nn["point_scores"]),
+                  "flagged": metrics.flagged(nn["scores"], nn["labels"], nn["threshold"].value),
+                  "threshold": _threshold(nn["threshold"]), "seconds_per_scan": nn["seconds_per_scan"]}
+    one = {"collection": str(data), "model": str(model), "run": str(run_dir), "train_seconds": info["train_seconds"],
+           "toolkit": toolkit, "nn": nn_figures}
+    return data, one, [dict(part=part, **toolkit), dict(part=part, **nn_figures)]
+
+
+def _threshold(t):
+    return {"value": t.value, "basis": t.basis, "predicted_far": t.predicted_far,
+            "far_interval": list(t.far_interval)}
+
+
+# ---------------------------------------------------------------------------------------------------- multi-part
+def _multi_part(collections, singles, args):
+    """One model on the merged collection of the parts; per part its scans' figures next to its own model's."""
+    data = cache.merged_collection(collections, root=args.cache)
+    model = cache.trained_model(data, root=args.cache, **_train_options(args))
+    info = inspect_api.model_info(model)
+    run_dir = Path(args.work) / data.parent.name / _run_name(args)
+    inspect_api.calibrate_and_score(model, data, run_dir, rays=args.rays, align=args.align, maps="none",
+                                    progress=args.progress, echo=lambda line: print(f"  multi-part: {line}"))
+    scored = inspect_api.read_scores(run_dir / "results")
+    out, rows = {"collection": str(data), "model": str(model), "train_seconds": info["train_seconds"], "parts": {}}, []
+    for part, one in singles.items():
+        mine = np.char.startswith(scored["name"].astype(str), f"{part}/")
+        two = _verdict_figures(scored, mine)
+        own = inspect_api.read_scores(Path(one["run"]) / "results")
+        single = _verdict_figures(own, np.ones(len(own["name"]), bool))
+        out["parts"][part] = {"multi_part": two, "single_part": single}
+        rows += [dict(part=part, method="multi-part", train=info["train_seconds"], **two),
+                 dict(part=part, method="single-part", train=one["train_seconds"], **single),
+                 dict(part=part, method="nearest-neighbour top5%", train=0.0, auroc=one["nn"]["auroc"],
+                      flagged=one["nn"]["flagged"])]
+    kinds = sorted({k for r in rows for k in r["auroc"] if k != "overall"})
+    flat = [{"part": r["part"], "method": r["method"], "auroc": r["auroc"]["overall"],
+             **{k: r["auroc"].get(k) for k in kinds}, "def": r["flagged"]["defective"],
+             "good": f"{round(r['flagged']['good'] * r['flagged']['n_good'])} of {r['flagged']['n_good']}",
+             "train": r["train"]} for r in rows]
+    print()
+    print(format_table(flat, [("part", "part", ""), ("method", "method", ""), ("auroc", "AUROC", ".3f"),
+                              *[(k, k, ".3f") for k in kinds], ("def", "def flagged", ".3f"),
+                              ("good", "good flagged", ">"), ("train", "train s", ".0f")]))
+    return out
+
+
+def _verdict_figures(scored, keep):
+    """AUROC per type and the flagged fractions of the scans ``keep`` of a scored run, from its own verdicts (which
+    may come from one threshold per part)."""
+    labels, flagged = scored["label"][keep], scored["flagged"][keep]
+    bad = labels != metrics.GOOD
+    return {"auroc": metrics.auroc_per_defect(scored["score"][keep], labels, scored["defect"][keep]),
+            "flagged": {"defective": float(flagged[bad].mean()), "good": float(flagged[~bad].mean()),
+                        "n_good": int((~bad).sum()), "n_defective": int(bad.sum())}}
+
+
+# ---------------------------------------------------------------------------------------------------- templates
+def _template_collection(part, args):
+    """The imported Real3D-AD-like class folder of ``part`` (cached). Returns its ``data.h5``."""
+    test = cache.synth_collection(part, args.seed, root=args.cache, n_train=0, n_test_good=args.test_good,
+                                  n_test_defective=args.per_defect or 8, n_points=args.points)
+    params = {"part": part, "test": str(test.parent.name), "template_points": args.template_points,
+              "seed": args.seed, "views": args.views, "validation_views": args.validation_views}
+
+    def build(folder):
+        from datasets import ScanCollection
+        from datasets.importer import import_tree
+
+        tree = folder / "tree"
+        _write_templates(cache.part_mesh(part), tree / "train", args.template_points, args.seed)
+        with ScanCollection(test) as c:
+            frame, scans = c.frame, c.read_many(range(len(c)))
+        for i, s in enumerate(scans):
+            points = frame.to_file(s.points)
+            stem = f"{i + 1}_{'good' if s.label == metrics.GOOD else s.defect}"
+            _write_pcd(tree / "test" / f"{stem}.pcd", points)
+            if s.label != metrics.GOOD:
+                (tree / "gt").mkdir(exist_ok=True)
+                np.savetxt(tree / "gt" / f"{stem}.txt", np.column_stack([points, s.point_labels]),
+                           fmt=["%.6f"] * 3 + ["%d"])
+        import_tree(tree, folder / "data.h5", seed=args.seed, views=args.views,
+                    validation_views=args.validation_views, progress=False)
+
+    return cache.cached_path("templates", params, build, args.cache, label=part) / "data.h5"
+
+
+def _write_templates(mesh, folder, n_points, seed):
+    """4 complete clouds sampled on ``mesh`` (its units), depth noise 0.002 x its diagonal along the normal."""
+    import trimesh
+
+    diag = float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
+    for k in range(4):
+        rng = np.random.default_rng([seed, 1000 + k])
+        pts, faces = trimesh.sample.sample_surface(mesh, n_points, seed=int(rng.integers(2**31)))
+        pts = pts + mesh.face_normals[faces] * rng.normal(0, 0.002 * diag, (len(pts), 1))
+        _write_pcd(folder / f"{k + 1}_template.pcd", pts)
+
+
+def _write_pcd(path, points):
+    import open3d as o3d
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+    if not o3d.io.write_point_cloud(str(path), pcd):
+        raise RuntimeError(f"{path}: open3d could not write it")
+
+
+def _templates(part, args):
+    """One part in the template regime: object and point AUROC per defect type, toolkit and baseline."""
+    from datasets import ScanCollection
+
+    data = _template_collection(part, args)
+    model = cache.trained_model(data, root=args.cache, **_train_options(args))
+    run_dir = Path(args.work) / data.parent.name / _run_name(args)
+    summary = inspect_api.calibrate_and_score(model, data, run_dir, rays=args.rays, maps="none",
+                                              progress=args.progress, echo=lambda line: print(f"  {part}: {line}"))
+    scans, scored = inspect_api.point_maps(run_dir / "model.pt", data)
+    with ScanCollection(data) as c:
+        train = c.read_many(c.select(split="train"))
+        n_validation = len(c.select(split="validation"))
+    nn = baselines.nn_baseline(np.concatenate([s.points for s in train]), scans)
+    labels, defects = [s.label for s in scans], [s.defect for s in scans]
+    point_labels = [s.point_labels for s in scans]
+    result = {}
+    for name, scan_scores, maps in (("toolkit", [r["score"] for r in scored], [r["point_scores"] for r in scored]),
+                                    ("nn", [v for v, _ in nn], [d for _, d in nn])):
+        result[name] = {"auroc": metrics.auroc_per_defect(scan_scores, labels, defects),
+                        "point_auroc": metrics.point_auroc_per_defect(point_labels, maps, labels, defects)}
+    toolkit = inspect_api.summary_figures(summary)
+    print(f"\n== {part}: {len(train)} training views, {n_validation} validation views from 4 templates of "
+          f"{args.template_points} points; {len(scans)} test scans of {args.points} points; point score "
+          f"{toolkit['point_score']}/{toolkit['aggregate']}, false-alarm rate {toolkit['flagged']['good']:.3f} at "
+          f"alpha {toolkit['alpha']}")
+    kinds = list(result["toolkit"]["auroc"])
+    print(format_table([{"defect": k, "mo": result["toolkit"]["auroc"][k], "no": result["nn"]["auroc"][k],
+                         "mp": result["toolkit"]["point_auroc"][k], "np": result["nn"]["point_auroc"][k]}
+                        for k in kinds],
+                       [("defect", "defect", ""), ("mo", "model obj", ".3f"), ("no", "NN obj", ".3f"),
+                        ("mp", "model pt", ".3f"), ("np", "NN pt", ".3f")]))
+    return {"collection": str(data), "model": str(model), **result, "toolkit_summary": toolkit}

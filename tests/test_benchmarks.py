@@ -1,0 +1,216 @@
+"""The benchmark harness' core, fast: the run record, the cache's keying and atomicity, the metrics against
+scikit-learn and hand-counted pairs, the suites' discovery and help. No benchmark is run here."""
+import json
+import subprocess
+import sys
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from benchmarks import cache, metrics, record
+from benchmarks import __main__ as harness
+
+ROOT = Path(__file__).resolve().parents[1]
+HEAVY = ("torch", "open3d", "matplotlib", "sklearn", "h5py", "trimesh")
+
+
+# ------------------------------------------------------------------------------------------------------ record
+def test_record_holds_the_command_commit_date_load_and_figures(tmp_path):
+    started, finished = record.Moment(1_700_000_000.0, (0.5, 0.25, 0.125)), record.Moment(1_700_000_090.5, (1, 2, 3))
+    figures = {"auroc": np.float32(0.75), "per_type": {"dent": np.float64(0.5)}, "counts": np.arange(3),
+               "missing": float("nan"), "path": Path("a/b")}
+    path = record.write_record("inspection", ["inspection", "--parts", "builtin,fandisk", "--note", "two words"],
+                               figures, started, finished, out_dir=tmp_path)
+    assert path.parent == tmp_path and path.name == "inspection_20231114T221320Z.json"
+    rec = json.loads(path.read_text())
+    assert set(rec) == {"suite", "command", "commit", "dirty", "date", "seconds", "load", "figures"}
+    assert rec["suite"] == "inspection"
+    assert rec["command"] == "python -m benchmarks inspection --parts builtin,fandisk --note 'two words'"
+    assert rec["commit"] is None or len(rec["commit"]) == 40
+    assert rec["dirty"] in (True, False, None)
+    assert datetime.fromisoformat(rec["date"]).timestamp() == started.time
+    assert rec["seconds"] == 90.5
+    assert rec["load"] == {"start": [0.5, 0.25, 0.125], "end": [1, 2, 3], "cpus": rec["load"]["cpus"]}
+    assert rec["load"]["cpus"] >= 1
+    assert rec["figures"] == {"auroc": 0.75, "per_type": {"dent": 0.5}, "counts": [0, 1, 2], "missing": None,
+                              "path": "a/b"}
+    again = record.write_record("inspection", ["inspection"], {}, started, finished, out_dir=tmp_path)
+    assert again != path and again.is_file()  # the same second: a second file, not a replacement
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([path.name, again.name])  # no temporary left
+
+
+def test_moment_now_reads_the_clock_and_the_load():
+    m = record.Moment.now()
+    assert m.time > 1.6e9 and len(m.load) == 3
+
+
+# ------------------------------------------------------------------------------------------------------ cache
+def test_cache_builds_once_per_parameters(tmp_path):
+    calls = []
+
+    def build(folder):
+        calls.append(folder)
+        (folder / "out.txt").write_text("built")
+
+    a = cache.cached_path("thing", {"n": 1, "part": "builtin"}, build, root=tmp_path, label="builtin")
+    b = cache.cached_path("thing", {"part": "builtin", "n": 1}, build, root=tmp_path, label="builtin")
+    assert a == b and len(calls) == 1  # the same parameters in another order: the same folder, built once
+    assert (a / "out.txt").read_text() == "built"
+    assert json.loads((a / "params.json").read_text()) == {"kind": "thing", "params": {"n": 1, "part": "builtin"}}
+    assert a.parent == tmp_path / "thing" and a.name.startswith("builtin_")
+    c = cache.cached_path("thing", {"n": 2, "part": "builtin"}, build, root=tmp_path)
+    d = cache.cached_path("other", {"n": 1, "part": "builtin"}, build, root=tmp_path)
+    assert len({a, c, d}) == 3 and len(calls) == 3  # other parameters or another kind: another folder
+    assert cache.cache_key("thing", {"n": 1}) != cache.cache_key("thing", {"n": 1.5})
+
+
+def test_a_failing_build_leaves_nothing(tmp_path):
+    def build(folder):
+        (folder / "half.txt").write_text("half")
+        raise RuntimeError("interrupted")
+
+    with pytest.raises(RuntimeError, match="interrupted"):
+        cache.cached_path("thing", {"n": 1}, build, root=tmp_path)
+    assert list((tmp_path / "thing").iterdir()) == []  # no folder, no hidden temporary
+
+    def good(folder):
+        (folder / "out.txt").write_text("ok")
+
+    path = cache.cached_path("thing", {"n": 1}, good, root=tmp_path)  # the next try builds it whole
+    assert (path / "out.txt").read_text() == "ok"
+
+
+# ------------------------------------------------------------------------------------------------------ metrics
+def _pairs_auroc(y, s):
+    """The naive reference: over every (defective, good) pair, 1 when the defective scores higher, 1/2 on a tie."""
+    pos, neg = s[y == 1], s[y == 0]
+    return np.mean([(p > n) + 0.5 * (p == n) for p in pos for n in neg])
+
+
+def test_auroc_matches_sklearn_and_the_pair_count():
+    from sklearn.metrics import roc_auc_score
+
+    assert metrics.auroc([0, 0, 1, 1], [0.1, 0.4, 0.35, 0.8]) == pytest.approx(0.75)  # sklearn's own example
+    assert metrics.auroc([0, 1], [1.0, 1.0]) == 0.5
+    assert metrics.auroc([1, 1, 0], [3, 2, 1]) == 1.0 and metrics.auroc([1, 0], [0, 1]) == 0.0
+    assert np.isnan(metrics.auroc([1, 1], [0.2, 0.3]))
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        y = rng.integers(0, 2, 40)
+        y[:2] = [0, 1]
+        s = rng.integers(0, 6, 40).astype(float)  # many ties
+        assert metrics.auroc(y, s) == pytest.approx(roc_auc_score(y, s), abs=1e-12)
+        assert metrics.auroc(y, s) == pytest.approx(_pairs_auroc(y, s), abs=1e-12)
+
+
+def test_auroc_per_defect_compares_each_type_with_the_good_scans():
+    labels = np.array(["good", "good", "defective", "defective", "defective"])
+    defects = np.array(["", "", "dent", "dent", "bump"])
+    scores = np.array([0.2, 0.6, 0.5, 0.9, 0.1])
+    out = metrics.auroc_per_defect(scores, labels, defects)
+    # dent: (0.5 > 0.2) + (0.9 > both) = 3 of 4 pairs; bump: 0.1 below both goods; overall: 3 of 6
+    assert out == pytest.approx({"overall": 0.5, "dent": 0.75, "bump": 0.0})
+    assert list(out) == ["overall", "bump", "dent"]
+
+
+def test_flagged_fractions():
+    labels = np.array(["good", "good", "good", "defective", "defective"])
+    out = metrics.flagged([0.1, 0.5, 0.7, 0.6, 0.2], labels, threshold=0.5)
+    assert out == {"defective": 0.5, "good": pytest.approx(1 / 3), "n_good": 3, "n_defective": 2}
+
+
+def test_point_auroc_pools_the_points_and_reads_no_labels_as_good():
+    from sklearn.metrics import roc_auc_score
+
+    labels = [np.array([0, 0, 1]), None, np.array([1, 0])]
+    scores = [np.array([0.1, 0.3, 0.9]), np.array([0.2, 0.95]), np.array([0.4, 0.5])]
+    y = np.r_[0, 0, 1, 0, 0, 1, 0]
+    s = np.concatenate(scores)
+    assert metrics.point_auroc(labels, scores) == pytest.approx(roc_auc_score(y, s))
+    per = metrics.point_auroc_per_defect(labels, scores, ["defective", "good", "defective"], ["dent", "", "bump"])
+    assert per["dent"] == pytest.approx(roc_auc_score([0, 0, 1, 0, 0], [0.1, 0.3, 0.9, 0.2, 0.95]))
+    assert per["bump"] == pytest.approx(roc_auc_score([0, 0, 1, 0], [0.2, 0.95, 0.4, 0.5]))
+
+
+# ------------------------------------------------------------------------------------------------------ harness
+def _suite_files():
+    return sorted(p.stem for p in (ROOT / "benchmarks" / "suites").glob("*.py") if not p.stem.startswith("_"))
+
+
+def test_every_suite_is_found_and_keeps_the_contract():
+    found = harness.discover()
+    assert sorted(found) == _suite_files()
+    for name, module in found.items():
+        assert not isinstance(module, str), f"{name}: {module}"
+        assert isinstance(module.DESCRIPTION, str) and "\n" not in module.DESCRIPTION.strip(), name
+        assert callable(module.add_arguments) and callable(module.run), name
+
+
+def test_help_lists_the_suites_fast_and_without_heavy_imports():
+    code = ("import sys; from benchmarks.__main__ import main\n"
+            "try:\n    main(['--help'])\nexcept SystemExit as e:\n    assert e.code == 0\n"
+            f"print('HEAVY', ','.join(h for h in {HEAVY!r} if h in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True,
+                         timeout=60).stdout
+    assert out.strip().endswith("HEAVY"), f"--help imports {out.strip().rpartition('HEAVY ')[2]}"
+    for name, module in harness.discover().items():
+        assert name in out
+        assert module.DESCRIPTION.split()[0] in out
+
+
+@pytest.mark.parametrize("suite", _suite_files())
+def test_each_suite_has_its_help(suite, capsys):
+    with pytest.raises(SystemExit) as exc:
+        harness.main([suite, "--help"])
+    assert exc.value.code == 0
+    assert f"python -m benchmarks {suite}" in capsys.readouterr().out
+
+
+def test_main_runs_a_suite_and_writes_its_record(tmp_path, monkeypatch, capsys):
+    class Fake:
+        DESCRIPTION = "a fake suite"
+
+        @staticmethod
+        def add_arguments(p):
+            p.add_argument("--n", type=int, default=1)
+
+        @staticmethod
+        def run(args):
+            print("the fake table")
+            return {"n": args.n, "auroc": np.float64(0.5)}
+
+    monkeypatch.setattr(harness, "discover", lambda: {"fake": Fake})
+    assert harness.main(["--records", str(tmp_path), "fake", "--n", "3"]) == 0
+    out = capsys.readouterr().out
+    [path] = list(tmp_path.glob("fake_*.json"))
+    assert f"record: {path}" in out and "the fake table" in out
+    rec = json.loads(path.read_text())
+    assert rec["command"] == f"python -m benchmarks --records {tmp_path} fake --n 3"
+    assert rec["figures"] == {"n": 3, "auroc": 0.5}
+
+
+def test_a_failing_suite_writes_no_record(tmp_path, monkeypatch):
+    class Broken:
+        DESCRIPTION = "fails"
+
+        @staticmethod
+        def add_arguments(p):
+            pass
+
+        @staticmethod
+        def run(args):
+            raise ValueError("no data")
+
+    monkeypatch.setattr(harness, "discover", lambda: {"broken": Broken})
+    assert harness.main(["--records", str(tmp_path), "broken"]) == 1
+    assert not tmp_path.exists() or not list(tmp_path.iterdir())
+
+
+def test_ablation_settings_vary_one_thing_at_a_time():
+    from benchmarks.suites.ablation import settings
+
+    pairs = settings(["joint", "residual", "nll"], ["top1", "mean"], "joint", "top1")
+    assert pairs == [("joint", "top1"), ("residual", "top1"), ("nll", "top1"), ("joint", "mean")]
+    assert len(settings(["joint", "residual"], ["top1", "mean", "q99"], "joint", "top1", grid=True)) == 6
