@@ -71,6 +71,9 @@ def _parser():
     s.add_argument("--maps", choices=("flagged", "all", "none"), default="flagged",
                    help="which scans get a coloured PLY in OUT/maps (default flagged)")
     s.add_argument("--align", action="store_true", help="register each scan into the model's frame first (ICP)")
+    s.add_argument("--two-class", action="store_true",
+                   help="good or defective only (default: a scan whose score lies within the threshold's own "
+                        "uncertainty is 'uncertain': rescan it)")
     s.add_argument("--reference", default=None, help="alignment reference: collection or cloud file (default: the "
                                                      "data collection's good training scans, else the model's mean "
                                                      "surface)")
@@ -122,7 +125,7 @@ def main(argv=None):
 
             summary = score(args.model, args.data, args.out, split=None if args.split == "all" else args.split,
                             alpha=args.alpha, maps=args.maps, align=args.align, reference=args.reference,
-                            progress=not args.quiet, overwrite=args.overwrite)
+                            progress=not args.quiet, overwrite=args.overwrite, uncertain=not args.two_class)
             if summary.get("n_errors"):
                 print(f"error: {summary['n_errors']} scan(s) could not be scored (verdict 'error' in "
                       f"{args.out}/scores.csv)", file=sys.stderr)

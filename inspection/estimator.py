@@ -574,6 +574,18 @@ class Inspector(BaseEstimator):
         (a model of several part types: the scans' parts' thresholds; pass the ``scans``)."""
         return self._per_scan(anomaly_scores, scans, lambda one, s: np.where(s > one.threshold_, -1, 1))
 
+    def verdicts_from_scores(self, anomaly_scores, scans=None, uncertain=True):
+        """``'good'``, ``'defective'`` or ``'uncertain'`` for given anomaly scores (a model of several part types:
+        pass the ``scans``). ``'uncertain'``: the score lies within the threshold's own uncertainty
+        (:meth:`inspection.threshold.Threshold.uncertain`), so a rescan says more than the verdict would;
+        ``uncertain=False`` gives the two classes of :meth:`predict`."""
+        flags = self.predict_from_scores(anomaly_scores, scans)
+        verdicts = np.where(flags == -1, "defective", "good").astype(object)
+        if uncertain:
+            unsure = self._per_scan(anomaly_scores, scans, lambda one, v: one.decision_threshold_.uncertain(v))
+            verdicts[np.asarray(unsure, dtype=bool)] = "uncertain"
+        return verdicts.astype(str)
+
     def predict(self, scans):
         """+1 for good scans, -1 for defective ones (score > ``threshold_``, i.e. decision_function < 0)."""
         scans = list(scans)

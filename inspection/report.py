@@ -9,10 +9,13 @@ import numpy as np
 
 from datasets.atomic import atomic_path
 
-# ``reason``: why a scan whose verdict is ``error`` could not be scored (empty for the others)
-CSV_COLUMNS = ("name", "split", "label", "defect", "score", "p_value", "verdict", "reason")
+# ``verdict``: good, defective, uncertain (the score lies within the threshold's own uncertainty: rescan) or error;
+# ``flagged``: whether the score exceeds the threshold (true / false; empty for an error); ``reason``: why a scan
+# whose verdict is ``error`` could not be scored (empty for the others)
+CSV_COLUMNS = ("name", "split", "label", "defect", "score", "p_value", "verdict", "flagged", "reason")
 RAY_CSV_COLUMNS = CSV_COLUMNS + ("score_points", "score_rays")  # with rays: the two components of the score
 ERROR_VERDICT = "error"
+UNCERTAIN_VERDICT = "uncertain"  # the score lies within the threshold's own uncertainty: rescan
 
 
 def atomic_write_text(path, text):
@@ -31,7 +34,8 @@ def write_scores_csv(path, rows, columns=CSV_COLUMNS):
     for r in rows:
         floats = {k: "" if r.get(k) is None else f"{r[k]:.9g}" for k in ("score", "score_points", "score_rays")}
         p_value = "" if r.get("p_value") is None else f"{r['p_value']:.6g}"
-        writer.writerow({**r, **floats, "p_value": p_value, "reason": r.get("reason", "")})
+        flagged = "" if r["verdict"] == ERROR_VERDICT else str(_flagged(r)).lower()
+        writer.writerow({**r, **floats, "p_value": p_value, "flagged": flagged, "reason": r.get("reason", "")})
     return atomic_write_text(path, buf.getvalue())
 
 
@@ -46,7 +50,9 @@ def summarize(rows, threshold, alpha, point_labels=None, point_scores=None, extr
     ----------
     rows : list of dict
         One per scan with 'label' ('good' / 'defective' / 'unknown'), 'defect', 'score', 'p_value', 'verdict'
-        (``'error'``: the scan could not be scored; counted in ``n_errors``, left out of the metrics).
+        (``'error'``: the scan could not be scored; counted in ``n_errors``, left out of the metrics;
+        ``'uncertain'``: counted in ``n_uncertain``), and ``'flagged'``, whether the score exceeds the threshold
+        (default: the verdict is ``'defective'``): the detection metrics are the threshold's.
     threshold, alpha : float
     point_labels, point_scores : list of (m_i,) arrays, optional
         Per-point ground truth and scores of the scans that have ground truth (pooled for the point-level AUROC).
@@ -68,7 +74,8 @@ def summarize(rows, threshold, alpha, point_labels=None, point_scores=None, extr
         "n_errors": len(errors),
         "counts": {lab: labels.count(lab) for lab in ("good", "defective", "unknown")},
         "counts_by_defect": {},
-        "n_flagged": sum(r["verdict"] == "defective" for r in rows),
+        "n_flagged": sum(_flagged(r) for r in rows),
+        "n_uncertain": sum(r["verdict"] == UNCERTAIN_VERDICT for r in rows),
         "alpha": float(alpha),
         "threshold": _finite(threshold),
         "threshold_note": "a scan is defective when its score > threshold; 'decision' says how the threshold was "
@@ -82,7 +89,7 @@ def summarize(rows, threshold, alpha, point_labels=None, point_scores=None, extr
     if known:
         y = np.array([r["label"] == "defective" for r in known], dtype=int)
         s = np.array([r["score"] for r in known])
-        pred = np.array([r["verdict"] == "defective" for r in known], dtype=int)
+        pred = np.array([_flagged(r) for r in known], dtype=int)
         good = y == 0
         if good.any():
             metrics["false_alarm_rate"] = float(pred[good].mean())
@@ -113,6 +120,10 @@ def summarize(rows, threshold, alpha, point_labels=None, point_scores=None, extr
     return summary
 
 
+def _flagged(row):
+    return bool(row.get("flagged", row["verdict"] == "defective"))
+
+
 def write_json(path, obj):
     return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
 
@@ -130,13 +141,14 @@ def _json_default(o):
 def format_table(rows, summary, max_rows=60):
     """The terminal table: one line per scan (up to ``max_rows``, flagged scans first) and the metrics."""
     lines = [f"{'name':<28} {'label':<9} {'defect':<9} {'score':>10} {'p_value':>8}  verdict"]
-    shown = sorted(rows, key=lambda r: ({ERROR_VERDICT: 0, "defective": 1}.get(r["verdict"], 2), r["name"]))
+    shown = sorted(rows, key=lambda r: ({ERROR_VERDICT: 0, "defective": 1, UNCERTAIN_VERDICT: 2}.get(r["verdict"], 3),
+                                        r["name"]))
     for r in shown[:max_rows]:
         if r["verdict"] == ERROR_VERDICT:
             lines.append(f"{r['name'][:28]:<28} {r['label']:<9} {r['defect'] or '-':<9} {'-':>10} {'-':>8}  error: "
                          f"{r.get('reason', '')}")
             continue
-        mark = "  <-- FLAGGED" if r["verdict"] == "defective" else ""
+        mark = {"defective": "  <-- FLAGGED", UNCERTAIN_VERDICT: "  <-- RESCAN"}.get(r["verdict"], "")
         lines.append(f"{r['name'][:28]:<28} {r['label']:<9} {r['defect'] or '-':<9} {r['score']:>10.4g} "
                      f"{r['p_value']:>8.3g}  {r['verdict']}{mark}")
     if len(rows) > max_rows:
@@ -147,6 +159,9 @@ def format_table(rows, summary, max_rows=60):
         else f"threshold {'none' if t is None else f'{t:.4g}'}"
     lines.append(f"{summary['n_flagged']} of {summary['n_scans']} scans flagged at alpha={summary['alpha']:g} "
                  f"({where})")
+    if summary.get("n_uncertain"):
+        lines.append(f"{summary['n_uncertain']} scan(s) uncertain: their scores lie within the threshold's own "
+                     f"uncertainty (verdict 'uncertain'): rescan them")
     if summary.get("n_errors"):
         lines.append(f"{summary['n_errors']} scan(s) could not be scored (verdict 'error', reason in scores.csv)")
     decision = summary.get("decision")

@@ -106,13 +106,15 @@ def _calibrate_for_scoring(handle, data, alpha, progress, echo):
 
 
 def score(model, data, out, split="test", alpha=None, maps="flagged", align=False, reference=None, progress=True,
-          overwrite=False, echo=print):
+          overwrite=False, echo=print, uncertain=True):
     """Score scans against a calibrated model and write scores.csv, summary.json, roc.png, scores.png, maps/.
 
     A model that is not calibrated yet is calibrated first on its held-back good scans when ``data`` is its training
     collection (and says so); otherwise that is an error naming the command to run. A scan that cannot be read or
     scored (damaged, no sensor origin where the calibration uses rays, an unknown part) gets verdict ``'error'``
-    with its reason; the others are scored (``summary['n_errors']`` counts them).
+    with its reason; the others are scored (``summary['n_errors']`` counts them). A scan whose score lies within
+    the threshold's own uncertainty gets verdict ``'uncertain'`` (rescan it; ``summary['n_uncertain']``) unless
+    ``uncertain`` is False (two classes).
 
     Returns
     -------
@@ -131,7 +133,7 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
                               f"{data}: no scans" + (f" in split {split!r}" if split else ""))
     out = prepare_out(out, overwrite=overwrite)
     aligner = make_aligner(handle, info, reference) if align else None
-    results = _inspect_scans(insp, scans, aligner, maps, out / "maps", progress)
+    results = _inspect_scans(insp, scans, aligner, maps, out / "maps", progress, uncertain)
     results["rows"] += [_error_row(name, reason) for name, reason in info["failed"]]
     summary = summarize_run(handle, insp, data, split, align, results)
     write_results(out, insp, results, summary)
@@ -163,7 +165,7 @@ def _error_row(scan_or_name, reason):
             "verdict": "error", "reason": str(reason)}
 
 
-def _inspect_scans(insp, scans, aligner, maps, maps_dir, progress):
+def _inspect_scans(insp, scans, aligner, maps, maps_dir, progress, uncertain=True):
     """Inspect every scan (aligned first when ``aligner``) and write the anomaly maps ``maps`` asks for. A scan that
     cannot be scored (a ValueError naming it) gets an ``'error'`` row and the others go on.
 
@@ -184,10 +186,11 @@ def _inspect_scans(insp, scans, aligner, maps, maps_dir, progress):
             results["rows"].append(_error_row(scan, str(exc).strip().splitlines()[0]))
             continue
         results["seconds"].append(time.perf_counter() - t0)
-        verdict = "defective" if one.predict_from_scores([res.score])[0] == -1 else "good"
+        flagged = bool(one.predict_from_scores([res.score])[0] == -1)
+        verdict = str(one.verdicts_from_scores([res.score], uncertain=uncertain)[0])
         row = {"name": scan.name, "split": scan.split, "label": scan.label, "defect": scan.defect,
                "score": res.score, "p_value": float(one.p_values_from_scores([res.score])[0]), "verdict": verdict,
-               "reason": ""}
+               "reason": "", "flagged": flagged}
         if rays:
             row.update(score_points=res.components["points"], score_rays=res.components["rays"])
         results["rows"].append(row)
@@ -196,7 +199,7 @@ def _inspect_scans(insp, scans, aligner, maps, maps_dir, progress):
             results["point_scores"].append(res.point_scores)
             if rays:
                 results["ray_maps"].append(res.rays.point_map)
-        if maps == "all" or (maps == "flagged" and verdict == "defective"):
+        if maps == "all" or (maps == "flagged" and verdict != "good"):
             write_scan_maps(one.settings_, scan, res, maps_dir)
             results["maps"] += 1
     return results

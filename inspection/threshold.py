@@ -254,6 +254,18 @@ class Threshold:
             return _t_p_values(scores, f["mean"], f["sd"], f["n_level"], f["df"])
         return conformal_p_values(self.fit["scores"], scores)
 
+    def uncertain(self, scores):
+        """(k,) bool: the scores whose p-value lies within ``far_interval``, the threshold's own uncertainty.
+
+        A threshold drawn from other good scans of the same process would sit anywhere whose false-alarm rate lies
+        in ``far_interval`` (with probability ``FAR_INTERVAL_LEVEL``): a score whose p-value (its rate as a
+        threshold) lies in that interval would be flagged by some of those thresholds and passed by others, so its
+        verdict is a coin flip of the calibration draw, not a property of the scan. Monotone in the score: the
+        uncertain scores form one interval around ``value``."""
+        p = np.asarray(self.p_values(scores), dtype=np.float64)
+        lo, hi = self.far_interval
+        return (p >= lo) & (p <= hi)
+
     def as_dict(self):
         d = asdict(self)
         d["value"] = None if not math.isfinite(self.value) else float(self.value)

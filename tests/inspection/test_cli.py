@@ -89,10 +89,20 @@ def test_calibrate_then_score(workdir, tmp_path, capsys):
         assert tuple(csv.reader(open(out / "scores.csv")).__next__()) == CSV_COLUMNS
     assert len(rows) == 5 and {r["split"] for r in rows} == {"test"}
     assert {r["label"] for r in rows} == {"good", "defective"}
+    summary = json.loads((out / "summary.json").read_text())
+    lo, hi = summary["decision"]["far_interval"]  # the threshold's own uncertainty, as a false-alarm rate
     for r in rows:
         p = float(r["p_value"])
-        assert 1 / 7 - 1e-6 <= p <= 1 and r["verdict"] == ("defective" if p <= 0.3 else "good")  # n = 6 calibration scans
-    summary = json.loads((out / "summary.json").read_text())
+        # n = 6 calibration scans; 'uncertain' exactly where the p-value lies within the threshold's interval
+        expected = "uncertain" if lo <= p <= hi else ("defective" if p <= 0.3 else "good")
+        assert 1 / 7 - 1e-6 <= p <= 1 and r["verdict"] == expected
+    assert summary["n_uncertain"] == sum(r["verdict"] == "uncertain" for r in rows) > 0
+    two = tmp_path / "two"
+    assert main(["score", "--model", str(model), "--data", str(workdir / "tree.h5"), "--out", str(two), "--maps",
+                 "none", "--two-class", "--quiet"]) == 0
+    with open(two / "scores.csv", newline="") as f:
+        binary = {r["name"]: r["verdict"] for r in csv.DictReader(f)}
+    assert binary == {r["name"]: "defective" if float(r["p_value"]) <= 0.3 else "good" for r in rows}
     assert summary["n_scans"] == 5 and summary["counts"]["defective"] == 2
     m = summary["metrics"]
     for key in ("auroc", "aupr", "precision", "recall", "f1", "confusion_matrix", "point_auroc"):
@@ -295,7 +305,7 @@ def test_a_damaged_scan_gets_verdict_error_and_the_others_are_scored(workdir, tm
         rows = {r["name"]: r for r in csv.DictReader(f)}
     assert len(rows) == 5 and rows["test/good/001"]["verdict"] == "error"
     assert "test/good/001" in rows["test/good/001"]["reason"] and "content_sha256" in rows["test/good/001"]["reason"]
-    assert all(r["verdict"] in ("good", "defective") and r["reason"] == "" for n, r in rows.items()
+    assert all(r["verdict"] in ("good", "defective", "uncertain") and r["reason"] == "" for n, r in rows.items()
                if n != "test/good/001")
     summary = json.loads((out / "summary.json").read_text())
     assert summary["n_errors"] == 1 and summary["n_scans"] == 5

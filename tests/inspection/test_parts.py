@@ -69,7 +69,10 @@ def test_scoring_uses_each_parts_threshold_and_stored_calibration(two_part_run):
         t = loaded.parts_[part].threshold_
         assert summary["parts"][part]["threshold"] == pytest.approx(t)
         for name in (f"{part}/test/good", f"{part}/test/bad"):
-            verdict = "defective" if float(rows[name]["score"]) > t else "good"
+            score = float(rows[name]["score"])
+            verdict = "defective" if score > t else "good"
+            if loaded.parts_[part].decision_threshold_.uncertain([score])[0]:  # within the part's own uncertainty
+                verdict = "uncertain"
             assert rows[name]["verdict"] == verdict
 
 

@@ -177,3 +177,27 @@ def test_the_threshold_is_drawn_with_its_predicted_rate():
     assert len(lines) == 1
     legend = [text.get_text() for text in ax.get_legend().get_texts()]
     assert any("log-normal" in x and "predicted false-alarm rate 1 %" in x for x in legend)
+
+
+def test_uncertain_scores_are_those_within_the_thresholds_own_interval():
+    """Log-normal basis: the uncertain scores are exactly those between the thresholds whose predictive rates are
+    the interval's ends, exp(m + t_{df}(1 - r) s sqrt(1 + 1/n)) for r = hi and r = lo; conformal basis: exactly
+    those whose p-value (1 + #{c >= s}) / (n + 1) lies in the interval."""
+    rng = np.random.default_rng(3)
+    t = fit_threshold(np.exp(rng.normal(0.0, 0.4, 12)), 0.05)
+    assert t.basis == "log-normal"
+    f, (lo, hi) = t.fit, t.far_interval
+    scale = f["sd"] * math.sqrt(1 + 1 / f["n_level"])
+    low_end, high_end = (math.exp(f["mean"] + stats.t.ppf(1 - r, f["df"]) * scale) for r in (hi, lo))
+    assert low_end < t.value < high_end
+    scores = np.exp(np.linspace(-1.0, 3.0, 4001))
+    inside = (scores >= low_end * (1 + 1e-9)) & (scores <= high_end * (1 - 1e-9))
+    outside = (scores <= low_end * (1 - 1e-9)) | (scores >= high_end * (1 + 1e-9))
+    mask = t.uncertain(scores)
+    assert mask[inside].all() and not mask[outside].any() and inside.sum() > 10
+    c = fit_threshold(np.arange(1.0, 100.0), 0.05)  # 99 held-back scores: conformal
+    assert c.basis == "conformal"
+    s = np.array([0.5, 90.0, 94.5, 96.5, 98.5, 120.0])
+    p = conformal_p_values(np.arange(1.0, 100.0), s)
+    np.testing.assert_array_equal(c.uncertain(s), (p >= c.far_interval[0]) & (p <= c.far_interval[1]))
+    assert c.uncertain(s).any() and not c.uncertain(s).all()
