@@ -4,6 +4,8 @@ import time
 
 import numpy as np
 
+from benchmarks import metrics
+
 TOP_PERCENT = 5.0
 
 
@@ -73,3 +75,30 @@ def nn_verdicts(collection, heldback_names, alpha):
     return {"scores": np.array([v for v, _ in scored]), "point_scores": [d for _, d in scored],
             "labels": np.array([s.label for s in test]), "defects": np.array([s.defect for s in test]),
             "point_labels": [s.point_labels for s in test], "threshold": threshold, "seconds_per_scan": seconds}
+
+
+def nn_figures(collection, heldback_names, alpha, method="nearest-neighbour top5%"):
+    """The baseline's row of a verdicts table: :func:`nn_verdicts` summed up the way the suites print it.
+
+    Parameters
+    ----------
+    collection, heldback_names, alpha
+        As :func:`nn_verdicts`.
+    method : str
+        The row's label.
+
+    Returns
+    -------
+    dict
+        ``method``, ``auroc`` (overall and per defect type), ``point_auroc``, ``flagged``
+        (:func:`benchmarks.metrics.flagged`), ``threshold`` (``value``, ``basis``, ``predicted_far``,
+        ``far_interval``), ``seconds_per_scan``: the keys :func:`benchmarks.table.verdicts_table` reads.
+    """
+    nn = nn_verdicts(collection, heldback_names, alpha)
+    t = nn["threshold"]
+    return {"method": method, "auroc": metrics.auroc_per_defect(nn["scores"], nn["labels"], nn["defects"]),
+            "point_auroc": metrics.point_auroc(nn["point_labels"], nn["point_scores"]),
+            "flagged": metrics.flagged(nn["scores"], nn["labels"], t.value),
+            "threshold": {"value": t.value, "basis": t.basis, "predicted_far": t.predicted_far,
+                          "far_interval": list(t.far_interval)},
+            "seconds_per_scan": nn["seconds_per_scan"]}

@@ -108,7 +108,3 @@ def point_auroc_per_defect(point_labels, point_scores, labels, defects):
         out[kind] = point_auroc([point_labels[i] for i in idx], [point_scores[i] for i in idx])
     return out
 
-
-def detection(scores, labels, defects, threshold):
-    """:func:`auroc_per_defect` and :func:`flagged` in one dict (``'auroc'``: the per-type dict, ``'flagged'``)."""
-    return {"auroc": auroc_per_defect(scores, labels, defects), "flagged": flagged(scores, labels, threshold)}

@@ -1,5 +1,6 @@
 """The benchmark harness' core, fast: the run record, the cache's keying and atomicity, the metrics against
-scikit-learn and hand-counted pairs, the suites' discovery and help. No benchmark is run here."""
+scikit-learn and hand-counted pairs, the baseline's table row, the SPSR grid's order, the suites' discovery and
+help. No benchmark is run here."""
 import json
 import subprocess
 import sys
@@ -132,6 +133,44 @@ def test_point_auroc_pools_the_points_and_reads_no_labels_as_good():
     per = metrics.point_auroc_per_defect(labels, scores, ["defective", "good", "defective"], ["dent", "", "bump"])
     assert per["dent"] == pytest.approx(roc_auc_score([0, 0, 1, 0, 0], [0.1, 0.3, 0.9, 0.2, 0.95]))
     assert per["bump"] == pytest.approx(roc_auc_score([0, 0, 1, 0], [0.2, 0.95, 0.4, 0.5]))
+
+
+
+# ------------------------------------------------------------------------------------------------------ baseline
+def test_nn_figures_is_the_verdicts_table_row_of_nn_verdicts(monkeypatch):
+    from types import SimpleNamespace
+
+    from benchmarks import baselines
+
+    verdicts = {"scores": np.array([0.1, 0.5, 0.7, 0.6, 0.2]),
+                "labels": np.array(["good", "good", "good", "defective", "defective"]),
+                "defects": np.array(["", "", "", "dent", "bump"]),
+                "point_labels": [None, None, None, np.array([0, 1]), np.array([1, 0])],
+                "point_scores": [np.array([0.1, 0.2])] * 3 + [np.array([0.3, 0.9]), np.array([0.8, 0.05])],
+                "threshold": SimpleNamespace(value=0.5, basis="held-back", predicted_far=0.01,
+                                             far_interval=(0.005, 0.02)),
+                "seconds_per_scan": 0.25}
+    monkeypatch.setattr(baselines, "nn_verdicts", lambda *a: verdicts)
+    row = baselines.nn_figures("collection", [], 0.01)
+    assert list(row) == ["method", "auroc", "point_auroc", "flagged", "threshold", "seconds_per_scan"]
+    assert row["auroc"] == metrics.auroc_per_defect(verdicts["scores"], verdicts["labels"], verdicts["defects"])
+    assert row["point_auroc"] == metrics.point_auroc(verdicts["point_labels"], verdicts["point_scores"])
+    assert row["flagged"] == metrics.flagged(verdicts["scores"], verdicts["labels"], 0.5)
+    assert row["threshold"] == {"value": 0.5, "basis": "held-back", "predicted_far": 0.01,
+                                "far_interval": [0.005, 0.02]}
+    assert row["seconds_per_scan"] == 0.25 and row["method"] == "nearest-neighbour top5%"
+
+
+# ------------------------------------------------------------------------------------------------------ surfaces
+def test_spsr_grid_spans_the_box_first_coordinate_fastest():
+    from benchmarks.surface_metrics import spsr_grid
+
+    gs, step, axes, points = spsr_grid([0.0, -1.0, 2.0], [1.0, 1.0, 3.0], 3)
+    assert gs.tolist() == [3, 3, 3] and step == pytest.approx([0.5, 1.0, 0.5])
+    assert [a.tolist() for a in axes] == [[0.0, 0.5, 1.0], [-1.0, 0.0, 1.0], [2.0, 2.5, 3.0]]
+    assert points.shape == (27, 3)
+    assert points[:4].tolist() == [[0.0, -1.0, 2.0], [0.5, -1.0, 2.0], [1.0, -1.0, 2.0], [0.0, 0.0, 2.0]]
+    assert points[-1].tolist() == [1.0, 1.0, 3.0]
 
 
 # ------------------------------------------------------------------------------------------------------ harness

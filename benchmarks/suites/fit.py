@@ -44,12 +44,12 @@ import time
 from pathlib import Path
 
 from benchmarks.cache import CACHE
+from benchmarks.surface_metrics import SPSR_GRID
 
 DESCRIPTION = ("single-cloud fits: grid default and SIREN vs open3d's Poisson, the mean loss's exact minimiser, "
                "covariance-loss throughput, real range scans")
 MODES = ("grid", "siren", "target-limit", "d-operator", "real-scans")
 OUT = {"grid": "results/grid_fandisk", "siren": "results/fandisk"}
-SPSR_GRID = 20  # gpytoolbox's exact variance solve is dense in the grid size: 32^3 ran out of 24 GiB, 20^3 fits
 
 
 def _int_list(text):
@@ -129,24 +129,9 @@ def _cloud(args):
     return mesh, points, mesh.face_normals[faces], diag
 
 
-def open3d_poisson(points, normals, depth=8):
-    """open3d's screened Poisson reconstruction of an oriented cloud, the lowest-density 1 % trimmed (open3d closes
-    the surface far beyond the data; trimming is customary). Returns a trimesh.Trimesh."""
-    import numpy as np
-    import open3d as o3d
-    import trimesh
-
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    pcd.normals = o3d.utility.Vector3dVector(normals)
-    mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pcd, depth=depth)
-    density = np.asarray(density)
-    mesh.remove_vertices_by_mask(density < np.quantile(density, 0.01))
-    return trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.triangles), process=False)
-
-
 def _open3d(mesh, points, normals):
     """open3d's depth-8 reconstruction, its Chamfer distance to ``mesh``, printed. Returns (its mesh, Chamfer)."""
-    from benchmarks.surface_metrics import mean_surface_distance
+    from benchmarks.surface_metrics import mean_surface_distance, open3d_poisson
 
     t0 = time.perf_counter()
     o3d_mesh = open3d_poisson(points, normals)
@@ -198,28 +183,6 @@ def _has_gpytoolbox():
     return importlib.util.find_spec("gpytoolbox") is not None
 
 
-def spsr_grid(lo, hi, grid):
-    """gpytoolbox SPSR's regular grid of ``grid`` nodes per side over the box [lo, hi].
-
-    Returns
-    -------
-    gs : (3,) int array, step : (3,) array
-        Its ``gs`` and ``h`` arguments.
-    axes : list of 3 arrays
-        Node coordinates along each axis.
-    points : (grid^3, 3) array
-        The nodes in gpytoolbox's order (first coordinate fastest: 'ij' grids flattened in Fortran order).
-    """
-    import numpy as np
-
-    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
-    gs = np.array([grid] * 3)
-    step = (hi - lo) / (gs - 1)
-    axes = [np.linspace(lo[d], lo[d] + (gs[d] - 1) * step[d], gs[d]) for d in range(3)]
-    points = np.stack([a.ravel(order="F") for a in np.meshgrid(*axes, indexing="ij")], -1)
-    return gs, step, axes, points
-
-
 def gpytoolbox_variance_correlation(field, points, normals, grid=SPSR_GRID, cache=CACHE):
     """Spearman correlation of the field's variance with gpytoolbox SPSR's on its grid over the field's box.
 
@@ -240,19 +203,17 @@ def gpytoolbox_variance_correlation(field, points, normals, grid=SPSR_GRID, cach
     from scipy.stats import spearmanr
 
     from benchmarks.cache import cached_path
+    from benchmarks.surface_metrics import spsr, spsr_grid
 
     lo, hi = field.bounds
-    gs, h, _, grid_points = spsr_grid(lo, hi, grid)
+    gs, _, _, grid_points = spsr_grid(lo, hi, grid)
     digest = hashlib.sha256(b"".join(np.ascontiguousarray(a, dtype=np.float64).tobytes()
                                      for a in (points, normals, lo, hi, gs))).hexdigest()[:16]
     solved = []
 
     def build(folder):
-        from gpytoolbox import stochastic_poisson_surface_reconstruction
-
         t0 = time.perf_counter()
-        mean, var, _ = stochastic_poisson_surface_reconstruction(points, normals, gs=gs, h=h, corner=lo,
-                                                                 output_variance=True, solve_subspace_dim=0)
+        mean, var = spsr(points, normals, lo, hi, grid)
         solved.append(time.perf_counter() - t0)
         np.savez(folder / "spsr.npz", mean=mean, var=var)
 
@@ -268,6 +229,8 @@ def _variance_correlation(field, points, normals, reference, cache):
     """Spearman of the field's variance with gpytoolbox SPSR's (when installed) or with ``reference``'s (a
     StochasticField, or None: nan), on gpytoolbox's grid over the field's box."""
     from scipy.stats import spearmanr
+
+    from benchmarks.surface_metrics import spsr_grid
 
     if _has_gpytoolbox():
         return gpytoolbox_variance_correlation(field, points, normals, cache=cache)[0]

@@ -7,7 +7,7 @@ scans, 16 per defect type, 4,000 points), a model trained with the trainer's def
 (:func:`benchmarks.inspect_api.calibrate_and_score`). Printed per part: object AUROC overall and per defect type,
 the fractions of defective and of good test scans flagged, the threshold's basis and predicted false-alarm rate with
 its 90 % interval, seconds per scan; beside it the nearest-neighbour baseline thresholded the same way
-(:func:`benchmarks.baselines.nn_verdicts`).
+(:func:`benchmarks.baselines.nn_figures`).
 
 Two other regimes, as options:
 
@@ -116,20 +116,10 @@ def _single(part, args):
     toolkit = inspect_api.summary_figures(summary)
     toolkit["method"] = (f"toolkit {toolkit['point_score']}/{toolkit['aggregate']}" + (" +rays" if toolkit["rays"]
                          else "") + (f" {args.representation}" if args.representation else ""))
-    nn = baselines.nn_verdicts(data, info["heldback_names"], summary["alpha"])
-    nn_figures = {"method": "nearest-neighbour top5%",
-                  "auroc": metrics.auroc_per_defect(nn["scores"], nn["labels"], nn["defects"]),
-                  "point_auroc": metrics.point_auroc(nn["point_labels"], nn["point_scores"]),
-                  "flagged": metrics.flagged(nn["scores"], nn["labels"], nn["threshold"].value),
-                  "threshold": _threshold(nn["threshold"]), "seconds_per_scan": nn["seconds_per_scan"]}
+    nn_figures = baselines.nn_figures(data, info["heldback_names"], summary["alpha"])
     one = {"collection": str(data), "model": str(model), "run": str(run_dir), "train_seconds": info["train_seconds"],
            "toolkit": toolkit, "nn": nn_figures}
     return data, one, [dict(part=part, **toolkit), dict(part=part, **nn_figures)]
-
-
-def _threshold(t):
-    return {"value": t.value, "basis": t.basis, "predicted_far": t.predicted_far,
-            "far_interval": list(t.far_interval)}
 
 
 # ---------------------------------------------------------------------------------------------------- multi-part

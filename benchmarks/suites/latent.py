@@ -216,8 +216,8 @@ def _budget_options(text):
 
 
 def _budget(args):
-    from benchmarks import inspect_api, metrics
-    from benchmarks.baselines import nn_verdicts
+    from benchmarks import inspect_api
+    from benchmarks.baselines import nn_figures
     from benchmarks.cache import synth_collection, trained_model
     from benchmarks.table import verdicts_table
 
@@ -239,13 +239,7 @@ def _budget(args):
             label = f"{part} s{seed}"
             rows.append({**ours, "part": label, "method": f"toolkit {ours['point_score']}/{ours['aggregate']}"
                          + (" +rays" if ours["rays"] else "")})
-            nn = nn_verdicts(data, info["heldback_names"], ours["alpha"])
-            t = nn["threshold"]
-            rows.append({"part": label, "method": "nearest-neighbour top5%",
-                         **metrics.detection(nn["scores"], nn["labels"], nn["defects"], t.value),
-                         "threshold": {"basis": t.basis, "predicted_far": t.predicted_far,
-                                       "far_interval": list(t.far_interval)},
-                         "seconds_per_scan": nn["seconds_per_scan"]})
+            rows.append({"part": label, **nn_figures(data, info["heldback_names"], ours["alpha"])})
     print(verdicts_table(rows))
     return {"name": name, "options": options, "trained": trained, "rows": rows}
 

@@ -36,6 +36,8 @@ The Chamfer distance is ``benchmarks.surface_metrics.mean_surface_distance``.
 import time
 from pathlib import Path
 
+from benchmarks.surface_metrics import SPSR_GRID
+
 DESCRIPTION = "scanning: next-best-view vs random and furthest-point views with fine-tuning; the view score's ranking"
 MODES = ("next-view", "view-score")
 
@@ -81,7 +83,8 @@ def add_arguments(parser):
     score = parser.add_argument_group("view-score")
     score.add_argument("--cameras", type=int, default=200)
     score.add_argument("--spsr", action="store_true",
-                       help="also score with gpytoolbox's SPSR variance of the first scan (20^3 grid, minutes)")
+                       help=f"also score with gpytoolbox's SPSR variance of the first scan ({SPSR_GRID}^3 grid, "
+                            "minutes)")
 
 
 def run(args):
@@ -177,24 +180,21 @@ class GradientVariance(WithoutVariance):
 
 class SpsrVariance(WithoutVariance):
     """The field with Var f replaced by gpytoolbox's stochastic Poisson (SPSR) variance of the same scan on a
-    ``grid``^3 grid over the field's box, trilinearly interpolated (no gradient: for scoring only)."""
+    ``grid``^3 grid over the field's box (``benchmarks.surface_metrics.spsr``), trilinearly interpolated (no
+    gradient: for scoring only)."""
 
-    def __init__(self, field, points, normals, grid=20):
+    def __init__(self, field, points, normals, grid=SPSR_GRID):
         import numpy as np
-        from gpytoolbox import stochastic_poisson_surface_reconstruction
         from scipy.interpolate import RegularGridInterpolator
 
+        from benchmarks.surface_metrics import spsr, spsr_grid
+
         super().__init__(field)
-        lo, hi = (np.asarray(b, dtype=np.float64) for b in field.bounds)
-        gs = np.full(3, grid)
-        axes = [np.linspace(lo[d], hi[d], grid) for d in range(3)]
-        # gpytoolbox's order: first coordinate fastest ('ij' grids flattened in Fortran order)
-        self.grid_points = np.stack([a.ravel(order="F") for a in np.meshgrid(*axes, indexing="ij")], -1)
-        _, var, _ = stochastic_poisson_surface_reconstruction(points, normals, gs=gs, h=(hi - lo) / (gs - 1),
-                                                              corner=lo, output_variance=True, solve_subspace_dim=0)
-        self.grid_var = np.ravel(var)
-        self.interp = RegularGridInterpolator(axes, np.reshape(var, tuple(gs), order="F"), bounds_error=False,
-                                              fill_value=None)
+        lo, hi = field.bounds
+        gs, _, axes, self.grid_points = spsr_grid(lo, hi, grid)
+        _, self.grid_var = spsr(points, normals, lo, hi, grid)
+        self.interp = RegularGridInterpolator(axes, np.reshape(self.grid_var, tuple(gs), order="F"),
+                                              bounds_error=False, fill_value=None)
 
     def torch_variance(self, x):
         import torch
