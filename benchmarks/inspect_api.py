@@ -172,6 +172,16 @@ def calibration_settings(model_path):
             "lengthscale": handle.model.lengthscale}
 
 
+def calibration_scores(model_path):
+    """The calibrated model's good calibration scores by role: ``{'held-back': (n_h,), 'cross-fitted': (n_c,)}``."""
+    from inspection import read_calibration
+
+    cal = read_calibration(model_path)
+    roles = np.array(cal.roles or ["held-back"] * len(cal.scores))
+    scores = np.asarray(cal.scores, dtype=np.float64)
+    return {role: scores[roles == role] for role in ("held-back", "cross-fitted")}
+
+
 def _inspector(model_path):
     """The Inspector of a calibrated model, with its stored calibration."""
     from inspection import Inspector, load_model

@@ -195,6 +195,24 @@ def _template_collection(part, args):
     return cache.cached_path("templates", params, build, args.cache, label=part) / "data.h5"
 
 
+def _calibration_gap(run_dir):
+    """How far the good test scans' scores lie from the calibration scans' (the template regime's false alarms):
+    the mean log score of the good test scans minus that of the held-back views and of the cross-fitted training
+    views (positive: the test scans score higher than what calibrated the threshold)."""
+    scored = inspect_api.read_scores(Path(run_dir) / "results")
+    good = scored["score"][(scored["label"] == metrics.GOOD) & np.isfinite(scored["score"])]
+    cal = inspect_api.calibration_scores(Path(run_dir) / "model.pt")
+    test = float(np.log(good).mean())
+    gap = {"good_test_mean_log": test}
+    for role, values in cal.items():
+        if len(values):
+            gap[f"{role}_mean_log"] = float(np.log(values).mean())
+            gap[f"minus_{role}"] = test - float(np.log(values).mean())
+    print("  calibration gap (mean log score, good test minus calibration): "
+          + ", ".join(f"{k[6:]} {v:+.3f}" for k, v in gap.items() if k.startswith("minus_")))
+    return gap
+
+
 def _write_templates(mesh, folder, n_points, seed):
     """4 complete clouds sampled on ``mesh`` (its units), depth noise 0.002 x its diagonal along the normal."""
     import trimesh
@@ -238,6 +256,7 @@ def _templates(part, args):
         result[name] = {"auroc": metrics.auroc_per_defect(scan_scores, labels, defects),
                         "point_auroc": metrics.point_auroc_per_defect(point_labels, maps, labels, defects)}
     toolkit = inspect_api.summary_figures(summary)
+    toolkit["calibration_gap"] = _calibration_gap(run_dir)
     print(f"\n== {part}: {len(train)} training views, {n_validation} validation views from 4 templates of "
           f"{args.template_points} points; {len(scans)} test scans of {args.points} points; point score "
           f"{toolkit['point_score']}/{toolkit['aggregate']}, false-alarm rate {toolkit['flagged']['good']:.3f} at "
