@@ -1,8 +1,8 @@
 """The main job on the built-in part: synthesise scans with defects, train, calibrate on held-back good scans, score.
 
 ``python -m inspection demo --out demo_output`` (``make demo``). Seeded; everything lands in the output folder:
-``tree.h5`` (the synthetic collection), ``model.pt`` (the trained, calibrated model), ``results/`` (scores.csv,
-summary.json, roc.png, scores.png, maps/).
+``tree.h5`` (the synthetic collection), ``model.pt`` (the trained, calibrated model), ``results/`` (report.html,
+scores.csv, summary.json, roc.png, scores.png, maps/).
 """
 import time
 from pathlib import Path
@@ -51,6 +51,7 @@ def run_demo(out="demo_output", seed=0, quick=False, progress=True, echo=print):
     t4 = time.perf_counter()
     echo(f"timings: synth {t1 - t_start:.0f} s, train {t2 - t1:.0f} s, calibrate {t3 - t2:.0f} s, score "
          f"{t4 - t3:.0f} s, total {t4 - t_start:.0f} s")
+    echo(f"open in a browser: {(out / 'results' / 'report.html').resolve().as_uri()} (offline, one file)")
     echo(f"pictures: {out / 'results' / 'roc.png'}, {out / 'results' / 'scores.png'}, coloured clouds in "
          f"{out / 'results' / 'maps'} (colour legend: maps/legend.png)")
     return summary

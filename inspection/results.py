@@ -28,17 +28,24 @@ def prepare_out(out, overwrite=False):
     return out
 
 
-def write_scan_maps(settings, scan, res, maps_dir):
-    """One scan's anomaly map (its point scores when they are standardized residuals, else the standardized
-    residual) and, with rays, its ray map."""
-    from .maps import RAY_MAP_RANGE, safe_name, write_map
+def map_values(settings, scan, res):
+    """What a scan's anomaly map shows: its point scores when they are standardized residuals, else the standardized
+    residual (m,); and its ray map (m,) with rays, else None."""
     from .scores import POINT_SCORES, point_scores
 
     resid = res.point_scores if POINT_SCORES[settings.point_score].in_deviations else \
         point_scores(res.field, scan.points, "residual", settings.noise)
+    return resid, res.rays.point_map if settings.rays else None
+
+
+def write_scan_maps(settings, scan, res, maps_dir):
+    """One scan's anomaly map and, with rays, its ray map (:func:`map_values`), as coloured PLY files."""
+    from .maps import RAY_MAP_RANGE, safe_name, write_map
+
+    resid, rays = map_values(settings, scan, res)
     write_map(maps_dir / f"{safe_name(scan.name)}.ply", scan.points, scan.normals, resid)
-    if settings.rays:
-        write_map(maps_dir / "rays" / f"{safe_name(scan.name)}.ply", scan.points, scan.normals, res.rays.point_map,
+    if rays is not None:
+        write_map(maps_dir / "rays" / f"{safe_name(scan.name)}.ply", scan.points, scan.normals, rays,
                   vrange=RAY_MAP_RANGE)
 
 

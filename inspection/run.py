@@ -107,7 +107,8 @@ def _calibrate_for_scoring(handle, data, alpha, progress, echo):
 
 def score(model, data, out, split="test", alpha=None, maps="flagged", align=False, reference=None, progress=True,
           overwrite=False, echo=print, uncertain=True):
-    """Score scans against a calibrated model and write scores.csv, summary.json, roc.png, scores.png, maps/.
+    """Score scans against a calibrated model and write report.html, scores.csv, summary.json, roc.png, scores.png,
+    maps/.
 
     A model that is not calibrated yet is calibrated first on its held-back good scans when ``data`` is its training
     collection (and says so); otherwise that is an error naming the command to run. A scan that cannot be read or
@@ -120,6 +121,7 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
     -------
     summary : dict
     """
+    from .html_report import write_html_report
     from .model_io import load_model
     from .report import format_table
 
@@ -137,8 +139,9 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
     results["rows"] += [_error_row(name, reason) for name, reason in info["failed"]]
     summary = summarize_run(handle, insp, data, split, align, results)
     write_results(out, insp, results, summary)
+    write_html_report(out / "report.html", results["rows"], summary, results["views"])  # the page of it all
     echo(format_table(results["rows"], summary))
-    echo(f"results in {out}/: scores.csv, summary.json, roc.png, scores.png"
+    echo(f"results in {out}/: report.html, scores.csv, summary.json, roc.png, scores.png"
          + (f", maps/ ({results['maps']} coloured PLY + legend.png)" if results["maps"] else ""))
     return summary
 
@@ -170,11 +173,15 @@ def _inspect_scans(insp, scans, aligner, maps, maps_dir, progress, uncertain=Tru
     cannot be scored (a ValueError naming it) gets an ``'error'`` row and the others go on.
 
     Returns a dict: ``rows`` (one per scan, the CSV columns), ``point_labels``, ``point_scores`` and ``ray_maps``
-    (per scan with ground-truth point labels), ``seconds`` (per scored scan) and ``maps`` (maps written)."""
+    (per scan with ground-truth point labels), ``seconds`` (per scored scan), ``maps`` (maps written) and ``views``
+    (their 3D views for report.html)."""
     from tqdm import tqdm
 
+    from .html_report import map_view
+
     rays = insp.settings_.rays
-    results = {"rows": [], "point_labels": [], "point_scores": [], "ray_maps": [], "seconds": [], "maps": 0}
+    results = {"rows": [], "point_labels": [], "point_scores": [], "ray_maps": [], "seconds": [], "maps": 0,
+               "views": []}  # views: report.html's 3D views (inspection.html_report.map_view), one per map
     for i, scan in enumerate(tqdm(scans, desc="inspect", unit="scan", disable=not progress)):
         t0 = time.perf_counter()
         try:
@@ -202,6 +209,7 @@ def _inspect_scans(insp, scans, aligner, maps, maps_dir, progress, uncertain=Tru
         if maps == "all" or (maps == "flagged" and verdict != "good"):
             write_scan_maps(one.settings_, scan, res, maps_dir)
             results["maps"] += 1
+            results["views"].append(map_view(one.settings_, scan, res, seed=i))  # report.html's 3D view
     return results
 
 

@@ -332,7 +332,7 @@ def train_epochs(state, module, pools, scope, options, out, end_epoch, show):
             checkpoint = gather_checkpoint(state, scope)
             if out is not None and scope.rank == 0:
                 save_checkpoint(checkpoint, out)
-                plot_losses(out, state.history)
+                plot_losses(out, state.history, settings=state.config)
     if bar is not None:
         bar.close()
     state.nets.eval()
