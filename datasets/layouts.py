@@ -486,8 +486,10 @@ def import_public(root, out, layout, views=DEFAULT_VIEWS, validation_views=DEFAU
                      voxel, UNITS[layout], max_points)
     from scipy.spatial import cKDTree
 
-    def read(src):
+    scans, n_dropped, template_clouds, templates, n_oriented = [], 0, [], None, 0
+    for src in tqdm(sources, desc=f"import {layout}", unit="file", disable=None if progress is None else not progress):
         points, labels, origin, dropped = read_public_source(src, keep_plane, seed)
+        n_dropped += dropped
         if voxel is not None:
             # normals come after: estimating them on the full cloud would cost more and be averaged away
             points, _, labels = voxel_downsample(points, np.zeros_like(points), labels, voxel)
@@ -495,21 +497,10 @@ def import_public(root, out, layout, views=DEFAULT_VIEWS, validation_views=DEFAU
             rng = np.random.default_rng([seed, zlib.crc32(src.name.encode())])
             keep = np.sort(rng.choice(len(points), size=n_points, replace=False))
             points, labels = points[keep], None if labels is None else labels[keep]
-        return points, labels, origin, dropped
-
-    loaded = [(src, *read(src)) for src in tqdm(sources, desc=f"import {layout}", unit="file",
-                                                disable=None if progress is None else not progress)]
-    # the template views are thinned to the test scans' median point count: they calibrate the threshold, so they
-    # must look like the scans it will judge (datasets.templates)
-    scan_counts = [len(points) for src, points, *_ in loaded if src.role != "template"]
-    view_points = int(np.median(scan_counts)) if scan_counts else None
-    scans, n_dropped, template_clouds, templates, n_oriented = [], 0, [], None, 0
-    for src, points, labels, origin, dropped in loaded:
-        n_dropped += dropped
         if src.role == "template":  # the sources list templates first
             normals = estimate_normals(points)
             template_clouds.append((points, normals))
-            scans += render_views(src.name, points, normals, views, validation_views, seed, n_points=view_points)
+            scans += render_views(src.name, points, normals, views, validation_views, seed)
             continue
         normals = estimate_normals(points, origin)
         if origin is None and template_clouds:
@@ -530,7 +521,7 @@ def import_public(root, out, layout, views=DEFAULT_VIEWS, validation_views=DEFAU
         provenance["table_plane"] = "kept" if keep_plane else "removed"
     else:
         provenance.update(template_views=views, template_validation_views=validation_views,
-                          template_view_points=view_points, scans_oriented_by_templates=n_oriented)
+                          scans_oriented_by_templates=n_oriented)
     summary = write_scans(scans, out, provenance, overwrite)
     summary.update(n_dropped=n_dropped, layout=layout, units=UNITS[layout], voxel=voxel, voxel_auto=voxel_auto,
                    oriented_by_templates=n_oriented,

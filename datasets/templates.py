@@ -5,12 +5,6 @@ The latent model is a space of partial scans, so each template is turned into pa
 hidden-point removal (Katz, Tal and Basri 2007, "Direct visibility of point sets") keeps from a sensor position, with
 that position recorded as the view's sensor origin. Views for training and held-back views for calibration come from
 different sensor positions of the same templates, so no template has to be held back.
-
-A view must look like the scans the user will test, since the held-back views calibrate the threshold: a depth
-sensor samples its image, not the surface, so a surface seen at an angle theta returns cos(theta) as many points per
-unit area as one seen head-on, and a scan holds about as many points as the sensor returns. A view keeps each
-visible template point with probability |cos theta| (the template's spacing taken as the sensor's pitch head-on)
-and, given ``n_points`` (the importer passes the test scans' median point count), a seeded subset of that many.
 """
 import numpy as np
 
@@ -67,7 +61,7 @@ def visible_points(points, origin):
     return np.unique(np.asarray(idx, dtype=np.int64))
 
 
-def render_views(name, points, normals, n_train, n_validation, seed=0, distance=2.0, n_points=None):
+def render_views(name, points, normals, n_train, n_validation, seed=0, distance=2.0):
     """Partial views of one complete template cloud, as scans in the template's units.
 
     Parameters
@@ -87,9 +81,6 @@ def render_views(name, points, normals, n_train, n_validation, seed=0, distance=
         The sensor positions follow from (seed, name): the same seed gives the same views.
     distance : float
         Sensor distance from the template's bounding-box centre, in bounding-box diagonals.
-    n_points : int, optional
-        At most this many points a view (a seeded subset after the foreshortening; module docstring). None: every
-        point the foreshortening keeps.
 
     Returns
     -------
@@ -115,15 +106,7 @@ def render_views(name, points, normals, n_train, n_validation, seed=0, distance=
         idx = visible_points(points, origin)
         # hidden-point removal also keeps points just beyond the silhouette; a sensor gets no return where it would
         # see the back of the surface, so those go (by the template's outward normals)
-        rays = origin - points[idx]
-        cos = np.einsum("ij,ij->i", normals[idx], rays) / np.maximum(np.linalg.norm(rays, axis=1), 1e-300)
-        idx, cos = idx[cos > 0], cos[cos > 0]
-        # the sensor's image samples the surface at cos(theta) of its head-on density (module docstring); each view
-        # draws from its own generator, so a view does not depend on the other views' draws
-        view_rng = np.random.default_rng([int(seed), zlib.crc32(name.encode()), k])
-        idx = idx[view_rng.random(len(idx)) < cos]
-        if n_points is not None and len(idx) > n_points:
-            idx = np.sort(view_rng.choice(idx, int(n_points), replace=False))
+        idx = idx[np.einsum("ij,ij->i", normals[idx], origin - points[idx]) > 0]
         if len(idx) < MIN_VIEW_POINTS:
             raise ValueError(f"template {name!r}: view {split} {i} from {origin.tolist()} sees {len(idx)} points")
         p, n = points[idx], normals[idx]

@@ -387,27 +387,11 @@ def test_template_views_are_partial_visible_seeded_and_face_their_sensor():
         # partial, and what a sphere's geometry says is visible: a sphere point p is seen from o iff
         # (p - c) . (o - p) > 0 (o lies outside p's tangent plane)
         seen = np.einsum("ij,ij->i", pts - center, origin - pts) > 0
-        assert 0.15 * len(pts) < len(v) < 0.5 * len(pts)
-        assert seen[idx].mean() > 0.98
-        # foreshortening: a seen point is kept with probability cos(theta) between its normal and its ray
-        rays = origin - pts
-        cos = np.einsum("ij,ij->i", nrm, rays) / np.linalg.norm(rays, axis=1)
-        kept = np.isin(np.arange(len(pts)), idx)
-        head_on, grazing = seen & (cos > 0.8), seen & (cos > 0) & (cos < 0.3)
-        assert kept[head_on].mean() == pytest.approx(cos[head_on].mean(), abs=0.08)
-        assert kept[grazing].mean() == pytest.approx(cos[grazing].mean(), abs=0.08)
+        assert 0.3 * len(pts) < len(v) < 0.7 * len(pts)
+        assert seen[idx].mean() > 0.98 and np.isin(np.flatnonzero(seen), idx).mean() > 0.9
         # normals (from the template's, outward) face the sensor
         assert np.all(np.einsum("ij,ij->i", v.normals, origin - v.points) > 0)
         np.testing.assert_allclose(v.normals, nrm[idx], atol=1e-6)
-
-
-def test_template_views_take_at_most_n_points():
-    pts, nrm = sphere(3000, center=np.zeros(3), radius=1.0)
-    full = render_views("t", pts, nrm, n_train=3, n_validation=0, seed=1)
-    capped = render_views("t", pts, nrm, n_train=3, n_validation=0, seed=1, n_points=200)
-    for f, c in zip(full, capped):
-        assert len(f) > 200 and len(c) == 200
-        assert set(map(tuple, c.points)) <= set(map(tuple, f.points))  # a subset of what the view sees
 
 
 def test_table_plane_removal_on_a_large_map_uses_a_subset_and_agrees():
