@@ -34,6 +34,12 @@ def register(subparsers):
     return p
 
 
+# synthesise's parameter -> the option that sets it (its errors name the option)
+_OPTION_OF = {"n_train": "--train", "n_validation": "--validation", "n_test_good": "--test-good",
+              "n_test_defective": "--test-defective", "n_points": "--points", "noise": "--noise",
+              "jitter_deg": "--jitter"}
+
+
 def run_synth(args):
     """Run ``synth`` from parsed arguments (an argparse Namespace from `register`'s parser); returns 0.
 
@@ -71,7 +77,15 @@ def run_synth(args):
     parameters = dict(n_train=args.train, n_validation=args.validation, n_test_good=args.test_good,
                       n_test_defective=args.test_defective, defects=list(defects), n_points=args.points,
                       noise=args.noise, jitter_deg=args.jitter, seed=args.seed, part_id=part_id)
-    scans, frame = synthesise(mesh, progress=not getattr(args, "quiet", False), **parameters)
+    try:
+        scans, frame = synthesise(mesh, progress=not getattr(args, "quiet", False), **parameters)
+    except ValueError as exc:  # the library names its parameters; the user typed the options
+        message = str(exc)
+        for name, option in _OPTION_OF.items():
+            if message.startswith(f"{name} "):
+                message = option + message[len(name):]
+                break
+        raise ValueError(message) from None
     provenance = {"generator": "datasets.synth", "mesh": str(args.mesh), **parameters}
     if args.format == "h5":
         from .collection import ScanCollection
