@@ -235,3 +235,34 @@ def ray_gate(run_dir, factors, alpha=None):
                     "scores": np.asarray(scores), "threshold": threshold.value,
                     "default": factor == LOG_GATE_CEILING_FACTOR})
     return out
+
+
+def fit_inspector(model_path, data_path, progress=False):
+    """``inspection.Inspector(model).fit(collection)`` at the defaults: a calibrated inspector of a trained model on
+    its training collection (not written to the model file)."""
+    from datasets import ScanCollection
+    from inspection import Inspector, load_model
+
+    handle = load_model(model_path)
+    with ScanCollection(data_path) as c:
+        return Inspector(handle.model, verbose=progress).fit(c)
+
+
+def timed_inspect(inspector, scan):
+    """One scan through ``inspector.inspect`` with its per-stage timings.
+
+    Returns
+    -------
+    score : float
+    point_scores : (m,) array
+    timings : dict of str -> float
+        Seconds per stage (``Inspector.inspect``'s ``timings``: load, projection, field, grazing, stray, reference,
+        aggregate, rays, combine), and ``total`` (the whole call).
+    """
+    import time
+
+    timings = {}
+    t0 = time.perf_counter()
+    result = inspector.inspect(scan, timings=timings)
+    timings["total"] = time.perf_counter() - t0
+    return float(result.score), np.asarray(result.point_scores), timings

@@ -41,13 +41,16 @@ def stray_points(points, k=STRAY_NEIGHBOURS, factor=STRAY_FACTOR):
     if len(p) <= k:
         return np.zeros(len(p), dtype=bool)
     tree = cKDTree(p)
-    nn = tree.query(p, 2)[0][:, 1]  # (N,) each point's nearest other point (0 for duplicates)
+    # one query for every point's k + 1 nearest (itself among them): its second distance is the point's nearest
+    # other point (0 for duplicates), the same number a query of 2 gives
+    dist, neighbours = tree.query(p, k + 1)
+    nn = dist[:, 1]  # (N,)
     positive = nn[nn > 0]
     floor = 0.1 * float(np.median(positive)) if len(positive) else 0.0  # stands in for a spacing of 0 (duplicates)
     out = np.empty(len(p), dtype=bool)
     for start in range(0, len(p), _CHUNK):  # chunks keep the (n, k, 3) neighbourhoods of a large scan small
         q_idx = np.arange(start, min(start + _CHUNK, len(p)))
-        _, idx = tree.query(p[q_idx], k + 1)
+        idx = neighbours[q_idx]
         # the query returns the point itself first, unless an exact duplicate came first: drop whichever is itself
         first_other = idx[:, 0] != q_idx
         nb = np.where(first_other[:, None], idx[:, :k], idx[:, 1:])  # (n, k)

@@ -17,7 +17,7 @@ from datasets.validation import points_and_normals
 from .calibration import Calibration
 from .combine import RULE as COMBINATION_RULE
 from .config import DEFAULT_AGGREGATE, DEFAULT_PROJECTION, InspectionConfig
-from .evidence import ScanEvidence, field_for, gather_evidence, scan_name
+from .evidence import ScanEvidence, field_for, gather_evidence, scan_name, stage
 from .aggregates import aggregate as aggregate_scores
 from .reference import REFERENCE_QUANTITY, LocalReference
 from .scores import POINT_SCORES, point_scores, reference_scores
@@ -230,55 +230,66 @@ class Inspector(BaseEstimator):
                              f"judges a scan against good scans of its own part; set the scan's part_id to one of them")
         return parts[part]
 
-    def inspect(self, scan, index=0):
+    def inspect(self, scan, index=0, timings=None):
         """Project one scan and score it. Returns a :class:`ScanResult` (score, per-point scores, field,
-        components, ray evidence). With rays the score is the combination, which needs calibration."""
+        components, ray evidence). With rays the score is the combination, which needs calibration.
+
+        ``timings`` (a dict, optional) receives the seconds of each stage: those of
+        :func:`inspection.evidence.gather_evidence` (``load``, ``projection``, ``field``, ``grazing``, ``stray``)
+        and ``reference`` (the point scores against the reference), ``aggregate``, ``rays``, ``combine``."""
         one = self.for_scan(scan)
         if one is not self:
-            return one.inspect(scan, index)
+            return one.inspect(scan, index, timings)
         settings = self._settings()
         combination = self._combination() if settings.rays else None  # before the work: fail fast
-        result = self.inspect_components(scan, index)
+        result = self.inspect_components(scan, index, timings)
         if combination is not None:
-            result.score = float(combination.score([result.components])[0])
+            with stage(timings, "combine"):
+                result.score = float(combination.score([result.components])[0])
         return result
 
-    def inspect_components(self, scan, index=0):
+    def inspect_components(self, scan, index=0, timings=None):
         """Like :meth:`inspect`, but ``score`` is the point score's aggregate alone; works unfitted (except for
         the per-location point scores, which need their reference)."""
         one = self.for_scan(scan)
         if one is not self:
-            return one.inspect_components(scan, index)
+            return one.inspect_components(scan, index, timings)
         settings = self._settings()
         if POINT_SCORES[settings.point_score].reference and getattr(self, "reference_", None) is None:
             raise NotFittedError(f"point_score {settings.point_score!r} needs the per-location reference: call "
                                  "fit(good_scans) with the model's training scans among them first")
-        return self._score(self._evidence(scan, index, settings), getattr(self, "reference_", None), settings)
+        return self._score(self._evidence(scan, index, settings, timings=timings), getattr(self, "reference_", None),
+                           settings, timings)
 
-    def _evidence(self, scan, index, settings, exclude_own_code=False):
+    def _evidence(self, scan, index, settings, exclude_own_code=False, timings=None):
         quantity = REFERENCE_QUANTITY if POINT_SCORES[settings.point_score].reference else None
         return gather_evidence(self.model, scan, index, quantity=quantity, projection=settings.projection,
-                               need_origin=settings.rays, exclude_own_code=exclude_own_code)
+                               need_origin=settings.rays, exclude_own_code=exclude_own_code, timings=timings)
 
-    def _score(self, evidence: ScanEvidence, reference, settings):
-        """A :class:`ScanResult` of a scan's evidence against ``reference`` (components: points, rays)."""
+    def _score(self, evidence: ScanEvidence, reference, settings, timings=None):
+        """A :class:`ScanResult` of a scan's evidence against ``reference`` (components: points, rays);
+        ``timings`` as in :meth:`inspect`."""
         noise = float(getattr(evidence.field, "noise", 0.0) if settings.noise is None else settings.noise)
-        if POINT_SCORES[settings.point_score].reference:
-            values = reference_scores(reference, settings.point_score, evidence.points, evidence.value,
-                                      evidence.variance, noise, evidence.grazing, evidence.normals)
-        else:
-            values = point_scores(evidence.field, evidence.points, kind=settings.point_score, noise=settings.noise)
-        # a stray point (a lone return off the surface) is not a defect unless many points agree: the scan's score
-        # aggregates the others; the map keeps every point's score
-        kept = values if evidence.stray is None or evidence.stray.all() else values[~evidence.stray]
-        score = aggregate_scores(kept, settings.aggregate)
+        with stage(timings, "reference"):
+            if POINT_SCORES[settings.point_score].reference:
+                values = reference_scores(reference, settings.point_score, evidence.points, evidence.value,
+                                          evidence.variance, noise, evidence.grazing, evidence.normals)
+            else:
+                values = point_scores(evidence.field, evidence.points, kind=settings.point_score,
+                                      noise=settings.noise)
+        with stage(timings, "aggregate"):
+            # a stray point (a lone return off the surface) is not a defect unless many points agree: the scan's
+            # score aggregates the others; the map keeps every point's score
+            kept = values if evidence.stray is None or evidence.stray.all() else values[~evidence.stray]
+            score = aggregate_scores(kept, settings.aggregate)
         result = ScanResult(score, values, evidence.field, components={"points": score})
         if settings.rays:
             from .ray_evidence import ray_evidence
 
-            result.rays = ray_evidence(evidence.field, evidence.points, evidence.origin,
-                                       surface=None if reference is None else reference.tree,
-                                       grazing=evidence.grazing, **settings.ray_options)
+            with stage(timings, "rays"):
+                result.rays = ray_evidence(evidence.field, evidence.points, evidence.origin,
+                                           surface=None if reference is None else reference.tree,
+                                           grazing=evidence.grazing, **settings.ray_options)
             result.components["rays"] = result.rays.score
         return result
 

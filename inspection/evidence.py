@@ -6,6 +6,8 @@ rays (:func:`autodecoder.scanning.sensor.grazing_factor`) and the stray returns
 (:func:`datasets.outliers.stray_points`). The scores (:mod:`inspection.scores`) and the ray score
 (:mod:`inspection.ray_evidence`) are computed from a :class:`ScanEvidence` without projecting again.
 """
+import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -48,6 +50,21 @@ class ScanEvidence:
     normals: np.ndarray = None
 
 
+@contextmanager
+def stage(timings, name):
+    """Adds the wall time of the block to ``timings[name]`` (seconds; a dict, or None: nothing is timed). The
+    inspection's per-scan stages (:func:`gather_evidence`, ``Inspector._score``) are timed this way for the latency
+    benchmark."""
+    if timings is None:
+        yield
+        return
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        timings[name] = timings.get(name, 0.0) + time.perf_counter() - t0
+
+
 def scan_name(scan, index):
     """A scan's own name, or ``'scan #<index>'`` for one without (a bare array)."""
     return getattr(scan, "name", None) or f"scan #{index}"
@@ -88,7 +105,8 @@ def field_for(model, points, normals=None, options=None):
                     f"got {type(model).__name__}")
 
 
-def gather_evidence(model, scan, index=0, quantity=None, projection=None, need_origin=False, exclude_own_code=False):
+def gather_evidence(model, scan, index=0, quantity=None, projection=None, need_origin=False, exclude_own_code=False,
+                    timings=None):
     """Project one scan and read what the scores need.
 
     Parameters
@@ -107,6 +125,9 @@ def gather_evidence(model, scan, index=0, quantity=None, projection=None, need_o
         The scan must record a valid sensor origin (the ray score).
     exclude_own_code : bool
         A training scan of a latent model is projected without starting from its own trained code (cross-fitting).
+    timings : dict, optional
+        Receives the seconds of each stage (:func:`stage`): ``'load'`` (points, normals, origin), ``'projection'``,
+        ``'field'`` (the compared quantity and its variance), ``'grazing'``, ``'stray'``.
 
     Returns
     -------
@@ -117,11 +138,12 @@ def gather_evidence(model, scan, index=0, quantity=None, projection=None, need_o
 
     from .reference import field_quantity
 
-    points, normals = points_and_normals(scan)
-    name = scan_name(scan, index)
-    if points.ndim != 2 or points.shape[-1] != 3 or len(points) == 0:
-        raise ValueError(f"{name}: a scan needs (m >= 1, 3) points, got shape {points.shape}")
-    origin = sensor_origin(scan, name, required=need_origin)
+    with stage(timings, "load"):
+        points, normals = points_and_normals(scan)
+        name = scan_name(scan, index)
+        if points.ndim != 2 or points.shape[-1] != 3 or len(points) == 0:
+            raise ValueError(f"{name}: a scan needs (m >= 1, 3) points, got shape {points.shape}")
+        origin = sensor_origin(scan, name, required=need_origin)
     options = dict(projection or {})
     train_names = getattr(model, "train_names", None)
     if exclude_own_code and train_names and name in train_names:
@@ -129,15 +151,20 @@ def gather_evidence(model, scan, index=0, quantity=None, projection=None, need_o
     part = getattr(scan, "part_id", "")
     if part and getattr(model, "train_part_ids", None):  # a latent model: start from the part's codes
         options["part_id"] = part
-    field = field_for(model, points, normals, options)
+    with stage(timings, "projection"):
+        field = field_for(model, points, normals, options)
     value = variance = grazing = None
     if quantity is not None:
-        value, variance = field_quantity(field, points, quantity, with_variance=True)
+        with stage(timings, "field"):
+            value, variance = field_quantity(field, points, quantity, with_variance=True)
         if normals is not None:
-            # no sensor origin (a public layout's test scan): the view estimated from the normals, for the grazing
-            # term alone
-            seen_from = origin if origin is not None else view_origin_from_normals(points, normals)
-            grazing = grazing_factor(points, normals, seen_from)
+            with stage(timings, "grazing"):
+                # no sensor origin (a public layout's test scan): the view estimated from the normals, for the
+                # grazing term alone
+                seen_from = origin if origin is not None else view_origin_from_normals(points, normals)
+                grazing = grazing_factor(points, normals, seen_from)
     points = np.asarray(points, dtype=np.float64)
-    return ScanEvidence(name, points, field, origin, value, variance, grazing, stray_points(points),
+    with stage(timings, "stray"):
+        stray = stray_points(points)
+    return ScanEvidence(name, points, field, origin, value, variance, grazing, stray,
                         None if normals is None else np.asarray(normals, dtype=np.float64))

@@ -198,7 +198,8 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
         surface_band = SurfaceBand(surface, band * field.lengthscale)
     if own_depth == "auto" and surface_band is None:
         own_depth = None
-    check_options = dict(check_options, observed=points, clearance=clearance, seed=seed, band=surface_band)
+    # one tree over the scan's points for both kinds of rays
+    check_options = dict(check_options, observed=cKDTree(points), clearance=clearance, seed=seed, band=surface_band)
     check = blocked_probability(field, origin, points[index], own_depth=own_depth, **check_options)
     values, surprisal = check.p_blocked, -check.log_free
     # every point takes the value of the nearest tested ray: the points seen through a hole lie together

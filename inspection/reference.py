@@ -40,13 +40,53 @@ def field_quantity(field, points, quantity=REFERENCE_QUANTITY, with_variance=Fal
     from autodecoder.field.protocol import check_field
 
     check_field(field)
-    mean = np.asarray(field.mean(points), dtype=np.float64)
-    grad = np.linalg.norm(np.asarray(field.mean_gradient(points), dtype=np.float64), axis=1)
+    mean, grad = _mean_and_gradient(field, points)
+    grad = np.linalg.norm(grad, axis=1)
     scale = np.maximum(grad, GRADIENT_FLOOR)
     if not with_variance:
         return mean / scale
     variance = np.maximum(np.asarray(field.variance(points), dtype=np.float64), 0.0)
     return mean / scale, variance / scale**2
+
+
+_CHUNK = 65536  # points per batch of the field's joint mean and gradient
+
+
+def _mean_and_gradient(field, points):
+    """E f and grad E f at (m, 3) points -> (m,), (m, 3) float64: in one pass of the mean net when the field has one
+    of its own (a ``torch_mean_and_gradient`` that carries the value and its gradient forward together, as the latent
+    model's fields do; a SIREN's value is then the same number as its ``mean``), else ``mean`` and
+    ``mean_gradient``."""
+    from autodecoder.field.protocol import Field
+
+    joint = getattr(field, "torch_mean_and_gradient", None)
+    if joint is None or getattr(type(field), "torch_mean_and_gradient", None) is Field.torch_mean_and_gradient:
+        return (np.asarray(field.mean(points), dtype=np.float64),
+                np.asarray(field.mean_gradient(points), dtype=np.float64))
+    import torch
+
+    x = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    mean, grad = np.empty(len(x)), np.empty((len(x), 3))
+    with torch.no_grad():
+        for start in range(0, len(x), _CHUNK):
+            value, gradient = joint(torch.as_tensor(x[start:start + _CHUNK], dtype=torch.float32))
+            mean[start:start + _CHUNK] = value.double().numpy()
+            grad[start:start + _CHUNK] = gradient.double().numpy()
+    return mean, grad
+
+
+def _plane(points, nb, valid, k):
+    """The offsets (m,) of points (m, 3) from the plane through the first ``k`` valid (m, w) of their neighbours nb
+    (m, w, 3), and the neighbours' variance along its normal (m,) (:meth:`LocalReference.surface`)."""
+    weight = (valid & (np.cumsum(valid, 1) <= k)).astype(np.float64)  # (m, w): the first k valid
+    count = weight.sum(1)
+    centroid = np.einsum("mk,mki->mi", weight, nb) / count[:, None]
+    centred = nb - centroid[:, None]
+    # (m, 3, 3): sum_k w_k c_k c_k^T as one batched product (a three-operand einsum is ten times slower)
+    cov = np.matmul((weight[:, :, None] * centred).transpose(0, 2, 1), centred) / count[:, None, None]
+    eigval, eigvec = np.linalg.eigh(cov)  # ascending
+    normal = eigvec[:, :, 0]
+    return np.einsum("mi,mi->m", normal, points - centroid), np.maximum(eigval[:, 0], 0.0)
 
 
 class LocalReference:
@@ -215,22 +255,30 @@ class LocalReference:
             raise ValueError(f"the reference surface needs >= 4 distinct points, got {tree.n}")
         sided = normals is not None and surface_normals is not None
         wide = min(SURFACE_CANDIDATES * k + 1, tree.n) if sided else k + 1
-        dist, idx = tree.query(points, wide)  # (m, wide)
-        valid = dist > self_distance
         if sided:
             normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-            same = np.einsum("mj,mkj->mk", normals, surface_normals[idx]) > 0
-            enough = (valid & same).sum(1) >= 3
-            valid &= same | ~enough[:, None]
-        weight = (valid & (np.cumsum(valid, 1) <= k)).astype(np.float64)  # (m, wide): the first k valid
-        nb = tree.data[idx]  # (m, wide, 3)
-        count = weight.sum(1)
-        centroid = np.einsum("mk,mki->mi", weight, nb) / count[:, None]
-        centred = nb - centroid[:, None]
-        cov = np.einsum("mk,mki,mkj->mij", weight, centred, centred) / count[:, None, None]  # (m, 3, 3)
-        eigval, eigvec = np.linalg.eigh(cov)  # ascending
-        normal = eigvec[:, :, 0]
-        return np.einsum("mi,mi->m", normal, points - centroid), np.maximum(eigval[:, 0], 0.0)
+        offset, spread = np.empty(len(points)), np.empty(len(points))
+        todo = np.arange(len(points))
+        # the k + 1 nearest first: where k of them are valid and on the point's side (most points, away from thin
+        # walls), they are the first k such of the wide query too, which only the other points then need
+        for width in ((k + 1, wide) if wide > k + 1 else (wide,)):
+            if len(todo) == 0:
+                break
+            dist, idx = tree.query(points[todo], width)  # (t, width)
+            valid = dist > self_distance
+            if sided:
+                same = np.einsum("mj,mkj->mk", normals[todo], surface_normals[idx]) > 0
+                agree = (valid & same).sum(1)
+                if width < wide:
+                    rows = agree >= k
+                    done = todo[rows]
+                    offset[done], spread[done] = _plane(points[done], tree.data[idx[rows]],
+                                                        (valid & same)[rows], k)
+                    todo = todo[~rows]
+                    continue
+                valid &= same | ~(agree >= 3)[:, None]
+            offset[todo], spread[todo] = _plane(points[todo], tree.data[idx], valid, k)
+        return offset, spread
 
     def surface_scores(self, points, noise, grazing=None, normals=None):
         """|offset| / sqrt(spread + noise^2 (1 + grazing_scale * g)) with offset, spread of :meth:`surface` (with the

@@ -69,6 +69,12 @@ class ProjectionOptions:
         (:func:`part_codes`). None or '': every training code (also what a model without part ids always does);
         a part id the model was not trained on is a ValueError. :func:`project_many` takes it per scan from the
         scans' ``part_id`` when this is None.
+    loss_points : int, optional
+        When a single code is left at the end (``steps`` > 0: the best start goes on alone; or ``starts`` 1),
+        the reported :attr:`Projection.loss` is computed on a seeded subsample of at most this many of the scan's
+        points (the code is the same: the loss only reports it). With several codes left (no steps) the loss picks
+        the best on every point. None: every point. The default leaves a scan of up to 4,096 points exact and keeps
+        a 30,000-point scan from spending a fifth of its projection on this one number.
     """
 
     steps: int = 60
@@ -84,6 +90,7 @@ class ProjectionOptions:
     finetune_lr: float = 1e-4
     exclude: tuple = ()
     part_id: Optional[str] = None
+    loss_points: Optional[int] = 4096
 
 
 @dataclass
@@ -94,7 +101,8 @@ class Projection:
     ----------
     code : (L,) float32 tensor
     loss : float
-        Projection loss (without the code prior) on all the scan's points.
+        Projection loss (without the code prior) on all the scan's points (on a seeded subsample of
+        ``ProjectionOptions.loss_points`` of them for a larger scan projected down to one code).
     field : StochasticField
         The field of the code (collection frame); with fine-tuned copies of the nets when ``finetune_steps > 0``.
     start : int
@@ -134,8 +142,11 @@ def _point_losses(mean_net, x, normals, oriented, z, screening_weight, cache=Non
         g, grad = mean_net.value_and_gradient_from({k: v.reshape(g_ * n_, *v.shape[2:]) for k, v in cache.items()}, zz)
     g, grad = g.view(g_, n_), grad.view(g_, n_, 3)
     plus = (grad - normals).square().sum(-1)
-    minus = (grad + normals).square().sum(-1)
-    align = torch.where(oriented[:, None], plus, torch.minimum(plus, minus))
+    if bool(oriented.all()):  # the usual case: the sign-free term is not needed (the same numbers, fewer ops)
+        align = plus
+    else:
+        minus = (grad + normals).square().sum(-1)
+        align = torch.where(oriented[:, None], plus, torch.minimum(plus, minus))
     return screening_weight * g.square() + align
 
 
@@ -207,6 +218,8 @@ def project_many(model, scans, *, seed=0, batch=16, workers=None, quiet=True, **
         raise ValueError(f"batch must be >= 1, got {batch}")
     if not 0 <= opts.trim < 1:
         raise ValueError(f"trim must be in [0, 1), got {opts.trim}")
+    if opts.loss_points is not None and opts.loss_points < 1:
+        raise ValueError(f"loss_points must be None or >= 1, got {opts.loss_points}")
     old_threads = torch.get_num_threads()
     if workers is not None:
         torch.set_num_threads(int(workers))
@@ -356,9 +369,20 @@ def _project_batch(model, prepared, opts, seed):
             opt = new
             start_index = start_index[rows.numpy(), keep.numpy()][:, None]
     z = z.detach()
-    with torch.no_grad():  # final loss on all points, per start; keep the best
-        losses = torch.stack([_full_loss(net, pts[i], nrm[i], bool(oriented[i]), z[i], lam_s, opts.trim,
-                                         cache=None if caches is None else caches[i])
+    rows = [None] * b  # the points of each scan's final loss (None: all)
+    if z.shape[1] == 1 and opts.loss_points is not None:  # one code: the loss only reports it, a subsample will do
+        loss_rng = np.random.default_rng(seed + 1)
+        rows = [None if n <= opts.loss_points else torch.from_numpy(np.sort(loss_rng.choice(n, opts.loss_points,
+                                                                                            replace=False)))
+                for n in sizes]
+
+    def rows_of(a, i):
+        return a if rows[i] is None else a[rows[i]]
+
+    with torch.no_grad():  # final loss on all points (or the subsample), per start; keep the best
+        losses = torch.stack([_full_loss(net, rows_of(pts[i], i), rows_of(nrm[i], i), bool(oriented[i]), z[i], lam_s,
+                                         opts.trim, cache=None if caches is None else
+                                         {key: rows_of(v, i) for key, v in caches[i].items()})
                               for i in range(b)])
     keep = losses.argmin(1)
     seconds = (time.perf_counter() - t0) / b

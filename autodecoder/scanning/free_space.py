@@ -140,6 +140,13 @@ class _Options:
     own_depth: float = None
     band: object = None
 
+    @property
+    def observed_count(self):
+        """How many observed points there are (0: none)."""
+        if self.observed is None:
+            return 0
+        return int(self.observed.n) if hasattr(self.observed, "n") else len(self.observed)
+
     def check(self, field):
         if not (int(self.max_samples) >= 3 and int(self.n_select) >= 1 and self.q_floor >= 0):
             raise ValueError(f"need max_samples >= 3, n_select >= 1, q_floor >= 0; got {self.max_samples}, "
@@ -148,7 +155,12 @@ class _Options:
             raise ValueError(f"step must be > 0 (world units), got {self.step}")
         scale = field.lengthscale
         if self.observed is not None:
-            self.observed = check_points(self.observed, "observed points", min_points=0)
+            from scipy.spatial import cKDTree
+
+            if isinstance(self.observed, cKDTree):  # a tree over them, used as it is (no second build)
+                check_points(self.observed.data, "observed points", min_points=0)
+            else:
+                self.observed = check_points(self.observed, "observed points", min_points=0)
             if self.clearance is None:
                 if scale is None:
                     raise ValueError("the field does not say its lengthscale: give clearance (world units) with the "
@@ -186,9 +198,10 @@ def blocked_probability(field, origin, points, outside_sigma=DEFAULT_OUTSIDE_SIG
         Observed points (returns of rays from ``origin``), in the field's frame.
     outside_sigma : float
         A sample is clearly outside when E f >= outside_sigma x sd f (P(f <= 0) <= Phi(-outside_sigma)).
-    observed : (n, 3) array, optional
+    observed : (n, 3) array or a scipy.spatial.cKDTree over them, optional
         Every point the scan returned (usually a superset of ``points``): samples within ``clearance`` of one of
-        them are left out (see the module docstring). None: no sample is left out for it.
+        them are left out (see the module docstring). None: no sample is left out for it. A tree is used as it is
+        (a caller testing several sets of rays of one scan builds it once).
     clearance : float, optional
         World units; default the field's kernel lengthscale.
     step : float, optional
@@ -289,10 +302,10 @@ def _segments(field, origin, d, t_near, t_stop, q_out, opts):
         longest = float((t_stop - t_near).max()) if len(d) else 0.0
         step = 0.5 * scale if scale else max(longest, 1e-12) / (opts.max_samples - 1)
     tree = None
-    if opts.observed is not None and len(opts.observed) and opts.clearance > 0:
+    if opts.observed is not None and opts.observed_count and opts.clearance > 0:
         from scipy.spatial import cKDTree
 
-        tree = cKDTree(opts.observed)
+        tree = opts.observed if isinstance(opts.observed, cKDTree) else cKDTree(opts.observed)
     keys = ("log_free", "max_marginal", "t_end", "t_block", "t_enter")
     out = {k: np.empty(len(d)) for k in keys}
     with torch.no_grad():
@@ -333,14 +346,18 @@ def _check_segments(field, origin, d, t_near, t_stop, step, q_out, tree, opts):
         has_out = outside.any(1)
         j_end = np.where(has_out, outside.shape[1] - 1 - np.argmax(outside[:, ::-1], axis=1), -1)
     keep = np.arange(t.shape[1]) <= j_end[:, None]
+    # the neighbour look-ups below only for the samples still kept (the others stay left out whatever they say)
     if tree is not None:
         # material next to a surface the scan saw is that surface, blurred by the field's resolution: a ray that
         # grazes an observed edge is not evidence of anything missing
-        keep &= ~np.isfinite(tree.query(x.reshape(-1, 3), k=1, distance_upper_bound=opts.clearance)[0]).reshape(
-            t.shape)
+        rows, cols = np.nonzero(keep)
+        near = np.isfinite(tree.query(x[rows, cols], k=1, distance_upper_bound=opts.clearance)[0])
+        keep[rows[near], cols[near]] = False
     if opts.band is not None:
         # only where good parts have a surface: elsewhere the field's material is its own extrapolation
-        keep &= opts.band.contains(x.reshape(-1, 3)).reshape(t.shape)
+        rows, cols = np.nonzero(keep)
+        outside_band = ~opts.band.contains(x[rows, cols])
+        keep[rows[outside_band], cols[outside_band]] = False
     q = np.where(keep, q, 0.0)
     log_p_out = np.where(keep, log_p_out, 0.0)
     rows = np.flatnonzero(has_out)

@@ -489,3 +489,18 @@ def test_fitting_on_training_scans_alone_says_which_scans_are_missing():
              for i, n in enumerate(model.train_names)]
     with pytest.raises(ValueError, match="held-back scans \\(e.g. 'validation/0'\\) are not among them"):
         Inspector(model).fit(scans)
+
+
+def test_inspect_reports_its_stages_seconds_and_the_same_score(fitted):
+    """``timings`` receives each stage's seconds (the latency benchmark's breakdown) and changes nothing."""
+    scan = sphere_scan(seed=60)[0]
+    timings = {}
+    timed = fitted.inspect(scan, timings=timings)
+    plain = fitted.inspect(scan)
+    assert timed.score == plain.score
+    np.testing.assert_array_equal(timed.point_scores, plain.point_scores)
+    assert {"load", "projection", "stray", "reference", "aggregate"} <= set(timings)
+    assert all(v >= 0 for v in timings.values())
+    again = dict(timings)
+    fitted.inspect(scan, timings=timings)  # a second scan adds to the same entries
+    assert all(timings[k] >= again[k] for k in again)

@@ -164,3 +164,59 @@ def test_surface_with_normals_fits_the_plane_on_the_scored_points_side_of_a_thin
     np.testing.assert_array_equal(restored.surface(q, up)[0], offset)
     with pytest.raises(ValueError, match="surface_normals"):
         LocalReference(top, np.zeros(1000), k=8, surface_normals=normals[:1000])
+
+
+def _wide_surface(ref, points, normals):
+    """LocalReference.surface as one wide query for every point (the rule as written, without the narrow first
+    query that settles most points)."""
+    from inspection.reference import SURFACE_CANDIDATES
+
+    tree, surface_normals, self_distance = ref._surface_tree()
+    k = min(ref.k, tree.n - 1)
+    dist, idx = tree.query(points, min(SURFACE_CANDIDATES * k + 1, tree.n))
+    valid = dist > self_distance
+    same = np.einsum("mj,mkj->mk", normals, surface_normals[idx]) > 0
+    valid &= same | ~((valid & same).sum(1) >= 3)[:, None]
+    weight = (valid & (np.cumsum(valid, 1) <= k)).astype(np.float64)
+    nb = tree.data[idx]
+    centroid = np.einsum("mk,mki->mi", weight, nb) / weight.sum(1)[:, None]
+    centred = nb - centroid[:, None]
+    cov = np.einsum("mk,mki,mkj->mij", weight, centred, centred) / weight.sum(1)[:, None, None]
+    eigval, eigvec = np.linalg.eigh(cov)
+    return np.einsum("mi,mi->m", eigvec[:, :, 0], points - centroid), np.maximum(eigval[:, 0], 0.0)
+
+
+def test_sided_surface_settles_most_points_on_a_narrow_query_with_the_wide_querys_answer(monkeypatch):
+    """Points whose k + 1 nearest hold k on their own side take the plane of those; the others (near a thin wall's
+    edge, where the faces mix) are queried wide. Both give what one wide query for every point gives."""
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(-1, 1, (3000, 2))
+    gap = 0.01
+    top, bottom = np.c_[xy[:1500], np.full(1500, gap)], np.c_[xy[1500:], np.zeros(1500)]
+    normals = np.r_[np.tile([0.0, 0.0, 1.0], (1500, 1)), np.tile([0.0, 0.0, -1.0], (1500, 1))]
+    # a tilted patch where the faces' normals disagree with some scored points' (the wide path)
+    normals[:200] = [0.0, 0.7, 0.7]
+    ref = LocalReference(np.r_[top, bottom], np.zeros(3000), k=8, surface_points=np.r_[top, bottom],
+                         surface_normals=normals)
+    q = np.c_[rng.uniform(-0.9, 0.9, (400, 2)), rng.uniform(-0.02, 0.03, 400)]
+    qn = rng.normal(size=(400, 3))
+    queried = []
+    tree = ref._surface_tree()[0]
+    monkeypatch.setattr(ref, "_surface", (_Counting(tree, queried),) + ref._surface_tree()[1:])
+    offset, spread = ref.surface(q, qn)
+    assert queried[0] == (400, 9) and 0 < queried[1][0] < 400 and queried[1][1] == 33  # both paths taken
+    exp_offset, exp_spread = _wide_surface(ref, q, qn)
+    np.testing.assert_allclose(np.abs(offset), np.abs(exp_offset), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(spread, exp_spread, rtol=1e-9, atol=1e-15)
+
+
+class _Counting:
+    """A KD-tree that records the (points, k) of each query."""
+
+    def __init__(self, tree, log):
+        self._tree, self._log = tree, log
+        self.n, self.data = tree.n, tree.data
+
+    def query(self, x, k):
+        self._log.append((len(x), k))
+        return self._tree.query(x, k)

@@ -359,3 +359,24 @@ def test_training_threads_sets_and_restores_torch_threads():
             pass
     finally:
         torch.set_num_threads(before)
+
+
+def test_the_reported_loss_of_a_large_scan_comes_from_a_subsample_and_the_code_does_not_change(trained):
+    """With one code left (any steps with several starts end with the best one), the final loss only reports it:
+    ``loss_points`` of the points give the same code and a loss within 10 % of the loss on every point; with several
+    codes left (no steps) the loss picks among them on every point."""
+    model, _ = trained
+    scan = sphere_scan("test/large", 0.25, seed=12)
+    n = len(scan.points)
+    options = dict(seed=0, steps=30, starts=2, explore=10)
+    full = model.project(scan.points, scan.normals, loss_points=None, **options)
+    sub = model.project(scan.points, scan.normals, loss_points=n // 4, **options)
+    assert torch.equal(full.code, sub.code) and full.start == sub.start
+    assert sub.loss != full.loss and abs(sub.loss - full.loss) <= 0.1 * full.loss
+    # a scan no larger than loss_points, or several codes left: the loss on every point
+    assert model.project(scan.points, scan.normals, loss_points=n, **options).loss == full.loss
+    several = dict(options, steps=0)
+    assert model.project(scan.points, scan.normals, loss_points=n // 4, **several).loss == \
+        model.project(scan.points, scan.normals, loss_points=None, **several).loss
+    with pytest.raises(ValueError, match="loss_points"):
+        model.project(scan.points, scan.normals, loss_points=0)

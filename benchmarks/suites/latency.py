@@ -1,0 +1,102 @@
+"""Where a scan's inspection time goes: seconds per scan and per stage at the defaults, one torch thread.
+
+The built-in part's cached synthetic collection (:func:`benchmarks.cache.synth_collection`, 4,000-point scans) and
+its model trained with the defaults (:func:`benchmarks.cache.trained_model`), calibrated once
+(``inspection.Inspector(model).fit(collection)``, :func:`benchmarks.inspect_api.fit_inspector`); then every timed
+scan goes through ``Inspector.inspect`` with its stage timings (:func:`benchmarks.inspect_api.timed_inspect`):
+load, projection, field quantities, grazing factors, stray points, reference (the joint point scores), aggregate,
+rays, combine. Each point count of ``--points`` other than 4,000 gets its own cached collection of the same part
+and seed (the same frame; ``--scans`` test scans of it are timed under the same calibration). Beside it the
+nearest-neighbour baseline's seconds per scan (:func:`benchmarks.baselines.nn_baseline`, on the model's training
+scans' points). One warm-up scan per size is not counted.
+"""
+import time
+
+import numpy as np
+
+from benchmarks import baselines, cache, inspect_api
+from benchmarks.table import format_table
+
+DESCRIPTION = ("seconds per scan and per stage of Inspector.inspect at the defaults (one thread), 4,000 and 30,000 "
+               "points, next to the nearest-neighbour baseline")
+STAGES = ("load", "projection", "field", "grazing", "stray", "reference", "aggregate", "rays", "combine")
+
+
+def add_arguments(p):
+    p.add_argument("--part", default="builtin", help="the part (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="synthesis and training seed (default: %(default)s)")
+    p.add_argument("--points", default="4000,30000",
+                   help="comma-separated points per scan; 4000 is the training collection (default: %(default)s)")
+    p.add_argument("--scans", type=int, default=12,
+                   help="test scans timed per size, spread over the test split (default: %(default)s)")
+    p.add_argument("--large-scans", type=int, default=4,
+                   help="test scans of each other size's collection: good and defective, per defect type "
+                        "(default: %(default)s good, 1 per defect type)")
+    p.add_argument("--threads", type=int, default=1, help="torch threads (default: %(default)s)")
+    p.add_argument("--cache", default=cache.CACHE, help="collections and models (default: %(default)s)")
+    p.add_argument("--progress", action="store_true", help="progress bars")
+
+
+def _spread(indices, n):
+    indices = list(indices)
+    if len(indices) <= n:
+        return indices
+    return [indices[i] for i in np.linspace(0, len(indices) - 1, n).round().astype(int)]
+
+
+def _time_scans(insp, scans):
+    """Per scan: score and timings (a warm-up scan first, not counted)."""
+    inspect_api.timed_inspect(insp, scans[0])
+    return [inspect_api.timed_inspect(insp, s) for s in scans]
+
+
+def run(args):
+    import torch
+
+    from datasets import ScanCollection
+
+    torch.set_num_threads(args.threads)
+    sizes = [int(v) for v in args.points.split(",")]
+    data = cache.synth_collection(args.part, seed=args.seed, root=args.cache, progress=args.progress)
+    model = cache.trained_model(data, root=args.cache, seed=args.seed)
+    info = inspect_api.model_info(model)
+    t0 = time.perf_counter()
+    insp = inspect_api.fit_inspector(model, data, progress=args.progress)
+    calibrate_seconds = time.perf_counter() - t0
+    with ScanCollection(data) as c:
+        names = c.names
+        train_points = np.concatenate([s.points for s in c.read_many(
+            [i for i in c.select(split="train") if names[i] not in set(info["heldback_names"])])])
+    figures = {"part": args.part, "threads": args.threads, "calibrate_seconds": calibrate_seconds, "sizes": {}}
+    rows = []
+    for n in sizes:
+        if n == cache.COLLECTION_DEFAULTS["n_points"]:
+            path = data
+        else:
+            path = cache.synth_collection(args.part, seed=args.seed, root=args.cache, progress=args.progress,
+                                          n_points=n, n_train=4, n_test_good=args.large_scans, n_test_defective=1)
+        with ScanCollection(path) as c:
+            scans = c.read_many(_spread(c.select(split="test"), args.scans))
+        timed = _time_scans(insp, scans)
+        t_nn = time.perf_counter()
+        baselines.nn_baseline(train_points, scans)
+        nn_seconds = (time.perf_counter() - t_nn) / len(scans)
+        stages = {k: float(np.mean([t.get(k, 0.0) for _, _, t in timed])) for k in STAGES}
+        total = [t["total"] for _, _, t in timed]
+        points = float(np.mean([len(s.points) for s in scans]))
+        figures["sizes"][str(n)] = {"scans": len(scans), "points": points, "seconds_per_scan": float(np.mean(total)),
+                                    "seconds_max": float(np.max(total)), "stages": stages,
+                                    "other": float(np.mean(total) - sum(stages.values())),
+                                    "nn_seconds_per_scan": nn_seconds,
+                                    "scores": {s.name: v for s, (v, _, _) in zip(scans, timed)}}
+        f = figures["sizes"][str(n)]
+        rows.append({"points": f"{points:,.0f}", "scans": len(scans), "s/scan": f["seconds_per_scan"],
+                     "max": f["seconds_max"], **{k: stages[k] for k in STAGES}, "other": f["other"],
+                     "NN s/scan": nn_seconds})
+    print(f"{args.part}, seed {args.seed}: calibrated in {calibrate_seconds:.1f} s; seconds per scan and per stage, "
+          f"{args.threads} torch thread(s)")
+    columns = [("points", "points", ""), ("scans", "scans", "d"), ("s/scan", "s/scan", ".3f"),
+               ("max", "max", ".3f")] + [(k, k, ".3f") for k in STAGES] + \
+        [("other", "other", ".3f"), ("NN s/scan", "NN s/scan", ".4f")]
+    print(format_table(rows, columns))
+    return figures
