@@ -1,7 +1,8 @@
 """Command line of the inspection package: calibrate a model on good scans, score scans, run the demo.
 
     python -m inspection calibrate --model model.pt --data good.h5 [--alpha 0.02] [--aggregate top1] [--no-rays]
-    python -m inspection score --model model.pt --data tree.h5 --out results/ [--split test] [--align]
+    python -m inspection score --model model.pt --data tree.h5 --out results/ [--split test] [--align] [--jobs 4]
+    python -m inspection watch --model model.pt --data drop_folder/ --out results/ [--once] [--settle 1]
     python -m inspection demo --out demo_output
 
 Heavy libraries are imported inside the commands, so --help is fast.
@@ -79,7 +80,28 @@ def _parser():
                                                      "surface)")
     s.add_argument("--overwrite", action="store_true", help="write into an existing folder that is not a results "
                                                             "folder")
+    s.add_argument("--jobs", type=_positive_int, default=1,
+                   help="score in this many processes (default 1); the results are the same, in the same order")
     s.add_argument("--quiet", action="store_true")
+
+    w = sub.add_parser("watch", help="score each scan file as it lands in a folder (a scanner's drop folder), once; "
+                                     "verdicts appended to OUT/verdicts.jsonl and OUT/verdicts.csv, maps to OUT/maps")
+    w.add_argument("--model", required=True, help="a calibrated model")
+    w.add_argument("--data", required=True, help="the folder the scanner writes cloud files into (not recursive; "
+                                                 "hidden files and other suffixes, e.g. .part, are ignored)")
+    w.add_argument("--out", required=True, help="results folder: verdicts.jsonl (the journal: a restarted watcher "
+                                                "skips what it records), verdicts.csv, maps/")
+    w.add_argument("--once", action="store_true", help="score the files present (waiting for any still being "
+                                                       "written) and exit; default: keep watching until Ctrl-C")
+    w.add_argument("--settle", type=_seconds, default=1.0,
+                   help="a file is read once its size and time have not changed for this many seconds (default "
+                        "%(default)s; 0 for scanners that write under a temporary name and rename)")
+    w.add_argument("--interval", type=_seconds, default=1.0, help="seconds between looks (default %(default)s)")
+    w.add_argument("--alpha", type=float, default=None, help="false-alarm rate (default: the calibration's)")
+    w.add_argument("--maps", choices=("all", "flagged", "none"), default="all",
+                   help="which scans get a coloured PLY in OUT/maps (default all)")
+    w.add_argument("--two-class", action="store_true", help="good or defective only (no 'uncertain')")
+    w.add_argument("--quiet", action="store_true", help="no line per scan (the summary line stays)")
 
     d = sub.add_parser("demo", help="the whole pipeline on the built-in part: synthesise, train, calibrate, score")
     d.add_argument("--out", default="demo_output")
@@ -87,6 +109,31 @@ def _parser():
     d.add_argument("--quick", action="store_true", help="smaller sizes (a smoke test, not a measurement)")
     d.add_argument("--quiet", action="store_true")
     return p
+
+
+def _positive_int(text):
+    import argparse
+
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
+    return value
+
+
+def _seconds(text):
+    import argparse
+    import math
+
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"expected a number of seconds >= 0, got {text!r}")
+    return value
 
 
 def config_from_args(args):
@@ -125,11 +172,14 @@ def main(argv=None):
 
             summary = score(args.model, args.data, args.out, split=None if args.split == "all" else args.split,
                             alpha=args.alpha, maps=args.maps, align=args.align, reference=args.reference,
-                            progress=not args.quiet, overwrite=args.overwrite, uncertain=not args.two_class)
+                            progress=not args.quiet, overwrite=args.overwrite, uncertain=not args.two_class,
+                            jobs=args.jobs)
             if summary.get("n_errors"):
                 print(f"error: {summary['n_errors']} scan(s) could not be scored (verdict 'error' in "
                       f"{args.out}/scores.csv)", file=sys.stderr)
                 return 1
+        elif args.command == "watch":
+            return _watch(args)
         else:
             from .demo import run_demo
 
@@ -137,6 +187,27 @@ def main(argv=None):
     except (InspectionError, OSError, ValueError, KeyError) as exc:
         return _report_error(exc)
     return 0
+
+
+def _watch(args):
+    """``watch``: until Ctrl-C or SIGTERM (exit 0, with a summary line), or with --once until the files present are
+    scored (exit 1 when some could not be)."""
+    import signal
+
+    from .watch import watch
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, stop)  # a service manager's stop: a clean exit like Ctrl-C
+    try:
+        watcher = watch(args.model, args.data, args.out, once=args.once, settle=args.settle, interval=args.interval,
+                        maps=args.maps, alpha=args.alpha, uncertain=not args.two_class, quiet=args.quiet)
+    except KeyboardInterrupt:
+        return 0
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    return 1 if args.once and watcher.counts.get("error") else 0
 
 
 def _report_error(exc):

@@ -106,7 +106,7 @@ def _calibrate_for_scoring(handle, data, alpha, progress, echo):
 
 
 def score(model, data, out, split="test", alpha=None, maps="flagged", align=False, reference=None, progress=True,
-          overwrite=False, echo=print, uncertain=True):
+          overwrite=False, echo=print, uncertain=True, jobs=1):
     """Score scans against a calibrated model and write report.html, scores.csv, summary.json, roc.png, scores.png,
     maps/.
 
@@ -115,7 +115,8 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
     scored (damaged, no sensor origin where the calibration uses rays, an unknown part) gets verdict ``'error'``
     with its reason; the others are scored (``summary['n_errors']`` counts them). A scan whose score lies within
     the threshold's own uncertainty gets verdict ``'uncertain'`` (rescan it; ``summary['n_uncertain']``) unless
-    ``uncertain`` is False (two classes).
+    ``uncertain`` is False (two classes). ``jobs`` > 1 scores the scans in that many processes, with the same
+    results, in the same order, as one (:func:`_inspect_scans`).
 
     Returns
     -------
@@ -127,6 +128,8 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
 
     if maps not in ("flagged", "all", "none"):
         raise InspectionError(f"--maps must be flagged, all or none, got {maps!r}")
+    if not isinstance(jobs, int) or jobs < 1:
+        raise InspectionError(f"--jobs must be a whole number >= 1, got {jobs!r}")
     handle = load_model(model)
     insp = _calibrated_inspector(handle, data, alpha, progress, echo)
     scans, info = load_scans(data, handle.frame, split=split, model_fingerprint=handle.fingerprint, errors="collect")
@@ -135,7 +138,9 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
                               f"{data}: no scans" + (f" in split {split!r}" if split else ""))
     out = prepare_out(out, overwrite=overwrite)
     aligner = make_aligner(handle, info, reference) if align else None
-    results = _inspect_scans(insp, scans, aligner, maps, out / "maps", progress, uncertain)
+    calibration = insp.calibration() if handle.calibration is None else handle.calibration
+    spec = (handle.path, calibration, alpha)  # what a worker process builds its inspector from
+    results = _inspect_scans(insp, scans, aligner, maps, out / "maps", progress, uncertain, jobs, spec)
     results["rows"] += [_error_row(name, reason) for name, reason in info["failed"]]
     summary = summarize_run(handle, insp, data, split, align, results)
     write_results(out, insp, results, summary)
@@ -168,48 +173,135 @@ def _error_row(scan_or_name, reason):
             "verdict": "error", "reason": str(reason)}
 
 
-def _inspect_scans(insp, scans, aligner, maps, maps_dir, progress, uncertain=True):
+def _inspect_scans(insp, scans, aligner, maps, maps_dir, progress, uncertain=True, jobs=1, worker_spec=None):
     """Inspect every scan (aligned first when ``aligner``) and write the anomaly maps ``maps`` asks for. A scan that
     cannot be scored (a ValueError naming it) gets an ``'error'`` row and the others go on.
+
+    With ``jobs`` > 1 the scans are scored by that many worker processes (a 'spawn' context, one torch thread each),
+    each of which builds its inspector once from ``worker_spec`` = (model path, calibration, alpha); scans are
+    aligned here first. A scan's scoring is deterministic (its projection is seeded), so the rows
+    are those of one process, in the input order whatever the order the workers finish in.
 
     Returns a dict: ``rows`` (one per scan, the CSV columns), ``point_labels``, ``point_scores`` and ``ray_maps``
     (per scan with ground-truth point labels), ``seconds`` (per scored scan), ``maps`` (maps written) and ``views``
     (their 3D views for report.html)."""
     from tqdm import tqdm
 
-    from .html_report import map_view
-
-    rays = insp.settings_.rays
     results = {"rows": [], "point_labels": [], "point_scores": [], "ray_maps": [], "seconds": [], "maps": 0,
                "views": []}  # views: report.html's 3D views (inspection.html_report.map_view), one per map
-    for i, scan in enumerate(tqdm(scans, desc="inspect", unit="scan", disable=not progress)):
-        t0 = time.perf_counter()
-        try:
-            if aligner is not None:
-                scan = aligner.align_scan(scan)
-            one = insp.for_scan(scan)  # the scan's part's inspector (a model of several part types), else insp
-            res = one.inspect(scan, i)
-        except ValueError as exc:
-            results["rows"].append(_error_row(scan, str(exc).strip().splitlines()[0]))
+    jobs = min(int(jobs), len(scans))
+    if jobs <= 1:
+        outs = (_inspect_one(insp, scan, i, maps, maps_dir, uncertain, aligner)
+                for i, scan in enumerate(tqdm(scans, desc="inspect", unit="scan", disable=not progress)))
+    else:
+        outs = _inspect_in_workers(worker_spec, scans, aligner, maps, maps_dir, progress, uncertain, jobs)
+    for one in outs:
+        results["rows"].append(one["row"])
+        if "seconds" not in one:  # an error row
             continue
-        results["seconds"].append(time.perf_counter() - t0)
-        flagged = bool(one.predict_from_scores([res.score])[0] == -1)
-        verdict = str(one.verdicts_from_scores([res.score], uncertain=uncertain)[0])
-        row = {"name": scan.name, "split": scan.split, "label": scan.label, "defect": scan.defect,
-               "score": res.score, "p_value": float(one.p_values_from_scores([res.score])[0]), "verdict": verdict,
-               "reason": "", "flagged": flagged}
-        if rays:
-            row.update(score_points=res.components["points"], score_rays=res.components["rays"])
-        results["rows"].append(row)
-        if scan.point_labels is not None:
-            results["point_labels"].append(scan.point_labels)
-            results["point_scores"].append(res.point_scores)
-            if rays:
-                results["ray_maps"].append(res.rays.point_map)
-        if maps == "all" or (maps == "flagged" and verdict != "good"):
-            write_scan_maps(one.settings_, scan, res, maps_dir)
+        results["seconds"].append(one["seconds"])
+        if "point_labels" in one:
+            results["point_labels"].append(one["point_labels"])
+            results["point_scores"].append(one["point_scores"])
+            if one["ray_map"] is not None:
+                results["ray_maps"].append(one["ray_map"])
+        if "view" in one:
             results["maps"] += 1
-            results["views"].append(map_view(one.settings_, scan, res, seed=i))  # report.html's 3D view
+            results["views"].append(one["view"])
     return results
 
 
+def _first_line(exc):
+    lines = str(exc).strip().splitlines()
+    return lines[0] if lines else type(exc).__name__
+
+
+def _inspect_one(insp, scan, i, maps, maps_dir, uncertain=True, aligner=None):
+    """Inspect one scan (the ``i``-th of the run: names a scan without a name, seeds its map's subsample) and write
+    its map when ``maps`` asks for
+    one. Returns a dict: ``row``; for a scored scan also ``seconds``, ``point_labels``, ``point_scores`` and
+    ``ray_map`` (scans with ground-truth point labels) and ``view`` (with a map)."""
+    from .html_report import map_view
+
+    t0 = time.perf_counter()
+    try:
+        if aligner is not None:
+            scan = aligner.align_scan(scan)
+        one = insp.for_scan(scan)  # the scan's part's inspector (a model of several part types), else insp
+        res = one.inspect(scan, i)
+    except ValueError as exc:
+        return {"row": _error_row(scan, _first_line(exc))}
+    out = {"seconds": time.perf_counter() - t0}
+    rays = one.settings_.rays
+    flagged = bool(one.predict_from_scores([res.score])[0] == -1)
+    verdict = str(one.verdicts_from_scores([res.score], uncertain=uncertain)[0])
+    row = {"name": scan.name, "split": scan.split, "label": scan.label, "defect": scan.defect,
+           "score": res.score, "p_value": float(one.p_values_from_scores([res.score])[0]), "verdict": verdict,
+           "reason": "", "flagged": flagged}
+    if rays:
+        row.update(score_points=res.components["points"], score_rays=res.components["rays"])
+    out["row"] = row
+    if scan.point_labels is not None:
+        out.update(point_labels=scan.point_labels, point_scores=res.point_scores,
+                   ray_map=res.rays.point_map if rays else None)
+    if maps == "all" or (maps == "flagged" and verdict != "good"):
+        write_scan_maps(one.settings_, scan, res, maps_dir)
+        out["view"] = map_view(one.settings_, scan, res, seed=i)  # report.html's 3D view
+    return out
+
+
+_WORKER = {}  # a worker process's inspector, built once by _start_worker
+
+
+def _start_worker(spec):
+    """A worker process's initializer: one thread (torch, BLAS), Ctrl-C left to the parent, the inspector built once
+    from ``spec`` = (model path, calibration, alpha)."""
+    import signal
+
+    import torch
+
+    from .estimator import Inspector
+    from .model_io import load_model
+
+    from threadpoolctl import threadpool_limits  # scikit-learn's dependency
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops the pool; no traceback per worker
+    torch.set_num_threads(1)  # N processes, a core each: no thread oversubscription, in torch or in BLAS
+    threadpool_limits(1)
+    path, calibration, alpha = spec
+    handle = load_model(path)
+    _WORKER["insp"] = Inspector.from_calibration(handle.model, calibration, alpha)
+
+
+def _worker_inspect(scan, i, maps, maps_dir, uncertain):
+    return _inspect_one(_WORKER["insp"], scan, i, maps, maps_dir, uncertain)
+
+
+def _inspect_in_workers(spec, scans, aligner, maps, maps_dir, progress, uncertain, jobs):
+    """:func:`_inspect_one` of every scan in ``jobs`` processes; yields their outputs in the input order."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    from tqdm import tqdm
+
+    outs = [None] * len(scans)
+    pool = ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"), initializer=_start_worker,
+                               initargs=(spec,))
+    try:
+        futures = {}
+        for i, scan in enumerate(scans):
+            if aligner is not None:
+                try:
+                    scan = aligner.align_scan(scan)
+                except ValueError as exc:
+                    outs[i] = {"row": _error_row(scan, _first_line(exc))}
+                    continue
+            futures[pool.submit(_worker_inspect, scan, i, maps, maps_dir, uncertain)] = i
+        for fut in tqdm(as_completed(futures), total=len(futures), desc=f"inspect ({jobs} processes)", unit="scan",
+                        disable=not progress):
+            outs[futures[fut]] = fut.result()
+    except BaseException:
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown()
+    return outs

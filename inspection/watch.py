@@ -1,0 +1,293 @@
+"""Watching a scanner's drop folder: score each scan file once it has landed, exactly once, into a verdict journal.
+
+The results folder ``OUT`` holds:
+
+* ``verdicts.jsonl``, the journal: one JSON object per line and per scored file (``name``, ``file``, ``size``,
+  ``mtime_ns``, the columns of ``scores.csv``, ``time``, ``seconds``, ``map``). A line is appended whole with one
+  ``write`` and made durable (``fsync``) before the next file is read. The journal is also the record of what was
+  done: on start it is read back, a torn last line (a crash mid-write) is cut off, and every file it records by
+  name, size and modification time is skipped, so a watcher killed at any moment (kill -9) and restarted scores each
+  file exactly once. A file that changes afterwards (same name, new size or time: a rescan) is scored again.
+* ``verdicts.csv``: the same verdicts as a table, rewritten atomically from the journal after each line (never torn).
+* ``maps/<name>.ply``: each scan's anomaly map (``--maps``), written atomically before its journal line.
+
+A file is read once it has *landed*: a visible cloud file (:data:`datasets.cloud_io.CLOUD_SUFFIXES`, not starting
+with a dot) whose size and modification time have not changed for ``settle`` seconds (and the same for its
+``<stem>.json`` sensor-origin sidecar, when there is one). Scanners that write under a temporary name (a leading
+dot, or another suffix such as ``.part``) and rename when done need no settling at all. Other files are ignored.
+A file that cannot be read or scored gets one ``error`` line with its reason, and the watcher goes on.
+"""
+import fcntl
+import json
+import math
+import os
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+from .errors import InspectionError
+
+JOURNAL = "verdicts.jsonl"
+TABLE = "verdicts.csv"
+LOCK = ".watch.lock"
+_SIDECAR = ".json"
+
+
+def read_journal(path, repair=True):
+    """The entries of a journal (list of dict), in order. A last line without its newline (torn by a crash) is
+    cut off the file when ``repair``, else ignored; a complete line that does not parse is an InspectionError
+    naming the file and line (the journal is not this watcher's)."""
+    path = Path(path)
+    if not path.exists():
+        return []
+    data = path.read_bytes()
+    end = data.rfind(b"\n") + 1
+    if end < len(data) and repair:  # a torn last line: the file it was about is scored again
+        with open(path, "r+b") as fh:
+            fh.truncate(end)
+            os.fsync(fh.fileno())
+    entries = []
+    for k, line in enumerate(data[:end].splitlines(), 1):
+        try:
+            entry = json.loads(line)
+            entry["file"], entry["size"], entry["mtime_ns"]  # noqa: B018 - the keys the watcher needs
+        except (ValueError, TypeError, KeyError):
+            raise InspectionError(f"{path}: line {k} is not a verdict of `watch`; move the file away or choose "
+                                  f"another --out") from None
+        entries.append(entry)
+    return entries
+
+
+def _key(entry):
+    return entry["file"], int(entry["size"]), int(entry["mtime_ns"])
+
+
+def _json_safe(value):
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if hasattr(value, "item"):  # numpy scalars
+        return _json_safe(value.item())
+    return value
+
+
+def landed_files(folder, settle, now=None):
+    """The files of ``folder`` ready to be read, sorted by name, as (path, os.stat_result), and how many candidates
+    are still settling: visible cloud files whose (and whose sidecar's) modification time is at least ``settle``
+    seconds old."""
+    from datasets.cloud_io import CLOUD_SUFFIXES
+
+    now = time.time() if now is None else now
+    ready, settling = [], 0
+    for p in sorted(Path(folder).iterdir()):
+        if p.name.startswith(".") or p.suffix.lower() not in CLOUD_SUFFIXES:
+            continue
+        try:
+            st = p.stat()
+            if not p.is_file():
+                continue
+            side = p.with_suffix(_SIDECAR)
+            newest = max(st.st_mtime, side.stat().st_mtime if side.exists() else 0.0)
+        except FileNotFoundError:  # gone between the listing and the look
+            continue
+        if now - newest >= settle:
+            ready.append((p, st))
+        else:
+            settling += 1
+    return ready, settling
+
+
+class Watcher:
+    """Scores the scan files landing in ``folder`` into the results folder ``out`` (module docstring).
+
+    Parameters
+    ----------
+    model : str or Path
+        A calibrated model file.
+    folder : str or Path
+        The folder the scanner drops files into (its own files only; not searched recursively).
+    out : str or Path
+        The results folder (created; held by one watcher at a time).
+    settle : float
+        Seconds a file must stay unchanged before it is read.
+    maps : {'all', 'flagged', 'none'}
+    alpha : float, optional
+        False-alarm rate (None: the calibration's).
+    uncertain : bool
+        The 'uncertain' verdict (False: good or defective only).
+    echo : callable
+        Where the one line per scan goes (None: nowhere).
+    """
+
+    def __init__(self, model, folder, out, settle=1.0, maps="all", alpha=None, uncertain=True, echo=print):
+        self.model, self.folder, self.out = Path(model), Path(folder), Path(out)
+        self.settle, self.maps, self.alpha, self.uncertain = float(settle), maps, alpha, uncertain
+        self.echo = echo or (lambda line: None)
+        self.counts = {}  # verdict -> scans scored by this watcher
+        self._lock = self._journal = None
+
+    # ------------------------------------------------------------------------------------------------ set up
+    def open(self):
+        """Check the options and folders, take the results folder's lock, read the journal back and load the model.
+        Returns self."""
+        from datasets.atomic import check_writable
+
+        from .model_io import load_model
+        from .report import CSV_COLUMNS, RAY_CSV_COLUMNS
+        from .run import _calibrated_inspector
+
+        if self.maps not in ("flagged", "all", "none"):
+            raise InspectionError(f"--maps must be flagged, all or none, got {self.maps!r}")
+        if not (self.settle >= 0 and math.isfinite(self.settle)):
+            raise InspectionError(f"--settle must be a number of seconds >= 0, got {self.settle!r}")
+        if not self.folder.is_dir():
+            raise InspectionError(f"{self.folder}: no such folder" if not self.folder.exists() else
+                                  f"{self.folder}: not a folder (watch needs the folder the scanner writes into)")
+        if self.out.exists() and not self.out.is_dir():
+            raise InspectionError(f"{self.out}: exists and is not a folder")
+        self.out.mkdir(parents=True, exist_ok=True)
+        check_writable(self.out / JOURNAL)
+        self._lock = open(self.out / LOCK, "a")
+        try:
+            fcntl.flock(self._lock, fcntl.LOCK_EX | fcntl.LOCK_NB)  # released by the kernel however we end
+        except BlockingIOError:
+            self.close()
+            raise InspectionError(f"{self.out}: another watcher is writing this results folder") from None
+        try:
+            self.entries = read_journal(self.out / JOURNAL)
+            self.done = {_key(e) for e in self.entries}
+            handle = load_model(self.model)
+            if handle.frame is None:
+                raise InspectionError(f"{self.model}: scanner files need the model's frame, and this model records "
+                                      f"none")
+            self.frame = handle.frame
+            self.insp = _calibrated_inspector(handle, self.folder, self.alpha, False, self.echo)
+            self.columns = (RAY_CSV_COLUMNS if self.insp.settings_.rays else CSV_COLUMNS) + ("file", "time")
+            self._journal = os.open(self.out / JOURNAL, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+            if self.entries:
+                self._write_table()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def close(self):
+        if self._journal is not None:
+            os.close(self._journal)
+            self._journal = None
+        if self._lock is not None:
+            self._lock.close()  # releases the lock
+            self._lock = None
+
+    def __enter__(self):
+        return self.open()
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # ------------------------------------------------------------------------------------------------ work
+    def poll(self):
+        """Score every landed file not in the journal yet. Returns (scored now, files still settling)."""
+        ready, settling = landed_files(self.folder, self.settle)
+        n = 0
+        for path, st in ready:
+            key = (path.name, st.st_size, st.st_mtime_ns)
+            if key in self.done:
+                continue
+            entry = self._score_file(path, st)
+            if entry is None:  # it changed or went away while it was read: looked at again later
+                settling += 1
+                continue
+            self._append(entry)
+            n += 1
+        return n, settling
+
+    def run(self, once=False, interval=1.0):
+        """Poll until interrupted (KeyboardInterrupt propagates), or with ``once`` until every file present has
+        landed and been scored."""
+        while True:
+            _, settling = self.poll()
+            if once and not settling:
+                return
+            time.sleep(max(0.05, min(interval, self.settle)) if once else interval)
+
+    def _score_file(self, path, st):
+        """Read and score one file; its journal entry, or None when the file changed while it was read."""
+        from datasets.importer import ScanSource, load_source
+
+        from .run import _error_row, _inspect_one
+
+        t0 = time.perf_counter()
+        src = ScanSource(path, path.stem, "test", "unknown", "")
+        one = None
+        try:
+            scan, _ = load_source(src)
+            scan = self.frame.apply(scan)
+        except Exception as exc:  # noqa: BLE001 - a bad file is an error line, never the end of the watcher
+            reason = " ".join(str(exc).split()) or type(exc).__name__
+            row = _error_row(src.name, reason if str(path) in reason else f"{path}: {reason}")
+        else:
+            try:
+                one = _inspect_one(self.insp, scan, 0, self.maps, self.out / "maps", self.uncertain)
+                row = one["row"]
+            except Exception as exc:  # noqa: BLE001 - as above, for what scoring raises beyond a ValueError
+                row = _error_row(scan, f"{path}: cannot be scored ({type(exc).__name__}: {exc})")
+        try:
+            now = path.stat()
+        except FileNotFoundError:
+            return None
+        if (now.st_size, now.st_mtime_ns) != (st.st_size, st.st_mtime_ns):
+            return None
+        entry = {k: _json_safe(v) for k, v in row.items()}
+        entry.update(name=src.name, split="test", label=row.get("label", "unknown"), file=path.name,
+                     size=st.st_size, mtime_ns=st.st_mtime_ns,
+                     time=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                     seconds=round(time.perf_counter() - t0, 3))
+        if one is not None and "view" in one:
+            from .maps import safe_name
+
+            entry["map"] = f"maps/{safe_name(src.name)}.ply"
+        return entry
+
+    def _append(self, entry):
+        """Append ``entry`` to the journal as one whole line, durable before anything else happens."""
+        data = (json.dumps(entry, allow_nan=False) + "\n").encode()
+        while data:
+            data = data[os.write(self._journal, data):]
+        os.fsync(self._journal)
+        self.entries.append(entry)
+        self.done.add(_key(entry))
+        self.counts[entry["verdict"]] = self.counts.get(entry["verdict"], 0) + 1
+        self._write_table()
+        score = "" if entry.get("score") is None else f" score {entry['score']:.4g}"
+        self.echo(f"{entry['file']}: {entry['verdict']}{score}"
+                  + (f" ({entry['reason']})" if entry["verdict"] == "error" else ""))
+
+    def _write_table(self):
+        from .report import write_scores_csv
+
+        write_scores_csv(self.out / TABLE, self.entries, self.columns)
+
+    def summary(self):
+        """The one line said when the watcher stops."""
+        n = sum(self.counts.values())
+        parts = ", ".join(f"{v} {k}" for k, v in sorted(self.counts.items()))
+        return (f"watch: {n} file(s) scored this time" + (f" ({parts})" if parts else "")
+                + f"; {len(self.entries)} verdict(s) in {self.out / JOURNAL}")
+
+
+def watch(model, folder, out, once=False, settle=1.0, interval=1.0, maps="all", alpha=None, uncertain=True,
+          echo=print, quiet=False):
+    """Score the scan files landing in ``folder`` into ``out`` (module docstring) until interrupted, or with
+    ``once`` those present (waiting for any still being written to land). ``echo`` says one line per file (not
+    when ``quiet``) and the summary line when it stops, however it stops. Returns the :class:`Watcher` (its
+    ``counts`` say what this run scored)."""
+    if not (interval > 0 and math.isfinite(interval)):
+        raise InspectionError(f"--interval must be a number of seconds > 0, got {interval!r}")
+    echo = echo or (lambda line: None)
+    watcher = Watcher(model, folder, out, settle, maps, alpha, uncertain, None if quiet else echo)
+    with watcher:
+        try:
+            watcher.run(once=once, interval=interval)
+        finally:
+            echo(watcher.summary())
+    return watcher
