@@ -218,8 +218,7 @@ def _first_line(exc):
 
 def _inspect_one(insp, scan, i, maps, maps_dir, uncertain=True, aligner=None):
     """Inspect one scan (the ``i``-th of the run: names a scan without a name, seeds its map's subsample) and write
-    its map when ``maps`` asks for
-    one. Returns a dict: ``row``; for a scored scan also ``seconds``, ``point_labels``, ``point_scores`` and
+    its map when ``maps`` asks for one. Returns a dict: ``row``; for a scored scan also ``seconds``, ``point_labels``, ``point_scores`` and
     ``ray_map`` (scans with ground-truth point labels) and ``view`` (with a map)."""
     from .html_report import map_view
 
