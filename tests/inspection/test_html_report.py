@@ -14,49 +14,22 @@ import pytest
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from datasets import Frame, Scan, ScanCollection
 from inspection.__main__ import main
 from inspection.html_report import EMPHASIS, VIEW_POINTS, report_html, scan_view, write_html_report
 
-FRAME = Frame(np.array([1.0, 2.0, 3.0]), 0.5)
+from .tiny import half_sphere as _scan, tiny_field_model
+
 REPO = Path(__file__).resolve().parents[2]
-
-
-def _scan(name, split, label, defect="", seed=0, n=300, dent=0.0):
-    rng = np.random.default_rng(seed)
-    d = rng.normal(size=(n, 3))
-    d[:, 2] = np.abs(d[:, 2])
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    r = 0.4 - dent * (d[:, 2] > 0.9)
-    labels = None if split == "train" else (d[:, 2] > 0.9).astype(np.uint8) * (label == "defective")
-    return Scan(name=name, points=d * r[:, None], normals=d, split=split, label=label, defect=defect,
-                point_labels=labels)
 
 
 @pytest.fixture(scope="module")
 def results(tmp_path_factory):
     """`score --maps all` of a tiny collection (6 train, 3 good + 2 dented test scans) on an untrained tiny field
     model; returns the results folder."""
-    import torch
-
-    from autodecoder.field.networks import build_networks
-    from autodecoder.field.stochastic_field import StochasticField
-    from inspection.model_io import save_reference_field
-
-    root = tmp_path_factory.mktemp("html")
     scans = [_scan(f"train/good/{i:03d}", "train", "good", seed=i) for i in range(6)]
     scans += [_scan(f"test/good/{i:03d}", "test", "good", seed=10 + i) for i in range(3)]
     scans += [_scan(f"test/dent/{i:03d}", "test", "defective", "dent", seed=20 + i, dent=0.1) for i in range(2)]
-    ScanCollection.create(root / "tree.h5", scans, frame=FRAME)
-    with ScanCollection(root / "tree.h5") as c:
-        fp = c.fingerprint()
-    config = {"width": 16, "depth": 1, "latent_dim": 0, "covariance": "feature", "features": 8, "omega0": 5.0,
-              "lengthscale": 0.05, "box_lo": [-0.6] * 3, "box_hi": [0.6] * 3}
-    torch.manual_seed(0)
-    mean_net, cov_net = build_networks(config)
-    field = StochasticField(mean_net, cov_net, Frame.identity(), config, noise=0.01)
-    save_reference_field(field, root / "model.pt", frame=FRAME, fingerprint=fp,
-                         train_names=[s.name for s in scans[:3]], heldback_names=[s.name for s in scans[3:6]])
+    root = tiny_field_model(tmp_path_factory.mktemp("html"), scans)
     out = root / "results"
     assert main(["score", "--model", str(root / "model.pt"), "--data", str(root / "tree.h5"), "--out", str(out),
                  "--maps", "all", "--alpha", "0.3", "--quiet"]) == 0

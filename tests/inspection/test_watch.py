@@ -13,22 +13,18 @@ import pytest
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # effective only if torch is not loaded yet; see inspection.__main__
 
-from datasets import Frame, Scan, ScanCollection, write_cloud
+from datasets import write_cloud
 from inspection.__main__ import main
 from inspection.errors import InspectionError
 from inspection.watch import JOURNAL, TABLE, Watcher, read_journal, watch
 
-FRAME = Frame(np.array([1.0, 2.0, 3.0]), 0.5)
+from .tiny import FRAME, half_sphere, tiny_field_model
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def _scan(name, seed, dent=0.0, n=300):
-    rng = np.random.default_rng(seed)
-    d = rng.normal(size=(n, 3))
-    d[:, 2] = np.abs(d[:, 2])
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    r = 0.4 - dent * (d[:, 2] > 0.9)
-    return Scan(name=name, points=d * r[:, None], normals=d, split="train", label="good")
+def _scan(name, seed, dent=0.0):
+    return half_sphere(name, seed=seed, dent=dent)
 
 
 def _drop(folder, name, seed, dent=0.0):
@@ -40,24 +36,8 @@ def _drop(folder, name, seed, dent=0.0):
 @pytest.fixture(scope="module")
 def model(tmp_path_factory):
     """An untrained tiny field model saved with its collection's frame and calibrated on 6 good scans."""
-    import torch
-
-    from autodecoder.field.networks import build_networks
-    from autodecoder.field.stochastic_field import StochasticField
-    from inspection.model_io import save_reference_field
-
-    root = tmp_path_factory.mktemp("watch")
     scans = [_scan(f"train/good/{i:03d}", seed=i) for i in range(6)]
-    ScanCollection.create(root / "tree.h5", scans, frame=FRAME)
-    with ScanCollection(root / "tree.h5") as c:
-        fp = c.fingerprint()
-    config = {"width": 16, "depth": 1, "latent_dim": 0, "covariance": "feature", "features": 8, "omega0": 5.0,
-              "lengthscale": 0.05, "box_lo": [-0.6] * 3, "box_hi": [0.6] * 3}
-    torch.manual_seed(0)
-    mean_net, cov_net = build_networks(config)
-    field = StochasticField(mean_net, cov_net, Frame.identity(), config, noise=0.01)
-    save_reference_field(field, root / "model.pt", frame=FRAME, fingerprint=fp,
-                         train_names=[s.name for s in scans[:3]], heldback_names=[s.name for s in scans[3:]])
+    root = tiny_field_model(tmp_path_factory.mktemp("watch"), scans)
     assert main(["calibrate", "--model", str(root / "model.pt"), "--data", str(root / "tree.h5"), "--alpha", "0.3",
                  "--quiet"]) == 0
     return root / "model.pt"
