@@ -1,7 +1,7 @@
 """Reading what inspection scores: collections, folders of scanner files and cloud files, in the model's frame."""
 from pathlib import Path
 
-from .errors import InspectionError
+from .errors import InspectionError, about
 
 COLLECTION_SUFFIXES = (".h5", ".hdf5")
 
@@ -65,7 +65,7 @@ def load_scans(data, frame=None, split=None, label=None, model_fingerprint="", e
             try:
                 scan, _ = load_source(src)
             except (OSError, ValueError) as exc:
-                reason = str(exc) if str(src.path) in str(exc) else f"{src.path}: {exc}"
+                reason = str(about(src.path, exc))
                 if errors == "raise":
                     raise InspectionError(reason) from None
                 info["failed"].append((src.name, reason))
@@ -90,7 +90,7 @@ def open_collection(data, frame=None):
     try:
         coll = ScanCollection(data)
     except (OSError, ValueError) as exc:
-        raise InspectionError(str(exc) if str(data) in str(exc) else f"{data}: {exc}") from None
+        raise about(data, exc) from None
     if frame is not None and coll.frame != frame:
         coll.close()
         raise InspectionError(f"{data}: collection frame {coll.frame} differs from the model's {frame}; the model was "

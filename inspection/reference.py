@@ -40,39 +40,14 @@ def field_quantity(field, points, quantity=REFERENCE_QUANTITY, with_variance=Fal
     from autodecoder.field.protocol import check_field
 
     check_field(field)
-    mean, grad = _mean_and_gradient(field, points)
-    grad = np.linalg.norm(grad, axis=1)
+    mean, grad = field.mean_and_gradient(points)
+    grad = np.linalg.norm(np.asarray(grad, dtype=np.float64), axis=1)
+    mean = np.asarray(mean, dtype=np.float64)
     scale = np.maximum(grad, GRADIENT_FLOOR)
     if not with_variance:
         return mean / scale
     variance = np.maximum(np.asarray(field.variance(points), dtype=np.float64), 0.0)
     return mean / scale, variance / scale**2
-
-
-_CHUNK = 65536  # points per batch of the field's joint mean and gradient
-
-
-def _mean_and_gradient(field, points):
-    """E f and grad E f at (m, 3) points -> (m,), (m, 3) float64: in one pass of the mean net when the field has one
-    of its own (a ``torch_mean_and_gradient`` that carries the value and its gradient forward together, as the latent
-    model's fields do; a SIREN's value is then the same number as its ``mean``), else ``mean`` and
-    ``mean_gradient``."""
-    from autodecoder.field.protocol import Field
-
-    joint = getattr(field, "torch_mean_and_gradient", None)
-    if joint is None or getattr(type(field), "torch_mean_and_gradient", None) is Field.torch_mean_and_gradient:
-        return (np.asarray(field.mean(points), dtype=np.float64),
-                np.asarray(field.mean_gradient(points), dtype=np.float64))
-    import torch
-
-    x = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    mean, grad = np.empty(len(x)), np.empty((len(x), 3))
-    with torch.no_grad():
-        for start in range(0, len(x), _CHUNK):
-            value, gradient = joint(torch.as_tensor(x[start:start + _CHUNK], dtype=torch.float32))
-            mean[start:start + _CHUNK] = value.double().numpy()
-            grad[start:start + _CHUNK] = gradient.double().numpy()
-    return mean, grad
 
 
 def _plane(points, nb, valid, k):

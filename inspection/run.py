@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 
 from .align import make_aligner
-from .errors import InspectionError
+from .errors import InspectionError, about
 from .loading import COLLECTION_SUFFIXES, load_scans, open_collection
 from .results import prepare_out, summarize_run, write_results, write_scan_maps
 
@@ -43,13 +43,13 @@ def calibrate(model, data, config=None, split=None, progress=True, write=True):
             try:
                 insp.fit(coll, split=split)
             except ValueError as exc:
-                raise InspectionError(f"{data}: {exc}") from None
+                raise about(data, exc) from None
     else:
         scans, info = load_scans(data, handle.frame, split=split, label="good")
         try:
             insp.fit(scans, split=split)
         except ValueError as exc:
-            raise InspectionError(f"{data}: {exc}") from None
+            raise about(data, exc) from None
     if write:
         write_calibration(handle.path, insp.calibration())
     info = {"n": insp.n_calibration_, "how": insp.calibration_source_}

@@ -72,6 +72,11 @@ class Field(Protocol):
         """grad E f at world points x (m, 3) -> (m, 3) float64."""
         return self.torch_mean_and_gradient(torch.as_tensor(np.asarray(x, dtype=np.float64)))[1].double().numpy()
 
+    def mean_and_gradient(self, x):
+        """(E f (m,), grad E f (m, 3)) at world points x (m, 3), float64: :meth:`mean` and :meth:`mean_gradient`
+        (a field whose nets carry the value and its gradient forward together overrides this with one pass)."""
+        return self.mean(x), self.mean_gradient(x)
+
     def variance(self, x) -> np.ndarray:
         """Var f at world points x (m, 3) -> (m,) float64."""
         with torch.no_grad():
@@ -84,7 +89,7 @@ class Field(Protocol):
 
 
 _MEMBERS = ("noise", "bounds", "lengthscale", "training_points", "torch_mean", "torch_covariance", "torch_variance",
-            "torch_mean_and_gradient", "mean", "mean_gradient", "variance", "prob_inside")
+            "torch_mean_and_gradient", "mean", "mean_gradient", "mean_and_gradient", "variance", "prob_inside")
 
 
 def check_field(field, what="field"):

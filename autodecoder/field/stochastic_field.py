@@ -118,6 +118,13 @@ class StochasticField(Field):
         """grad E f(x) at world points x (m, 3) -> (m, 3) array (unitless)."""
         return self._evaluate(lambda x_: self.torch_mean_and_gradient(x_)[1], x, shape=(3,))
 
+    def mean_and_gradient(self, x):
+        """(E f(x) (m,), grad E f(x) (m, 3)) at world points x (m, 3), in one pass of the mean net (the value is the
+        one :meth:`mean` gives, carried forward with its gradient)."""
+        both = self._evaluate(lambda x_: torch.cat([v.reshape(len(x_), -1) for v in self.torch_mean_and_gradient(x_)],
+                                                   dim=1), x, shape=(4,))
+        return both[:, 0], both[:, 1:]
+
     def variance(self, x):
         """Var f(x) at world points x (m, 3) -> (m,) array (world units squared)."""
         return self._evaluate(self.torch_variance, x)

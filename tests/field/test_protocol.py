@@ -60,3 +60,25 @@ def test_check_field_names_what_an_object_lacks():
 
     with pytest.raises(ValueError, match=r"MeanOnly is not a field .*lacks bounds, lengthscale.*torch_mean"):
         check_field(MeanOnly())
+
+
+def test_mean_and_gradient_is_mean_and_mean_gradient():
+    """The protocol's joint query is the two separate ones (closed form of the ball), and a stochastic field's one
+    pass of its mean net gives the numbers of its separate queries."""
+    from autodecoder.field.networks import build_networks
+    from autodecoder.field.stochastic_field import StochasticField
+    from datasets import Frame
+
+    x = np.random.default_rng(1).uniform(-0.5, 0.5, (300, 3))
+    ball = Ball()
+    value, grad = ball.mean_and_gradient(x)
+    np.testing.assert_array_equal(value, ball.mean(x))
+    np.testing.assert_array_equal(grad, ball.mean_gradient(x))
+    config = {"width": 16, "depth": 2, "latent_dim": 0, "covariance": "feature", "features": 8, "omega0": 5.0,
+              "lengthscale": 0.05, "box_lo": [-0.6] * 3, "box_hi": [0.6] * 3}
+    torch.manual_seed(0)
+    field = StochasticField(*build_networks(config), Frame(np.array([0.1, 0.0, -0.2]), 2.0), config, noise=0.01)
+    value, grad = field.mean_and_gradient(x)
+    assert value.shape == (300,) and grad.shape == (300, 3)
+    np.testing.assert_allclose(value, field.mean(x), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(grad, field.mean_gradient(x), rtol=1e-5, atol=1e-7)

@@ -278,3 +278,17 @@ def test_a_damaged_scan_gets_verdict_error_and_the_others_are_scored(workdir, tm
                if n != "test/good/001")
     summary = json.loads((out / "summary.json").read_text())
     assert summary["n_errors"] == 1 and summary["n_scans"] == 5
+
+
+def test_calibrating_on_a_damaged_good_scan_names_the_file_once_and_the_scan(workdir, tmp_path, capsys):
+    import h5py
+
+    model, data = tmp_path / "model.pt", tmp_path / "tree.h5"
+    model.write_bytes((workdir / "model.pt").read_bytes())
+    data.write_bytes((workdir / "tree.h5").read_bytes())
+    with ScanCollection(data) as c:
+        offset = int(c._offsets[c.index_of("train/good/004")])
+    with h5py.File(data, "r+") as f:
+        f["points"][offset, 1] += 0.01
+    err = _error(["calibrate", "--model", str(model), "--data", str(data), "--quiet"], capsys)
+    assert err.count(str(data)) == 1 and "train/good/004" in err and "content_sha256" in err
