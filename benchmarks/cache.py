@@ -7,6 +7,7 @@ interrupted or failing build leaves nothing, and a folder that exists is complet
 """
 import hashlib
 import json
+import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -113,13 +114,39 @@ def trained_model(collection_path, root=CACHE, **train_options):
     options = {"seed": 0, **{k: v for k, v in train_options.items() if v is not None}}
     options.pop("quiet", None)
 
+    folds = options.pop("calibration_folds", None)
+
     def build(folder):
         from inspection.training import train_model
 
-        train_model(collection_path, folder / "model.pt", quiet=True, **options)
+        train_model(collection_path, folder / "model.pt", quiet=True, calibration_folds=0, **options)
 
     label = collection_path.parent.name.rsplit("_", 1)[0]
-    return cached_path("model", {"collection": fingerprint, **options}, build, root, label=label) / "model.pt"
+    model = cached_path("model", {"collection": fingerprint, **options}, build, root, label=label) / "model.pt"
+    _ensure_folds(model, collection_path, folds)
+    return model
+
+
+def _ensure_folds(model, collection_path, k=None):
+    """The cached model with ``k`` fold models of today's rule (None: the trainer's default, none; 0: none wanted, the
+    file is left as it is: a copy calibrates without them when ``inspect_api.calibrate_and_score(folds=False)``) in its checkpoint, trained into it when it has other or none: the main model is cached apart from its fold
+    models, so models cached before fold models existed keep their nets, and the fold models are exactly those
+    ``train_latent.py`` would add."""
+    from autodecoder.latent.folds import DEFAULT_FOLDS, FOLD_RULE, FOLDS_KEY, add_folds
+    from autodecoder.latent.model import read_checkpoint
+
+    k = DEFAULT_FOLDS if k is None else int(k)
+    if k == 0:
+        return
+    folds = read_checkpoint(model).get(FOLDS_KEY) or []
+    if len(folds) == k and all(f.get("rule") == FOLD_RULE for f in folds):
+        return
+    t0 = time.perf_counter()
+    add_folds(model, collection_path, k)
+    seconds = time.perf_counter() - t0
+    params = model.parent / "fold_seconds.json"
+    params.write_text(json.dumps({"folds": k, "seconds": seconds}))
+    print(f"  {model}: {k} fold models trained in {seconds:.0f} s", flush=True)
 
 
 def merged_collection(collections, root=CACHE):

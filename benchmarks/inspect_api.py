@@ -7,6 +7,7 @@ files ``score`` writes (``scores.csv``, ``summary.json``).
 """
 import csv
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -48,10 +49,10 @@ def defaults():
 
 
 def calibrate_and_score(model_path, data_path, out_dir, *, rays=None, point_score=None, aggregate=None,
-                        alpha=None, align=False, maps="flagged", progress=False, echo=print):
-    """The README's shortest path on an uncalibrated copy of a model: ``python -m inspection score`` on the model's
-    training collection (which calibrates on the held-back scans by itself), after ``python -m inspection calibrate``
-    when any setting is given.
+                        alpha=None, align=False, maps="flagged", progress=False, echo=print, folds=True):
+    """The README's path on an uncalibrated copy of a model: ``python -m inspection calibrate`` on the model's training
+    collection (timed: ``calibration_seconds`` in the summary returned; with no settings exactly what ``score`` does
+    by itself on an uncalibrated model), then ``python -m inspection score``.
 
     Parameters
     ----------
@@ -68,13 +69,16 @@ def calibrate_and_score(model_path, data_path, out_dir, *, rays=None, point_scor
     align : bool
         Score with ``--align`` (ICP onto the training scans first).
     maps : {'flagged', 'all', 'none'}
+    folds : bool
+        False: the copy is the model without its fold models (as trained with ``--calibration-folds 0``), so that it
+        calibrates on the held-back scans and the training scans cross-fitted.
     echo : callable (str) -> None, optional
         Receives the inspection's lines on calibration and threshold notes (None: silent).
 
     Returns
     -------
     dict
-        summary.json's content.
+        summary.json's content, and ``calibration_seconds``.
     """
     from inspection.config import InspectionConfig
     from inspection.run import calibrate, describe_calibration, score
@@ -83,19 +87,33 @@ def calibrate_and_score(model_path, data_path, out_dir, *, rays=None, point_scor
     out_dir.mkdir(parents=True, exist_ok=True)
     copy = out_dir / "model.pt"
     shutil.copyfile(model_path, copy)  # uncalibrated: the cached model stays as trained
+    if not folds:
+        _drop_folds(copy)
     lines = []
     settings = {k: v for k, v in dict(rays=rays, point_score=point_score, aggregate=aggregate, alpha=alpha).items()
                 if v is not None}
-    if settings:
-        insp, info = calibrate(copy, data_path, config=InspectionConfig(**settings), progress=progress)
-        lines += describe_calibration(insp, info)
+    t0 = time.perf_counter()
+    insp, info = calibrate(copy, data_path, config=InspectionConfig(**settings), progress=progress)
+    calibration_seconds = time.perf_counter() - t0
+    lines += describe_calibration(insp, info)
     summary = score(copy, data_path, out_dir / "results", split="test", progress=progress, maps=maps,
                     echo=lines.append, overwrite=True, align=align)
+    summary["calibration_seconds"] = calibration_seconds
     if echo is not None:
         for line in lines:
             if line.startswith(_ECHOED) or "not calibrated" in line:
                 echo(line)
     return summary
+
+
+def _drop_folds(model_path):
+    """Remove the fold models from a model file (a copy), atomically."""
+    from autodecoder.latent.folds import FOLDS_KEY
+    from autodecoder.latent.model import read_checkpoint, save_checkpoint
+
+    state = read_checkpoint(model_path)
+    if state.pop(FOLDS_KEY, None) is not None:
+        save_checkpoint(state, model_path)
 
 
 def read_scores(results_dir):
@@ -118,7 +136,7 @@ def summary_figures(summary):
     """The figures of a summary: ``auroc`` (overall and per defect type), ``point_auroc``, ``flagged`` (fractions
     of defective and good test scans), ``threshold`` (value, basis, predicted false-alarm rate and its interval;
     None for a model of several parts, thresholded per part), ``point_score``, ``aggregate``, ``rays``,
-    ``seconds_per_scan``, ``alpha``."""
+    ``seconds_per_scan``, ``calibration_seconds`` (when timed), ``alpha``."""
     metrics = summary["metrics"]
     confusion = metrics.get("confusion_matrix", {})
     decision = summary.get("decision")
@@ -132,6 +150,7 @@ def summary_figures(summary):
                         "n_good": confusion.get("tn", 0) + confusion.get("fp", 0)},
             "threshold": threshold, "point_score": summary.get("point_score"), "aggregate": summary.get("aggregate"),
             "rays": summary.get("rays") is not None, "seconds_per_scan": summary.get("seconds_per_scan"),
+            "calibration_seconds": summary.get("calibration_seconds"),
             "alpha": summary.get("alpha")}
 
 
@@ -173,13 +192,14 @@ def calibration_settings(model_path):
 
 
 def calibration_scores(model_path):
-    """The calibrated model's good calibration scores by role: ``{'held-back': (n_h,), 'cross-fitted': (n_c,)}``."""
+    """The calibrated model's good calibration scores by role: ``{'held-back': (n_h,), 'fold': (n_f,),
+    'cross-fitted': (n_c,)}``."""
     from inspection import read_calibration
 
     cal = read_calibration(model_path)
     roles = np.array(cal.roles or ["held-back"] * len(cal.scores))
     scores = np.asarray(cal.scores, dtype=np.float64)
-    return {role: scores[roles == role] for role in ("held-back", "cross-fitted")}
+    return {role: scores[roles == role] for role in ("held-back", "fold", "cross-fitted")}
 
 
 def _inspector(model_path):

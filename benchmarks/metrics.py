@@ -108,3 +108,15 @@ def point_auroc_per_defect(point_labels, point_scores, labels, defects):
         out[kind] = point_auroc([point_labels[i] for i in idx], [point_scores[i] for i in idx])
     return out
 
+
+
+def oracle_flagged(scores, labels):
+    """The fraction of defective scans a threshold just above the worst good scan would flag (what the best threshold
+    that flags no good scan finds; 'the oracle column' the verdicts are judged against). NaN scores are left out."""
+    scores, labels = np.asarray(scores, dtype=np.float64), np.asarray(labels)
+    ok = np.isfinite(scores)
+    bad = _defective(labels) & ok
+    good = ~_defective(labels) & ok
+    if not bad.any() or not good.any():
+        return float("nan")
+    return float((scores[bad] > scores[good].max()).mean())

@@ -39,7 +39,8 @@ def verdicts_table(rows):
     ----------
     rows : list of dict
         ``part``, ``method``, ``auroc`` ({'overall', <type>: float}), ``flagged`` (:func:`benchmarks.metrics.flagged`),
-        ``threshold`` (``basis``, ``predicted_far``, ``far_interval``; optional), ``seconds_per_scan`` (optional).
+        ``threshold`` (``basis``, ``predicted_far``, ``far_interval``; optional), ``oracle`` (the defective scans a
+        threshold just above the worst good test scan flags; optional), ``seconds_per_scan`` (optional).
     """
     from inspection.threshold import format_rate
 
@@ -54,9 +55,9 @@ def verdicts_table(rows):
         f = r["flagged"]
         flat.append({"part": r["part"], "method": r["method"], "auroc": r["auroc"]["overall"],
                      **{k: r["auroc"].get(k) for k in kinds}, "def": f["defective"],
-                     "good": f"{round(f['good'] * f['n_good'])} of {f['n_good']}", "basis": t.get("basis"),
-                     "far": far, "sec": r.get("seconds_per_scan")})
+                     "good": f"{round(f['good'] * f['n_good'])} of {f['n_good']}", "oracle": r.get("oracle"),
+                     "basis": t.get("basis"), "far": far, "sec": r.get("seconds_per_scan")})
     return format_table(flat, [("part", "part", ""), ("method", "method", ""), ("auroc", "AUROC", ".3f"),
                                *[(k, k, ".3f") for k in kinds], ("def", "def flagged", ".3f"),
-                               ("good", "good flagged", ">"), ("basis", "basis", ">"),
+                               ("good", "good flagged", ">"), ("oracle", "oracle", ".3f"), ("basis", "basis", ">"),
                                ("far", "pred. FAR (90% int.)", ">"), ("sec", "s/scan", ".3f")])

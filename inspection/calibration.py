@@ -22,8 +22,9 @@ class Calibration:
     names : list of str
         Their scan names.
     roles : list of str
-        For each, ``'held-back'`` (a good scan the model did not train on) or ``'cross-fitted'`` (a training scan
-        scored as if new, :meth:`inspection.Inspector.fit`); empty in records written before roles existed.
+        For each, ``'held-back'`` (a good scan the model did not train on), ``'fold'`` (a training scan scored by a
+        fold model that never trained on it) or ``'cross-fitted'`` (a training scan scored by the model as if new,
+        :meth:`inspection.Inspector.fit`); empty in records written before roles existed.
     aggregate, point_score : str
         How the scores were computed (see :mod:`inspection.scores`); scoring must use the same.
     noise : float or None

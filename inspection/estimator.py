@@ -117,7 +117,8 @@ class Inspector(BaseEstimator):
     calibration_scores_ : (n,) array
         Anomaly scores of the calibration scans.
     calibration_names_, calibration_roles_ : list of str
-        Their names, and ``'held-back'`` or ``'cross-fitted'`` for each.
+        Their names, and for each ``'held-back'``, ``'fold'`` (a training scan scored by a fold model that never
+        saw it) or ``'cross-fitted'`` (a training scan scored by the main model as if new).
     calibration_source_ : str
         Where the calibration scans came from, in words.
     data_fingerprint_ : str
@@ -323,8 +324,11 @@ class Inspector(BaseEstimator):
 
         The calibration scans are the model's held-back scans among ``good_scans`` (else every good scan it did not
         train on); the model's training scans among them (or ``reference_scans``) give the per-location reference
-        of the point scores that need one and, cross-fitted, more calibration scores: each is projected without its
-        own trained code and scored against the reference without its own points, as if it were new. The point
+        of the point scores that need one and more calibration scores. A model with fold models
+        (:mod:`autodecoder.latent.folds`, ``train_latent.py --calibration-folds K``) scores each training scan with
+        the fold model that never saw it, against that fold model's own reference: out-of-sample scores.
+        Without fold models the training scans are cross-fitted: each is projected without its own trained code and
+        scored against the reference without its own points (the nets saw it: optimistic). The point
         score's noise model (``reference_.variance_scale`` and ``grazing_scale``,
         :meth:`LocalReference.fit_noise_model`) is fitted on the same scans' residuals first. A model of several
         part types is calibrated per part (``parts_``).
@@ -341,7 +345,7 @@ class Inspector(BaseEstimator):
         split : str, optional
             Calibrate on this split's good scans only.
         cross_fit : bool
-            Also calibrate on the reference scans, cross-fitted.
+            Also calibrate on the training scans (by the fold models, else cross-fitted).
 
         Returns
         -------
@@ -397,23 +401,66 @@ class Inspector(BaseEstimator):
         held = [self._evidence(s, i, settings) for i, s in
                 enumerate(_progress(selection.calibration, self.verbose, f"calibrate{desc}"))]
         names = [g.name for g in held]
-        how = selection.how
-        if not POINT_SCORES[settings.point_score].reference:
-            self.calibration_source_ = how
-            return self._calibrate_from([self._score(g, None, settings).components for g in held], names)
-        crossed = crossed if cross_fit else []
+        needs_reference = POINT_SCORES[settings.point_score].reference
+        folded = self._fold_evidence(selection, settings, desc) if cross_fit else None
+        if folded is not None:  # the fold models' out-of-sample scores replace the cross-fitted ones
+            crossed, crossed_references, role = folded[0], folded[1], "fold"
+        else:  # training scans cross-fitted: scored by the main model against the reference without their points
+            crossed = crossed if cross_fit and needs_reference else []
+            crossed_references = [self.reference_.without(j) for j in range(len(crossed))]
+            role = "cross-fitted"
         if settings.rays and any(g.origin is None for g in crossed):
-            crossed = []
-        references = [self.reference_] * len(held) + [self.reference_.without(j) for j in range(len(crossed))]
+            crossed, crossed_references = [], []
         goods = held + crossed
-        kappa, lam = self._fit_noise_model(goods, references, settings)
-        components = []
-        for good, reference_j in zip(goods, references):
-            reference_j.variance_scale, reference_j.grazing_scale = kappa, lam
-            components.append(self._score(good, reference_j, settings).components)
-        roles = ["held-back"] * len(held) + ["cross-fitted"] * len(crossed)
-        self.calibration_source_ = how + (f" and {len(crossed)} training scans cross-fitted" if crossed else "")
+        references = [self.reference_] * len(held) + crossed_references
+        if needs_reference:
+            kappa, lam = self._fit_noise_model(goods, references, settings)
+            for reference_j in references:
+                reference_j.variance_scale, reference_j.grazing_scale = kappa, lam
+        components = [self._score(good, reference_j, settings).components
+                      for good, reference_j in zip(goods, references)]
+        roles = ["held-back"] * len(held) + [role] * len(crossed)
+        how = selection.how
+        if crossed:
+            how += (f" and {len(crossed)} training scans scored by fold models that never saw them" if role == "fold"
+                    else f" and {len(crossed)} training scans cross-fitted")
+        self.calibration_source_ = how
         return self._calibrate_from(components, names + [g.name for g in crossed], roles)
+
+    def _fold_evidence(self, selection, settings, desc=""):
+        """The training scans' evidence under the model's fold models (:mod:`autodecoder.latent.folds`): each
+        reference scan projected by the fold model that never trained on it, and compared with that fold model's
+        per-location reference over every other reference scan (all of them projected by the fold model, as the
+        model's own reference is by the model, the scored scan's points left out). Nothing in such a score has seen
+        the scan: it is scored as a new scan is, by a model trained on fewer scans, against a reference of one scan
+        fewer. (A fold model's reference over its own training scans alone rests on fewer scans and scored good
+        scans higher than the main model scores new ones: docs/results.md, issue 27.)
+
+        Returns (evidence list, reference per evidence), or None when the model has no fold models or none of the
+        scans they score is among the reference scans."""
+        folds = list(getattr(self.model, "calibration_folds", None) or [])
+        if not folds or not selection.reference:
+            return None
+        names = [getattr(s, "name", None) for s in selection.reference]
+        needs_reference = POINT_SCORES[settings.point_score].reference
+        goods, references = [], []
+        for j, fold in enumerate(folds):
+            scored = [i for i, n in enumerate(names) if n in set(fold.scored_names)]
+            if not scored:
+                continue
+            if set(fold.model.train_names) & {names[i] for i in scored}:  # read_folds refuses such a file
+                raise ValueError(f"calibration fold {j + 1} was trained on a scan it scores")
+            sub = type(self)(**{**self.get_params(deep=False), "model": fold.model, "verbose": False})
+            sub.settings_ = settings
+            if needs_reference:
+                evidence = sub._fit_reference(_progress(selection.reference, self.verbose, f"fold {j + 1}{desc}"),
+                                              selection.surface, settings)
+                goods += [evidence[i] for i in scored]
+                references += [sub.reference_.without(i) for i in scored]
+            else:
+                goods += [sub._evidence(selection.reference[i], i, settings) for i in scored]
+                references += [None] * len(scored)
+        return (goods, references) if goods else None
 
     def _fit_reference(self, scans, surface_scans, settings, max_points=60000, seed=0):
         """Build ``reference_`` from good scans, each projected as a test scan would be (a training scan without

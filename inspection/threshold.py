@@ -280,6 +280,11 @@ def format_rate(rate):
     return "<0.001 %" if 0 < rate < 1e-5 else f"{100 * rate:.2g} %"
 
 
+ROLES = ("held-back", "fold", "cross-fitted")
+# roles whose scores are out of sample: scored by a model that never trained on the scan
+OUT_OF_SAMPLE = ("held-back", "fold")
+
+
 def fit_threshold(calibration_scores, alpha, roles=None):
     """The threshold at false-alarm rate ``alpha`` from good scans' scores.
 
@@ -288,44 +293,56 @@ def fit_threshold(calibration_scores, alpha, roles=None):
     calibration_scores : (n,) array
         Scores of good scans (higher = more anomalous).
     alpha : float in (0, 1)
-    roles : (n,) sequence of {'held-back', 'cross-fitted'}, optional
-        Which scores come from scans the model did not train on (default: all) and which from training scans
-        scored as if new (:meth:`inspection.Inspector.fit`). Cross-fitted scores can be optimistic (the nets saw
-        those scans): they never set the threshold's level, only the spread of the log-normal tail.
+    roles : (n,) sequence of {'held-back', 'fold', 'cross-fitted'}, optional
+        How each score was obtained (default: all held back): by the model on a scan it did not train on
+        ('held-back'), by a fold model on a training scan it did not train on ('fold'; both out of sample), or by
+        the model on a training scan scored as if new ('cross-fitted', :meth:`inspection.Inspector.fit`).
+        Cross-fitted scores can be optimistic (the nets saw those scans): they never set the threshold's level,
+        only the spread of the log-normal tail.
 
     Returns
     -------
     Threshold
-        Split-conformal on the held-back scores when there are n_h >= 1 / alpha - 1 of them (it can reach alpha
-        exactly); else the log-normal tail, its level the held-back scores' mean log score and its spread pooled
-        within the held-back and cross-fitted groups (needs positive scores and >= 2 degrees of freedom); else
-        conformal at its smallest reachable rate, 1 / (n_h + 1).
+        Split-conformal (CV+ with fold scores) on the n_o out-of-sample scores when n_o >= 1 / alpha - 1 (it can
+        reach alpha exactly); else the log-normal tail, its level the out-of-sample scores' mean log score and its
+        spread pooled within the out-of-sample and cross-fitted groups (needs positive scores and >= 2 degrees of
+        freedom); else conformal at its smallest reachable rate, 1 / (n_o + 1).
     """
     alpha = check_alpha(alpha)
     cal = _scores(calibration_scores)
     roles = np.array(["held-back"] * len(cal) if roles is None else list(roles))
-    if roles.shape != cal.shape or not np.isin(roles, ("held-back", "cross-fitted")).all():
-        raise ValueError(f"roles: one 'held-back' or 'cross-fitted' per score ({len(cal)}), got {list(roles)}")
-    held, crossed = cal[roles == "held-back"], cal[roles == "cross-fitted"]
+    if roles.shape != cal.shape or not np.isin(roles, ROLES).all():
+        raise ValueError(f"roles: one of {ROLES} per score ({len(cal)}), got {list(roles)}")
+    out_of_sample = np.isin(roles, OUT_OF_SAMPLE)
+    held, crossed = cal[out_of_sample], cal[roles == "cross-fitted"]
+    folds = cal[roles == "fold"]
     if len(held) == 0:
-        raise ValueError("fit_threshold needs at least one held-back score (a good scan the model did not train on)")
+        raise ValueError("fit_threshold needs at least one out-of-sample score (a good scan the model or a fold "
+                         "model did not train on)")
     n_h, n = len(held), len(cal)
+    what = (f"out-of-sample scores ({n_h - len(folds)} held-back, {len(folds)} by fold models)" if len(folds)
+            else "held-back scans")
     need = math.ceil(1 / alpha - 1 - _TOL)
     k = allowed_exceedances(n_h, alpha)
+    fit = {}
+    if len(folds) and n_h > len(folds) and np.all(cal > 0):
+        # how much higher the fold models' scores lie than the held-back ones' (a fold model trains on fewer scans)
+        fit["fold_shift"] = float(np.log(folds).mean() - np.log(held[roles[out_of_sample] == "held-back"]).mean())
     if k >= 0:
+        note = "" if not len(folds) else f"exact conformal (CV+) on {n_h} {what}"
         return Threshold(conformal_threshold(held, alpha), alpha, "conformal", n_h, min(1.0, (k + 1) / (n_h + 1)),
-                         conformal_far_interval(n_h, alpha), "", fit={"scores": held.tolist()})
+                         conformal_far_interval(n_h, alpha), note, fit={**fit, "scores": held.tolist()})
     df = n_h - 1 + (len(crossed) - 1 if len(crossed) else 0)
     if np.all(cal > 0) and df >= MIN_TAIL_SCANS - 1:
         m, sd, _, df = _log_fit(held, crossed)
         lo, hi = lognormal_far_interval(n_h, alpha, df=df)
-        fit = {"mean": m, "sd": sd, "n_level": n_h, "df": df}
-        how = f"{n} good scans' scores"
+        fit.update(mean=m, sd=sd, n_level=n_h, df=df)
+        how = f"{n} good scans' scores" if not len(folds) else "their scores"
         if len(crossed):
             fit["cross_fit_shift"] = float(np.log(held).mean() - np.log(crossed).mean())
             how = (f"the {n_h} held-back scans' level and the spread of all {n} (cross-fitted scans scored "
                    f"{100 * (1 - math.exp(-fit['cross_fit_shift'])):.0f} % lower)")
-        note = (f"{n_h} held-back scans are fewer than the {need} an exact conformal threshold at alpha={alpha:g} "
+        note = (f"{n_h} {what} are fewer than the {need} an exact conformal threshold at alpha={alpha:g} "
                 f"needs: threshold extrapolated from a log-normal fit of {how} (predicted false-alarm rate "
                 f"{format_rate(alpha)}, {100 * FAR_INTERVAL_LEVEL:.0f} % interval {format_rate(lo)} to "
                 f"{format_rate(hi)})")
@@ -334,7 +351,7 @@ def fit_threshold(calibration_scores, alpha, roles=None):
     reach = 1 / (n_h + 1)
     why = ("the log-normal tail needs positive scores" if not np.all(cal > 0) else
            f"calibrate on at least {MIN_TAIL_SCANS} good scans")
-    note = (f"{n_h} held-back scan(s) are too few for alpha={alpha:g}: using the smallest reachable rate, "
-            f"{reach:.3g} (the largest held-back score); {why}")
+    note = (f"{n_h} {what} are too few for alpha={alpha:g}: using the smallest reachable rate, "
+            f"{reach:.3g} (the largest of them); {why}")
     return Threshold(float(held.max()), alpha, "conformal", n_h, reach, conformal_far_interval(n_h, reach), note,
-                     alpha_used=reach, fit={"scores": held.tolist()})
+                     alpha_used=reach, fit={**fit, "scores": held.tolist()})

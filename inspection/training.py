@@ -23,15 +23,16 @@ def train_model(collection, out, calibration_fraction=0.2, seed=0, quiet=True, e
         torch CPU threads during the training (restored afterwards); default: the trainer's ``TRAINING_THREADS``
         (one: faster than two on a 2-core CPU), 0: leave torch's setting.
     **options
-        ``autodecoder.latent.train.LatentOptions`` fields.
+        ``autodecoder.latent.train.LatentOptions`` fields, and ``calibration_folds`` / ``fold_jobs``
+        (:func:`autodecoder.latent.folds.train_collection_with_folds`).
 
     Returns
     -------
     autodecoder.latent.model.LatentModel
     """
     from autodecoder.latent.distributed import training_threads
-    from autodecoder.latent.train import train_collection
+    from autodecoder.latent.folds import train_collection_with_folds
 
     with training_threads(threads):
-        return train_collection(collection, out, calibration_fraction=calibration_fraction, overwrite=overwrite,
+        return train_collection_with_folds(collection, out, calibration_fraction=calibration_fraction, overwrite=overwrite,
                                 quiet=quiet, seed=seed, epochs=epochs, **options)

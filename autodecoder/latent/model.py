@@ -27,6 +27,8 @@ All coordinates the model takes and returns are in the training collection's fra
 scans are stored in); :attr:`LatentModel.frame` maps scanner-file coordinates into it.
 """
 import os
+from dataclasses import dataclass
+from typing import List
 from pathlib import Path
 
 import numpy as np
@@ -87,11 +89,16 @@ class LatentModel:
     config : dict
     fingerprint : str
         The training collection's fingerprint.
+    state : dict
+        The checkpoint it was built from.
+    calibration_folds : list of autodecoder.latent.folds.CalibrationFold
+        Its fold models (each trained without some of its training scans, which it scores as new), or [].
     """
 
     def __init__(self, state, source="<state>"):
         state = check_checkpoint(state, source)
         self.source = source
+        self.state = state
         self.config = dict(state["config"])
         self.mean_net, self.cov_net = build_networks(self.config)
         self.mean_net.load_state_dict(state["mean_state"])
@@ -113,6 +120,15 @@ class LatentModel:
         self.fingerprint = str(state.get("fingerprint", ""))
         self.epoch = int(state.get("epoch", 0))
         self.info = dict(state.get("info", {}))
+        self._folds = None
+
+    @property
+    def calibration_folds(self):
+        """The fold models stored in the checkpoint (:mod:`autodecoder.latent.folds`), built and checked on first
+        use; [] when it has none."""
+        if self._folds is None:
+            self._folds = read_folds(self.state, self.source)
+        return self._folds
 
     @property
     def latent_dim(self):
@@ -163,6 +179,49 @@ class LatentModel:
     def project_many(self, scans, **options):
         """Fit codes to many scans at once; see :func:`autodecoder.latent.projection.project_many`."""
         return project_many(self, scans, **options)
+
+
+# fold models (autodecoder.latent.folds) inside a checkpoint: a list of {"scored_names", "checkpoint", "rule"}
+FOLDS_KEY = "calibration_folds"
+# what a fold model trains on, stored with each fold: a fold model trained by another rule is retrained by tools
+# that keep fold models up to date (benchmarks.cache)
+FOLD_RULE = "outside the fold, and the held-back scans"
+
+
+@dataclass
+class CalibrationFold:
+    """One fold model and the training scans of the main model it scores as new scans."""
+
+    model: object  # LatentModel
+    scored_names: List[str]
+    rule: str = ""  # FOLD_RULE when it was trained by today's rule
+
+
+def read_folds(state, source="<state>"):
+    """The :class:`CalibrationFold` s stored in a main checkpoint (``[]`` without any), each checked: a complete
+    latent checkpoint, trained on none of the scans it scores and only on the main model's training and held-back
+    scans, scoring only the main model's training scans."""
+    out = []
+    train = set(state.get("train_names", []))
+    for j, fold in enumerate(state.get(FOLDS_KEY) or []):
+        where = f"{source}: calibration fold {j + 1}"
+        if not isinstance(fold, dict) or "scored_names" not in fold or "checkpoint" not in fold:
+            raise ValueError(f"{where}: damaged (scored_names or checkpoint missing)")
+        scored = [str(n) for n in fold["scored_names"]]
+        model = LatentModel(fold["checkpoint"], f"{where}")
+        seen = sorted(set(scored) & set(model.train_names))
+        if seen:
+            raise ValueError(f"{where}: trained on {len(seen)} of the scans it scores (e.g. {seen[0]!r}); its scores "
+                             f"would not be out of sample")
+        foreign = sorted(set(scored) - train)
+        if foreign:
+            raise ValueError(f"{where}: scores {foreign[0]!r}, which is not one of the model's training scans")
+        unknown = sorted(set(model.train_names) - train - set(state.get("calibration_names", [])))
+        if unknown:
+            raise ValueError(f"{where}: trained on {unknown[0]!r}, which is neither a training nor a held-back scan "
+                             f"of the model")
+        out.append(CalibrationFold(model, scored, str(fold.get("rule", ""))))
+    return out
 
 
 def load_model(path):

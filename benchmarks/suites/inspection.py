@@ -19,6 +19,7 @@ Two other regimes, as options:
   importer (the templates become ``--views`` partial training views and ``--validation-views`` held-back views
   each); trained, calibrated and scored as above; object and point AUROC per defect type next to the baseline.
 """
+import json
 import time
 from pathlib import Path
 
@@ -63,6 +64,10 @@ def add_arguments(p):
     p.add_argument("--template-points", type=int, default=10000, help="--templates: points per template")
     p.add_argument("--views", type=int, default=16, help="--templates: training views per template")
     p.add_argument("--validation-views", type=int, default=4, help="--templates: held-back views per template")
+    p.add_argument("--folds", choices=("on", "off", "both"), default="off",
+                   help="calibrate without fold models (off: the default, the held-back scans' level and the training "
+                        "scans cross-fitted), with 2 fold models trained into the cached model (on: train_latent.py "
+                        "--calibration-folds 2), or both, one row each")
     p.add_argument("--cache", default=cache.CACHE, help="collections and models (default: %(default)s)")
     p.add_argument("--work", default=WORK, help="scored runs (default: %(default)s)")
     p.add_argument("--progress", action="store_true", help="progress bars")
@@ -89,7 +94,10 @@ def run(args):
 
 # ---------------------------------------------------------------------------------------------------- one part
 def _train_options(args):
-    return dict(seed=args.seed, epochs=args.epochs, representation=args.representation)
+    from autodecoder.latent.folds import SUGGESTED_FOLDS
+
+    return dict(seed=args.seed, epochs=args.epochs, representation=args.representation,
+                calibration_folds=None if args.folds == "off" else SUGGESTED_FOLDS)
 
 
 def _run_name(args):
@@ -110,16 +118,42 @@ def _single(part, args):
     info = inspect_api.model_info(model)
     print(f"{part}: collection {data}, model {model} (trained in {info['train_seconds'] or float('nan'):.0f} s; "
           f"collection and model ready after {time.perf_counter() - t0:.0f} s here)", flush=True)
-    run_dir = Path(args.work) / data.parent.name / _run_name(args)
-    summary = inspect_api.calibrate_and_score(model, data, run_dir, rays=args.rays, align=args.align,
-                                              progress=args.progress, echo=lambda line: print(f"  {part}: {line}"))
-    toolkit = inspect_api.summary_figures(summary)
-    toolkit["method"] = (f"toolkit {toolkit['point_score']}/{toolkit['aggregate']}" + (" +rays" if toolkit["rays"]
-                         else "") + (f" {args.representation}" if args.representation else ""))
+    one = {"collection": str(data), "model": str(model), "train_seconds": info["train_seconds"],
+           "fold_seconds": _fold_seconds(model)}
+    rows = []
+    for folds in _fold_settings(args):
+        run_dir = Path(args.work) / data.parent.name / (_run_name(args) + ("" if folds else "_nofolds"))
+        summary = inspect_api.calibrate_and_score(model, data, run_dir, rays=args.rays, align=args.align,
+                                                  progress=args.progress, folds=folds,
+                                                  echo=lambda line: print(f"  {part}: {line}"))
+        toolkit = inspect_api.summary_figures(summary)
+        toolkit["method"] = (f"toolkit {toolkit['point_score']}/{toolkit['aggregate']}" + (" +rays" if toolkit["rays"]
+                             else "") + (f" {args.representation}" if args.representation else "")
+                             + ("" if folds else ", no folds"))
+        toolkit.update(_oracle(run_dir), calibration_gap=_calibration_gap(run_dir))
+        one["toolkit" if folds else "toolkit_nofolds"] = toolkit
+        one["run" if folds else "run_nofolds"] = str(run_dir)
+        rows.append(dict(part=part, **toolkit))
     nn_figures = baselines.nn_figures(data, info["heldback_names"], summary["alpha"])
-    one = {"collection": str(data), "model": str(model), "run": str(run_dir), "train_seconds": info["train_seconds"],
-           "toolkit": toolkit, "nn": nn_figures}
-    return data, one, [dict(part=part, **toolkit), dict(part=part, **nn_figures)]
+    one["nn"] = nn_figures
+    return data, one, rows + [dict(part=part, **nn_figures)]
+
+
+def _fold_settings(args):
+    """Calibrations to run: with the fold models (True), without (False)."""
+    return {"on": (True,), "off": (False,), "both": (False, True)}[args.folds]
+
+
+def _fold_seconds(model):
+    """Seconds the cached model's fold models took to train (None when not recorded)."""
+    path = Path(model).parent / "fold_seconds.json"
+    return json.loads(path.read_text())["seconds"] if path.exists() else None
+
+
+def _oracle(run_dir):
+    """``oracle``: the defective test scans flagged by a threshold just above the worst good test scan."""
+    scored = inspect_api.read_scores(Path(run_dir) / "results")
+    return {"oracle": metrics.oracle_flagged(scored["score"], scored["label"])}
 
 
 # ---------------------------------------------------------------------------------------------------- multi-part
@@ -136,7 +170,7 @@ def _multi_part(collections, singles, args):
     for part, one in singles.items():
         mine = np.char.startswith(scored["name"].astype(str), f"{part}/")
         two = _verdict_figures(scored, mine)
-        own = inspect_api.read_scores(Path(one["run"]) / "results")
+        own = inspect_api.read_scores(Path(one.get("run") or one["run_nofolds"]) / "results")
         single = _verdict_figures(own, np.ones(len(own["name"]), bool))
         out["parts"][part] = {"multi_part": two, "single_part": single}
         rows += [dict(part=part, method="multi-part", train=info["train_seconds"], **two),
@@ -240,9 +274,18 @@ def _templates(part, args):
 
     data = _template_collection(part, args)
     model = cache.trained_model(data, root=args.cache, **_train_options(args))
-    run_dir = Path(args.work) / data.parent.name / _run_name(args)
-    summary = inspect_api.calibrate_and_score(model, data, run_dir, rays=args.rays, maps="none",
-                                              progress=args.progress, echo=lambda line: print(f"  {part}: {line}"))
+    out = {"collection": str(data), "model": str(model), "fold_seconds": _fold_seconds(model)}
+    rows = []
+    for folds in _fold_settings(args):
+        run_dir = Path(args.work) / data.parent.name / (_run_name(args) + ("" if folds else "_nofolds"))
+        summary = inspect_api.calibrate_and_score(model, data, run_dir, rays=args.rays, maps="none", folds=folds,
+                                                  progress=args.progress, echo=lambda line: print(f"  {part}: {line}"))
+        toolkit = inspect_api.summary_figures(summary)
+        toolkit.update(_oracle(run_dir), calibration_gap=_calibration_gap(run_dir))
+        toolkit["method"] = f"toolkit {toolkit['point_score']}/{toolkit['aggregate']}" + ("" if folds else ", no folds")
+        out["toolkit_summary" if folds else "toolkit_summary_nofolds"] = toolkit
+        rows.append(dict(part=part, **toolkit))
+    print(verdicts_table(rows))
     scans, scored = inspect_api.point_maps(run_dir / "model.pt", data)
     with ScanCollection(data) as c:
         train = c.read_many(c.select(split="train"))
@@ -255,8 +298,6 @@ def _templates(part, args):
                                     ("nn", [v for v, _ in nn], [d for _, d in nn])):
         result[name] = {"auroc": metrics.auroc_per_defect(scan_scores, labels, defects),
                         "point_auroc": metrics.point_auroc_per_defect(point_labels, maps, labels, defects)}
-    toolkit = inspect_api.summary_figures(summary)
-    toolkit["calibration_gap"] = _calibration_gap(run_dir)
     print(f"\n== {part}: {len(train)} training views, {n_validation} validation views from 4 templates of "
           f"{args.template_points} points; {len(scans)} test scans of {args.points} points; point score "
           f"{toolkit['point_score']}/{toolkit['aggregate']}, false-alarm rate {toolkit['flagged']['good']:.3f} at "
@@ -267,4 +308,4 @@ def _templates(part, args):
                         for k in kinds],
                        [("defect", "defect", ""), ("mo", "model obj", ".3f"), ("no", "NN obj", ".3f"),
                         ("mp", "model pt", ".3f"), ("np", "NN pt", ".3f")]))
-    return {"collection": str(data), "model": str(model), **result, "toolkit_summary": toolkit}
+    return {**out, **result}

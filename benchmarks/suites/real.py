@@ -69,6 +69,9 @@ def add_arguments(p):
     p.add_argument("--no-rays", action="store_true", help="calibrate without the ray score (default: the "
                                                           "inspection's choice: with it, the scans have sensor origins)")
     p.add_argument("--diagnose", action="store_true", help="also the per-point analysis and pictures of the run")
+    p.add_argument("--folds", choices=("on", "off", "both"), default="off",
+                   help="calibrate without fold models (off: the default), with 2 fold models trained into the cached "
+                        "model (on: train_latent.py --calibration-folds 2), or both")
     p.add_argument("--cache", default=cache.CACHE, help="tree, collection and model (default: %(default)s)")
     p.add_argument("--work", default=WORK, help="scored runs (default: %(default)s)")
     p.add_argument("--progress", action="store_true", help="progress bars")
@@ -76,7 +79,10 @@ def add_arguments(p):
 
 def run(args):
     data = real_collection(args)
-    model = cache.trained_model(data, root=args.cache, seed=args.train_seed, epochs=args.epochs)
+    from autodecoder.latent.folds import SUGGESTED_FOLDS
+
+    model = cache.trained_model(data, root=args.cache, seed=args.train_seed, epochs=args.epochs,
+                                calibration_folds=None if args.folds == "off" else SUGGESTED_FOLDS)
     run_dir = Path(args.work) / data.parent.name / ("defaults" + (f"_e{args.epochs}" if args.epochs else "")
                                                     + (f"_t{args.train_seed}" if args.train_seed else "")
                                                     + ("_norays" if args.no_rays else ""))
@@ -383,11 +389,22 @@ def score(data, model, run_dir, args):
     """Score the run at the defaults, print the table next to the baseline. Returns the figures."""
     from datasets import ScanCollection
 
-    t0 = time.perf_counter()
-    summary = inspect_api.calibrate_and_score(model, data, run_dir, rays=False if args.no_rays else None, maps="all",
-                                              progress=args.progress, echo=lambda line: print(f"  real: {line}"))
-    t_score = time.perf_counter() - t0
-    scored = inspect_api.read_scores(run_dir / "results")
+    from benchmarks.table import verdicts_table
+
+    verdict_rows = []
+    for folds in {"on": (True,), "off": (False,), "both": (False, True)}[args.folds]:
+        one_dir = run_dir if folds else run_dir.with_name(run_dir.name + "_nofolds")
+        t0 = time.perf_counter()
+        summary = inspect_api.calibrate_and_score(model, data, one_dir, rays=False if args.no_rays else None,
+                                                  maps="all", progress=args.progress, folds=folds,
+                                                  echo=lambda line: print(f"  real: {line}"))
+        t_score = time.perf_counter() - t0
+        scored = inspect_api.read_scores(one_dir / "results")
+        figures = inspect_api.summary_figures(summary)
+        verdict_rows.append(dict(part="bunny", **figures, oracle=metrics.oracle_flagged(scored["score"],
+                                                                                        scored["label"]),
+                                 method="toolkit" + ("" if folds else ", no folds")))
+    print(verdicts_table(verdict_rows))
     info = inspect_api.model_info(model)
     held = set(info["heldback_names"])
     with ScanCollection(data) as c:
@@ -411,7 +428,8 @@ def score(data, model, run_dir, args):
           f"wall {t_score / len(test):.2f}); NN baseline {t_nn:.3f}; training {info['train_seconds'] or 0:.0f} s")
     return {"collection": str(data), "model": str(model), "run": str(run_dir), "toolkit": ours, "nn": base,
             "flagged": flagged, "seconds_per_scan": summary.get("seconds_per_scan"), "nn_seconds_per_scan": t_nn,
-            "train_seconds": info["train_seconds"], "summary": inspect_api.summary_figures(summary)}
+            "train_seconds": info["train_seconds"], "summary": inspect_api.summary_figures(summary),
+            "verdicts": verdict_rows}
 
 
 # ---- diagnosis -------------------------------------------------------------------------------------------------------

@@ -19,7 +19,7 @@ def _sphere(name, radius, part, seed, split="train", label="good", defect=""):
 
 @pytest.fixture(scope="module")
 def two_part_run(tmp_path_factory, one_torch_thread):
-    from autodecoder.latent.train import train_collection
+    from autodecoder.latent.folds import train_collection_with_folds as train_collection
     from datasets.collection import ScanCollection
 
     tmp = tmp_path_factory.mktemp("parts")
@@ -31,7 +31,7 @@ def two_part_run(tmp_path_factory, one_torch_thread):
                           defect="dent")]
     data = ScanCollection.create(tmp / "ab.h5", scans)
     model = tmp / "model.pt"
-    train_collection(data, model, calibration_fraction=0.34, quiet=True, **TINY)
+    train_collection(data, model, calibration_fraction=0.34, quiet=True, calibration_folds=2, **TINY)
     from inspection.run import calibrate
 
     insp, info = calibrate(model, data, progress=False)  # stored in the model file
@@ -43,9 +43,9 @@ def test_calibration_and_thresholds_are_per_part(two_part_run):
 
     insp, info = two_part_run[3:]
     assert sorted(insp.parts_) == ["a", "b"]
-    for part, one in insp.parts_.items():  # each part: its own held-back scans, cross-fitted training scans
+    for part, one in insp.parts_.items():  # each part: its own held-back scans, its training scans by fold models
         assert one.calibration_names_ and all(n.startswith(f"{part}/") for n in one.calibration_names_)
-        assert one.calibration_roles_.count("held-back") == 2
+        assert one.calibration_roles_.count("held-back") == 2 and one.calibration_roles_.count("fold") == 4
     assert set(info["parts"]) == {"a", "b"}
     lines = describe_calibration(insp, info)
     assert any(line.startswith("part a: threshold") for line in lines)

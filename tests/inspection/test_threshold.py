@@ -201,3 +201,29 @@ def test_uncertain_scores_are_those_within_the_thresholds_own_interval():
     p = conformal_p_values(np.arange(1.0, 100.0), s)
     np.testing.assert_array_equal(c.uncertain(s), (p >= c.far_interval[0]) & (p <= c.far_interval[1]))
     assert c.uncertain(s).any() and not c.uncertain(s).all()
+
+
+def test_fold_scores_are_out_of_sample_they_set_the_level_and_make_conformal_reachable():
+    """Scores of training scans by fold models that never saw them count as held-back ones: the log-normal level
+    and spread of all of them (by hand), split-conformal (CV+) once there are 1 / alpha - 1 of them, and the fold
+    models' shift against the held-back scores recorded."""
+    rng = np.random.default_rng(11)
+    held, folds = np.exp(rng.normal(1.0, 0.3, 6)), np.exp(rng.normal(1.1, 0.3, 26))
+    t = fit_threshold(np.r_[held, folds], 0.02, ["held-back"] * 6 + ["fold"] * 26)
+    both = np.r_[held, folds]
+    assert t.basis == "log-normal" and t.n == 32 and t.fit["n_level"] == 32 and t.fit["df"] == 31
+    assert t.value == pytest.approx(lognormal_threshold(both, 0.02))
+    assert t.far_interval == pytest.approx(lognormal_far_interval(32, 0.02))
+    assert t.fit["fold_shift"] == pytest.approx(np.log(folds).mean() - np.log(held).mean())
+    assert "32 out-of-sample scores (6 held-back, 26 by fold models)" in t.note and "49" in t.note
+    many = np.exp(rng.normal(size=60))
+    roles = ["held-back"] * 10 + ["fold"] * 50
+    t = fit_threshold(many, 0.02, roles)
+    assert t.basis == "conformal" and t.value == conformal_threshold(many, 0.02) and t.n == 60
+    assert "CV+" in t.note
+    # cross-fitted scores beside fold scores still only widen the spread
+    t = fit_threshold(np.r_[held, folds, 0.5 * folds], 0.02, ["held-back"] * 6 + ["fold"] * 26 + ["cross-fitted"] * 26)
+    assert t.fit["n_level"] == 32
+    assert t.value == pytest.approx(lognormal_threshold(both, 0.02, spread_scores=0.5 * folds))
+    with pytest.raises(ValueError, match="roles"):
+        fit_threshold([1.0, 2.0, 3.0], 0.02, ["held-back", "fold", "trained"])

@@ -38,6 +38,7 @@ def _refused(argv, capsys):
     ("--depth", "0", ">= 1"), ("--batch", "0", ">= 1"), ("--samples", "0", ">= 1"), ("--lr", "0", "> 0"),
     ("--code-lr", "-0.001", "> 0"), ("--calibration-fraction", "1", "[0, 1)"), ("--checkpoint-every", "-1", ">= 0"),
     ("--threads", "-1", ">= 0"), ("--representation", "voxels", "invalid choice"), ("--device", "tpu", "invalid choice"),
+    ("--calibration-folds", "1", "0 (none) or >= 2"), ("--calibration-folds", "-2", "0 (none) or >= 2"),
     ("--epochs", "ten", "invalid int value"), ("--lr", "fast", "invalid float value")])
 def test_a_bad_option_value_is_one_line_naming_the_option_and_the_value(collection, tmp_path, capsys, option, value,
                                                                         problem):

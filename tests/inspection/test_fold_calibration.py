@@ -1,0 +1,94 @@
+"""Calibration with fold models (issue 27): every training scan is scored by the fold model that never trained on
+it, against that fold model's own reference, and those scores set the threshold's level with the held-back ones."""
+import numpy as np
+import pytest
+
+from datasets import ScanCollection
+from tests.inspection.tiny import half_sphere
+
+TINY = dict(latent_dim=2, width=16, depth=1, features=8, mean_samples=128, screen_samples=64, pair_clusters=4,
+            batch=4, epochs=3)
+
+
+@pytest.fixture(scope="module")
+def folded(tmp_path_factory, one_torch_thread):
+    from autodecoder.latent.folds import train_collection_with_folds as train_collection
+
+    tmp = tmp_path_factory.mktemp("foldcal")
+    scans = [half_sphere(f"train/{i:03d}", seed=i, n=200) for i in range(9)]
+    data = ScanCollection.create(tmp / "c.h5", scans)
+    model = train_collection(data, tmp / "model.pt", calibration_fraction=0.34, quiet=True, calibration_folds=3,
+                             fold_jobs=1, **TINY)
+    return data, model
+
+
+def test_each_training_scan_is_scored_by_the_fold_model_that_never_saw_it(folded, monkeypatch):
+    import inspection.estimator as estimator
+    from inspection import Inspector
+
+    data, model = folded
+    seen = []
+    real = estimator.gather_evidence
+
+    def recording(m, scan, *args, **kwargs):
+        seen.append((m, scan.name, kwargs.get("exclude_own_code", False)))
+        return real(m, scan, *args, **kwargs)
+
+    monkeypatch.setattr(estimator, "gather_evidence", recording)
+    with ScanCollection(data) as c:
+        insp = Inspector(model, projection={"steps": 5, "starts": 1}).fit(c)
+    folds = model.calibration_folds
+    roles = dict(zip(insp.calibration_names_, insp.calibration_roles_))
+    assert sorted(n for n, r in roles.items() if r == "held-back") == sorted(model.calibration_names)
+    assert sorted(n for n, r in roles.items() if r == "fold") == sorted(model.train_names)
+    assert "fold models that never saw them" in insp.calibration_source_
+    assert insp.decision_threshold_.n == len(model.train_names) + len(model.calibration_names)
+    assert "out-of-sample scores (3 held-back, 6 by fold models)" in insp.decision_threshold_.note
+    for m, name, exclude in seen:
+        trained = set(m.train_names)
+        if name in trained:  # a model projects a scan it trained on only for its reference, never from its own code
+            assert exclude
+    for fold in folds:
+        # each fold model projected every training scan of the main model: those it scores, and the others for its
+        # reference; the held-back scans it trained on are the main model's to score
+        projected = {name for m, name, _ in seen if m is fold.model}
+        assert projected == set(model.train_names)
+        assert set(model.calibration_names) <= set(fold.model.train_names)
+    # the main model never scored a training scan for the calibration: only for its reference (exclude_own_code)
+    assert all(exclude for m, name, exclude in seen if m is model and name in model.train_names)
+
+
+def test_without_fold_models_the_training_scans_are_cross_fitted(folded, tmp_path):
+    from autodecoder.latent.folds import FOLDS_KEY
+    from autodecoder.latent.model import LatentModel
+    from inspection import Inspector
+
+    data, model = folded
+    state = {k: v for k, v in model.state.items() if k != FOLDS_KEY}
+    bare = LatentModel(state, "bare")
+    with ScanCollection(data) as c:
+        insp = Inspector(bare, projection={"steps": 5, "starts": 1}).fit(c)
+    assert insp.calibration_roles_.count("cross-fitted") == len(model.train_names)
+    assert "cross-fitted" in insp.calibration_source_
+    assert np.isfinite(insp.threshold_)
+
+
+def test_a_fold_scored_scan_is_compared_with_a_reference_without_its_points(folded):
+    from inspection import Inspector
+    from inspection.selection import select_scans
+
+    data, model = folded
+    with ScanCollection(data) as c:
+        goods = c.read_many(c.select(label="good"))
+    insp = Inspector(model, projection={"steps": 5, "starts": 1})
+    settings = insp._resolved(insp.config.validated(), True, False)  # no sensor origins here: no rays
+    selection = select_scans(model, goods)
+    evidence, references = insp._fold_evidence(selection, settings)
+    assert sorted(e.name for e in evidence) == sorted(model.train_names)
+    by_name = {s.name: s for s in goods}
+    for e, reference in zip(evidence, references):
+        own = {tuple(p) for p in np.asarray(by_name[e.name].points, dtype=np.float32)}
+        assert not own & {tuple(p) for p in reference.surface_points}  # its own points left out of the surface
+        others = {tuple(p) for s in goods if s.name in model.train_names and s.name != e.name
+                  for p in np.asarray(s.points, dtype=np.float32)}
+        assert {tuple(p) for p in reference.surface_points} <= others  # every other training scan's
