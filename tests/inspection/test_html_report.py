@@ -152,7 +152,8 @@ def _headless(exe, *args, timeout=180):
     return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
 
 
-@pytest.mark.skipif(_chromium() is None, reason="no Chromium installed (Debian: apt-get install -y chromium)")
+@pytest.mark.skipif(_chromium() is None, reason="no Chromium on this machine: `make test` installs Debian's chromium "
+                                                 "where apt and root are available; elsewhere apt-get install chromium")
 def test_report_renders_in_headless_chromium(results):
     """Load report.html from disk, let its plots draw, read the page's own state (window.reportStatus, copied into
     #report-status) and save a screenshot (results/report_screenshot.png of this checkout)."""
