@@ -67,7 +67,8 @@ def calibrate_and_score(model_path, data_path, out_dir, *, rays=None, point_scor
     point_score, aggregate, alpha : optional
         Calibration settings; None: the inspection's defaults.
     align : bool
-        Score with ``--align`` (ICP onto the training scans first).
+        Calibrate and score with ``--align`` (every scan, the calibration scans included, registered onto the
+        training scans first).
     maps : {'flagged', 'all', 'none'}
     folds : bool
         False: the copy is the model without its fold models (as trained with ``--calibration-folds 0``), so that it
@@ -90,14 +91,14 @@ def calibrate_and_score(model_path, data_path, out_dir, *, rays=None, point_scor
     if not folds:
         _drop_folds(copy)
     lines = []
-    settings = {k: v for k, v in dict(rays=rays, point_score=point_score, aggregate=aggregate, alpha=alpha).items()
-                if v is not None}
+    settings = {k: v for k, v in dict(rays=rays, point_score=point_score, aggregate=aggregate, alpha=alpha,
+                                      align=bool(align)).items() if v is not None}
     t0 = time.perf_counter()
     insp, info = calibrate(copy, data_path, config=InspectionConfig(**settings), progress=progress)
     calibration_seconds = time.perf_counter() - t0
     lines += describe_calibration(insp, info)
     summary = score(copy, data_path, out_dir / "results", split="test", progress=progress, maps=maps,
-                    echo=lines.append, overwrite=True, align=align)
+                    echo=lines.append, overwrite=True)
     summary["calibration_seconds"] = calibration_seconds
     if echo is not None:
         for line in lines:

@@ -1,6 +1,6 @@
 """Command line of the inspection package: calibrate a model on good scans, score scans, run the demo.
 
-    python -m inspection calibrate --model model.pt --data good.h5 [--alpha 0.02] [--aggregate top1] [--no-rays]
+    python -m inspection calibrate --model model.pt --data good.h5 [--alpha 0.02] [--no-rays] [--align]
     python -m inspection score --model model.pt --data tree.h5 --out results/ [--split test] [--align] [--jobs 4]
     python -m inspection watch --model model.pt --data drop_folder/ --out results/ [--once] [--settle 1]
     python -m inspection demo --out demo_output
@@ -61,6 +61,9 @@ def _parser():
                                                       "n_empty=128, gap=2.0, aggregate=top1, seed=0, band=0.5 (kernel "
                                                       "lengthscales), clearance=WORLD UNITS; default: the field's "
                                                       "lengthscale)")
+    c.add_argument("--align", action="store_true",
+                   help="parts not held in a fixture: register every scan (these and the ones scored later) onto the "
+                        "good training scans first (ICP)")
     c.add_argument("--quiet", action="store_true")
 
     s = sub.add_parser("score", help="score scans, write scores.csv, summary.json, roc.png, scores.png, maps/")
@@ -71,13 +74,13 @@ def _parser():
     s.add_argument("--alpha", type=float, default=None, help="false-alarm rate (default: the calibration's)")
     s.add_argument("--maps", choices=("flagged", "all", "none"), default="flagged",
                    help="which scans get a coloured PLY in OUT/maps (default flagged)")
-    s.add_argument("--align", action="store_true", help="register each scan into the model's frame first (ICP)")
+    s.add_argument("--align", action="store_true",
+                   help="register each scan onto the good training scans first (ICP); a setting of the calibration: "
+                        "an uncalibrated model is calibrated with it, a model calibrated with `calibrate --align` "
+                        "aligns without it")
     s.add_argument("--two-class", action="store_true",
                    help="good or defective only (default: a scan whose score lies within the threshold's own "
                         "uncertainty is 'uncertain': rescan it)")
-    s.add_argument("--reference", default=None, help="alignment reference: collection or cloud file (default: the "
-                                                     "data collection's good training scans, else the model's mean "
-                                                     "surface)")
     s.add_argument("--overwrite", action="store_true", help="write into an existing folder that is not a results "
                                                             "folder")
     s.add_argument("--jobs", type=_positive_int, default=1,
@@ -151,7 +154,7 @@ def config_from_args(args):
         raise ValueError("--ray-options needs --rays (or --rays-auto, the default), not --no-rays")
     return InspectionConfig(alpha=args.alpha, aggregate=args.aggregate, point_score=args.point_score,
                             noise=args.noise, projection=projection, rays=args.rays,
-                            ray_options=ray_options).validated()
+                            ray_options=ray_options, align=args.align).validated()
 
 
 def main(argv=None):
@@ -171,7 +174,7 @@ def main(argv=None):
             from .run import score
 
             summary = score(args.model, args.data, args.out, split=None if args.split == "all" else args.split,
-                            alpha=args.alpha, maps=args.maps, align=args.align, reference=args.reference,
+                            alpha=args.alpha, maps=args.maps, align=args.align,
                             progress=not args.quiet, overwrite=args.overwrite, uncertain=not args.two_class,
                             jobs=args.jobs)
             if summary.get("n_errors"):

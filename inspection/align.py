@@ -1,19 +1,31 @@
-"""Registering a scan into the model's frame: coarse-to-fine point-to-plane ICP (open3d) from the scan's own pose.
+"""Registering a scan into the model's frame: coarse-to-fine point-to-plane ICP from the scan's own pose, with a
+prior on how far a part placed by hand lies from its place.
 
 For parts not held in a fixture (a few degrees of pose error): the scan (source) is moved onto a reference cloud
 (target) that covers the part better than one view does, e.g. the union of training scans or points sampled from
 the model's mean surface. ICP starts from the identity, with no centroid shift: a partial view's centroid is not
 the part's, so shifting centroids would move a roughly placed scan away from its place. Large rotations (tens of
 degrees and more) need a global registration first; this module does not attempt one.
-"""
-from pathlib import Path
 
+Each Gauss-Newton step minimises the robust (Huber) point-to-plane residuals plus a Gaussian prior on the total
+motion, rotation about the scan's centroid with standard deviation ``PRIOR_DEGREES`` and translation with
+``PRIOR_SIZE`` of the target's size (a maximum a posteriori registration). Where the view pins the pose, thousands of
+residuals outweigh the prior and it changes nothing; where it does not (a flat or cylindrical patch slides along
+itself at no cost), plain ICP drifts by chance, and the prior keeps the scan where it was placed. The steps are plain
+numpy on a k-d tree, so a scan is registered the same way on every run (open3d's ICP is not: on such a patch
+repeated runs drifted to different places).
+
+Inspection registers every scan it scores with ``align=True`` (:class:`inspection.config.InspectionConfig`), the
+calibration scans included, onto :meth:`Aligner.from_scans` of the good training scans; the aligner is stored with
+the calibration, so a scan is moved the same way whenever and wherever it is scored.
+"""
 import numpy as np
 
-from .errors import InspectionError
-from .loading import COLLECTION_SUFFIXES
-
 DEFAULT_LEVELS = (4.0, 2.0, 1.0)  # ICP voxel sizes in multiples of the target's point spacing, coarse to fine
+PRIOR_DEGREES = 5.0  # the placement prior: rotation sd (degrees) ...
+PRIOR_SIZE = 0.02  # ... and translation sd per axis, in target bounding-box diagonals (module docstring)
+HUBER = 1.5  # residuals beyond this many robust standard deviations count linearly (stray points, defects)
+ALIGN_SCANS = 64  # good training scans stacked as the target (subsampled to max_points): the more, the more of the part it covers
 
 
 def _cloud(points, normals=None):
@@ -41,52 +53,122 @@ class Aligner:
     seed : int
     iterations : int
         ICP iterations at each level.
+    owners : (n,) sequence of str, optional
+        The name of the scan each target point came from: :meth:`without` leaves a scan's own points out, so that
+        a calibration scan is not registered onto itself (:meth:`from_scans`).
     """
 
     def __init__(self, target_points, target_normals=None, max_points=30000, levels=DEFAULT_LEVELS, seed=0,
-                 iterations=30):
+                 iterations=30, owners=None):
         import open3d as o3d
 
         pts = np.asarray(target_points, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 10:
             raise ValueError(f"alignment reference must be (n >= 10, 3) points, got {pts.shape}")
+        owners = np.full(len(pts), "") if owners is None else np.asarray(owners, dtype=str)
+        if owners.shape != (len(pts),):
+            raise ValueError(f"owners: one scan name per target point ({len(pts)}), got shape {owners.shape}")
         rng = np.random.default_rng(seed)
         if len(pts) > max_points:
-            keep = rng.choice(len(pts), max_points, replace=False)
-            pts = pts[keep]
+            keep = np.sort(rng.choice(len(pts), max_points, replace=False))
+            pts, owners = pts[keep], owners[keep]
             target_normals = None if target_normals is None else np.asarray(target_normals)[keep]
+        self.points, self.owners = pts, owners
+        self.settings = dict(max_points=max_points, levels=tuple(levels), seed=seed, iterations=int(iterations))
         self.target = _cloud(pts, target_normals)
         nn = np.asarray(self.target.compute_nearest_neighbor_distance())
         self.spacing = float(np.median(nn[nn > 0])) if np.any(nn > 0) else float(np.ptp(pts, 0).max()) / 100
         if target_normals is None:
             self.target.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))
+        self.normals = np.asarray(self.target.normals)
         self.levels = tuple(levels)
         self.iterations = int(iterations)
-        self._targets = {}
+        self.size = float(np.linalg.norm(np.ptp(pts, axis=0)))
+        self._tree = None
 
-    def _target_at(self, voxel):
-        if voxel not in self._targets:
-            self._targets[voxel] = self.target.voxel_down_sample(voxel) if voxel > self.spacing else self.target
-        return self._targets[voxel]
+    @classmethod
+    def from_scans(cls, scans, max_scans=ALIGN_SCANS, seed=0):
+        """The aligner onto up to ``max_scans`` of ``scans`` (good training scans, objects with ``points``,
+        ``normals`` or None, ``name``), a seeded choice, each point owned by its scan's name."""
+        from datasets.validation import points_and_normals
+
+        scans = list(scans)
+        if not scans:
+            raise ValueError("alignment needs good scans to align onto, got none")
+        rng = np.random.default_rng(seed)
+        chosen = sorted(rng.choice(len(scans), min(max_scans, len(scans)), replace=False).tolist())
+        points, normals, owners = [], [], []
+        for i in chosen:
+            p, n = points_and_normals(scans[i])
+            points.append(np.asarray(p, dtype=np.float64).reshape(-1, 3))
+            normals.append(None if n is None else np.asarray(n, dtype=np.float64).reshape(-1, 3))
+            owners.append(np.full(len(points[-1]), str(getattr(scans[i], "name", "") or f"scan {i}")))
+        normals = None if any(n is None for n in normals) else np.concatenate(normals)
+        return cls(np.concatenate(points), normals, seed=seed, owners=np.concatenate(owners))
+
+    def without(self, name):
+        """This aligner without the target points of scan ``name`` (itself when it has none of them)."""
+        keep = self.owners != str(name)
+        if keep.all() or not name:
+            return self
+        return type(self)(self.points[keep], self.normals[keep], owners=self.owners[keep], **self.settings)
+
+    def as_dict(self):
+        """Plain values (torch tensors for the arrays) to store in a calibration record: the target and settings."""
+        import torch
+
+        return {"points": torch.from_numpy(self.points.astype(np.float32)),
+                "normals": torch.from_numpy(self.normals.astype(np.float32)), "owners": self.owners.tolist(),
+                **{k: list(v) if isinstance(v, tuple) else v for k, v in self.settings.items()}}
+
+    @classmethod
+    def from_dict(cls, d):
+        """The aligner :meth:`as_dict` stored (the same target, hence the same registrations)."""
+        d = dict(d)
+        points, normals = np.asarray(d.pop("points"), dtype=np.float64), np.asarray(d.pop("normals"), np.float64)
+        return cls(points, normals, owners=d.pop("owners"), **d)
 
     def transform(self, points, normals=None):
-        """The rigid transform (4, 4) that moves ``points`` (m, 3) onto the reference."""
-        import open3d as o3d
+        """The rigid transform (4, 4) that moves ``points`` (m, 3) onto the reference (module docstring).
+        ``normals`` are not needed: the residuals are along the target's normals."""
+        from scipy.spatial import cKDTree
+        from scipy.spatial.transform import Rotation
 
-        reg = o3d.pipelines.registration
-        source = _cloud(points, normals)
-        if normals is None:
-            source.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))
-        # start from the identity: a fixture-less part is still roughly in place; a centroid shift would be biased
-        # by the view (a partial scan's centroid is not the part's)
-        T = np.eye(4)
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if len(pts) == 0 or not np.isfinite(pts).all():
+            raise ValueError(f"registration needs finite (m >= 1, 3) points, got {pts.shape}")
+        if self._tree is None:
+            self._tree = cKDTree(self.points)
+        centre = pts.mean(0)
+        # the prior's precision per squared radian / squared unit; times the residuals' variance below
+        prior = np.r_[np.full(3, 1 / np.radians(PRIOR_DEGREES) ** 2), np.full(3, 1 / (PRIOR_SIZE * self.size) ** 2)]
+        R, t = np.eye(3), np.zeros(3)  # current motion: p -> R (p - centre) + centre + t
+        xi = np.zeros(6)  # its rotation vector and translation (the prior's argument)
         for level in self.levels:
             voxel = level * self.spacing
-            src = source.voxel_down_sample(voxel) if voxel > self.spacing else source
-            result = reg.registration_icp(src, self._target_at(voxel), 3.0 * voxel, T,
-                                          reg.TransformationEstimationPointToPlane(),
-                                          reg.ICPConvergenceCriteria(max_iteration=self.iterations))
-            T = result.transformation
+            src = _voxel_subsample(pts, voxel) if voxel > self.spacing else pts
+            local = src - centre
+            for _ in range(self.iterations):
+                moved = local @ R.T + centre + t
+                dist, j = self._tree.query(moved, distance_upper_bound=3.0 * voxel)
+                ok = np.isfinite(dist)
+                if ok.sum() < 6:
+                    break
+                n = self.normals[j[ok]]
+                r = np.einsum("ij,ij->i", moved[ok] - self.points[j[ok]], n)
+                arm = moved[ok] - centre - t
+                J = np.c_[np.cross(arm, n), n]  # d r / d (rotation about the centroid, translation)
+                scale = max(1.4826 * np.median(np.abs(r)), 0.1 * self.spacing)
+                w = np.minimum(1.0, HUBER * scale / np.maximum(np.abs(r), 1e-300))
+                H = J.T @ (w[:, None] * J) + scale**2 * np.diag(prior)
+                g = J.T @ (w * r) + scale**2 * prior * xi
+                step = -np.linalg.solve(H, g)
+                R, t = Rotation.from_rotvec(step[:3]).as_matrix() @ R, t + step[3:]
+                xi = np.r_[Rotation.from_matrix(R).as_rotvec(), t]
+                if np.linalg.norm(step[:3]) < 1e-7 and np.linalg.norm(step[3:]) < 1e-7 * self.size:
+                    break
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, centre + t - R @ centre
         return T
 
     def align(self, points, normals=None):
@@ -97,45 +179,25 @@ class Aligner:
         return p, n, T
 
     def align_scan(self, scan):
-        """A copy of ``scan`` (a datasets.Scan) moved onto the reference; the transform goes in ``extra['align']``."""
+        """``scan`` moved onto the reference: a copy of a :class:`datasets.Scan` (the transform in
+        ``extra['align']``, the sensor origin moved with it), or the moved (m, 3) points of an array."""
         from dataclasses import replace
 
-        p, n, T = self.align(scan.points, scan.normals)
-        origin = None if scan.sensor_origin is None else (T[:3, :3] @ scan.sensor_origin + T[:3, 3])
-        return replace(scan, points=p, normals=n, sensor_origin=origin, extra={**scan.extra, "align": T})
+        if isinstance(scan, np.ndarray) or not hasattr(scan, "points"):
+            return self.align(np.asarray(scan, dtype=np.float64).reshape(-1, 3))[0]
+        p, n, T = self.align(scan.points, getattr(scan, "normals", None))
+        origin = getattr(scan, "sensor_origin", None)
+        origin = None if origin is None else (T[:3, :3] @ np.asarray(origin, dtype=np.float64) + T[:3, 3])
+        changes = dict(points=p, normals=n)
+        if hasattr(scan, "sensor_origin"):
+            changes["sensor_origin"] = origin
+        if isinstance(getattr(scan, "extra", None), dict):
+            changes["extra"] = {**scan.extra, "align": T}
+        return replace(scan, **changes)
 
 
-def make_aligner(handle, data_info, reference=None, seed=0):
-    """The :class:`Aligner` of ``score --align`` onto: ``reference`` (a collection: its good training scans; a cloud file),
-    else the good training scans of the data's collection, else the model's mean surface."""
-    def from_collection(path):
-        from datasets import ScanCollection
-
-        with ScanCollection(path) as c:
-            idx = c.select(split="train", label="good")
-            if not idx:
-                idx = c.select(label="good")
-            rng = np.random.default_rng(seed)
-            idx = sorted(rng.choice(idx, min(8, len(idx)), replace=False).tolist()) if idx else []
-            scans = c.read_many(idx)
-        if not scans:
-            raise InspectionError(f"{path}: no good scans to align against")
-        return (np.concatenate([s.points for s in scans]), np.concatenate([s.normals for s in scans]))
-
-    if reference is not None:
-        ref = Path(reference)
-        if ref.suffix.lower() in COLLECTION_SUFFIXES:
-            pts, nrm = from_collection(ref)
-        else:
-            from datasets import read_cloud
-
-            pts, nrm = read_cloud(ref)
-        return Aligner(pts, nrm, seed=seed)
-    if data_info.get("kind") == "collection":
-        from datasets import ScanCollection
-
-        with ScanCollection(data_info["source"]) as c:
-            has_train = bool(c.select(split="train", label="good"))
-        if has_train:
-            return Aligner(*from_collection(data_info["source"]), seed=seed)
-    return Aligner(*handle.reference_points(seed=seed), seed=seed)
+def _voxel_subsample(points, voxel):
+    """The first point (in input order) of each occupied cell of a grid of side ``voxel``: deterministic."""
+    cells = np.floor(points / voxel).astype(np.int64)
+    _, first = np.unique(cells, axis=0, return_index=True)
+    return points[np.sort(first)]

@@ -47,6 +47,10 @@ class InspectionConfig:
         Also score the sensor's rays (:mod:`inspection.ray_evidence`); ``'auto'``: module docstring.
     ray_options : dict or None
         Settings of the ray score (keys of ``inspection.ray_evidence.RAY_DEFAULTS``).
+    align : bool
+        Register every scan onto good training scans (rigid ICP, :mod:`inspection.align`) before scoring it, for
+        parts not held in a fixture. The calibration scans are registered as new scans are, so that the threshold
+        is drawn from scores of scans moved the same way as those it judges.
     """
 
     alpha: float = DEFAULT_ALPHA
@@ -56,6 +60,7 @@ class InspectionConfig:
     projection: object = "default"
     rays: object = "auto"
     ray_options: object = None
+    align: bool = False
 
     def validated(self):
         """This configuration with every value checked (ValueError naming the setting, the expected values and the
@@ -85,6 +90,8 @@ class InspectionConfig:
 
             check_ray_options(self.ray_options)
             ray_options = dict(self.ray_options)
+        if not isinstance(self.align, bool):
+            raise ValueError(f"align must be True or False, got {self.align!r}")
         return replace(self, alpha=float(self.alpha), noise=noise, projection=check_projection(self.projection),
                        ray_options=ray_options)
 

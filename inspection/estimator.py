@@ -68,7 +68,9 @@ class _Named:
 class ScanResult:
     """One scan's inspection: its anomaly score (higher = more anomalous) and per-point scores (m,).
 
-    ``components`` holds the per-scan scores that make ``score``: ``{"points": ...}`` (the aggregate of the point
+    ``transform`` (4, 4) is the registration that moved the scan before it was scored (``align=True``; None
+    otherwise); ``point_scores`` are in the scan's own point order either way. ``components`` holds the per-scan
+    scores that make ``score``: ``{"points": ...}`` (the aggregate of the point
     scores), plus ``"rays"`` (the ray score) when rays are used; then ``rays`` is the
     :class:`~inspection.ray_evidence.RayEvidence` (its ``point_map`` is the per-point ray map) and ``score`` the
     combination (:mod:`inspection.combine`).
@@ -79,6 +81,7 @@ class ScanResult:
     field: object = None
     components: dict = None
     rays: object = None
+    transform: np.ndarray = None
 
 
 def _progress(items, verbose, desc):
@@ -104,7 +107,7 @@ class Inspector(BaseEstimator):
         See :func:`inspection.evidence.field_for`. Scans must be in the model's frame. A latent model (or a field
         saved with its collection, :func:`inspection.model_io.load_model`) records its training and held-back scans
         by name, which :meth:`fit` uses to sort the good scans it is given.
-    alpha, aggregate, point_score, noise, projection, rays, ray_options
+    alpha, aggregate, point_score, noise, projection, rays, ray_options, align
         :class:`inspection.config.InspectionConfig`.
     verbose : bool
         Progress bars on the long work (projecting the reference and calibration scans).
@@ -134,6 +137,9 @@ class Inspector(BaseEstimator):
         Per-location statistics of good scans (point scores with a reference).
     combination_ : Combination or None
         The standardization of the components on the calibration scans (with rays).
+    aligner_ : inspection.align.Aligner or None
+        With ``align``: the registration onto good training scans that every scan, calibration scans included,
+        goes through before it is scored (stored with the calibration).
     parts_ : dict of str -> Inspector, or None
         A model of several part types: one fitted inspector per part (:meth:`for_scan` picks a scan's); this
         inspector's own calibration attributes then hold every part's scores together (for reading, not for a
@@ -141,7 +147,7 @@ class Inspector(BaseEstimator):
     """
 
     def __init__(self, model, alpha=DEFAULT_ALPHA, aggregate=DEFAULT_AGGREGATE, point_score="auto", noise=None,
-                 projection="default", rays="auto", ray_options=None, verbose=False):
+                 projection="default", rays="auto", ray_options=None, align=False, verbose=False):
         self.model = model
         self.alpha = alpha
         self.aggregate = aggregate
@@ -150,6 +156,7 @@ class Inspector(BaseEstimator):
         self.projection = projection
         self.rays = rays
         self.ray_options = ray_options
+        self.align = align
         self.verbose = verbose
 
     # ------------------------------------------------------------------------------------------ configuration
@@ -158,7 +165,7 @@ class Inspector(BaseEstimator):
         """The parameters as an :class:`~inspection.config.InspectionConfig` (not validated)."""
         return InspectionConfig(alpha=self.alpha, aggregate=self.aggregate, point_score=self.point_score,
                                 noise=self.noise, projection=self.projection, rays=self.rays,
-                                ray_options=self.ray_options)
+                                ray_options=self.ray_options, align=self.align)
 
     @classmethod
     def from_config(cls, model, config=None, verbose=False):
@@ -259,8 +266,30 @@ class Inspector(BaseEstimator):
         if POINT_SCORES[settings.point_score].reference and getattr(self, "reference_", None) is None:
             raise NotFittedError(f"point_score {settings.point_score!r} needs the per-location reference: call "
                                  "fit(good_scans) with the model's training scans among them first")
-        return self._score(self._evidence(scan, index, settings, timings=timings), getattr(self, "reference_", None),
-                           settings, timings)
+        transform = None
+        if settings.align:
+            with stage(timings, "align"):
+                scan, transform = self._aligned(scan)
+        result = self._score(self._evidence(scan, index, settings, timings=timings),
+                             getattr(self, "reference_", None), settings, timings)
+        result.transform = transform
+        return result
+
+    def _aligned(self, scan, own=False):
+        """``scan`` registered by ``aligner_`` (without ``scan``'s own points in the target when ``own``: a training
+        scan scored as if new is not registered onto itself). Returns (the moved scan, the transform (4, 4))."""
+        aligner = getattr(self, "aligner_", None)
+        if aligner is None:
+            raise NotFittedError("align=True registers scans onto the good training scans chosen by fit: call fit "
+                                 "first")
+        if own:
+            aligner = aligner.without(getattr(scan, "name", ""))
+        moved = aligner.align_scan(scan)
+        extra = getattr(moved, "extra", None)
+        transform = extra.get("align") if isinstance(extra, dict) else None
+        if transform is None:  # an array: the transform of the same registration
+            transform = aligner.transform(np.asarray(scan, dtype=np.float64).reshape(-1, 3))
+        return moved, transform
 
     def _evidence(self, scan, index, settings, exclude_own_code=False, timings=None):
         quantity = REFERENCE_QUANTITY if POINT_SCORES[settings.point_score].reference else None
@@ -394,11 +423,22 @@ class Inspector(BaseEstimator):
                                  f"without rays")
         self.settings_ = settings
         self.reference_ = None
+        self.aligner_ = None
+        if settings.align:
+            if not reference:
+                raise ValueError("align=True registers every scan onto the model's good training scans: include them "
+                                 "among the good scans (calibrate on the model's training collection)")
+            from .align import Aligner
+
+            self.aligner_ = Aligner.from_scans(reference)
         crossed = []
         if POINT_SCORES[settings.point_score].reference:
             crossed = self._fit_reference(_progress(reference, self.verbose, f"reference{desc}"), selection.surface,
                                           settings)
-        held = [self._evidence(s, i, settings) for i, s in
+            if settings.align and cross_fit:  # the training scans scored as new ones are: registered first
+                crossed = [self._evidence(self._aligned(s, own=True)[0], i, settings, exclude_own_code=True)
+                           for i, s in enumerate(_progress(reference, self.verbose, f"align{desc}"))]
+        held = [self._evidence(self._aligned(s)[0] if settings.align else s, i, settings) for i, s in
                 enumerate(_progress(selection.calibration, self.verbose, f"calibrate{desc}"))]
         names = [g.name for g in held]
         needs_reference = POINT_SCORES[settings.point_score].reference
@@ -451,14 +491,16 @@ class Inspector(BaseEstimator):
             if set(fold.model.train_names) & {names[i] for i in scored}:  # read_folds refuses such a file
                 raise ValueError(f"calibration fold {j + 1} was trained on a scan it scores")
             sub = type(self)(**{**self.get_params(deep=False), "model": fold.model, "verbose": False})
-            sub.settings_ = settings
+            sub.settings_, sub.aligner_ = settings, getattr(self, "aligner_", None)
             if needs_reference:
                 evidence = sub._fit_reference(_progress(selection.reference, self.verbose, f"fold {j + 1}{desc}"),
                                               selection.surface, settings)
-                goods += [evidence[i] for i in scored]
                 references += [sub.reference_.without(i) for i in scored]
-            else:
-                goods += [sub._evidence(selection.reference[i], i, settings) for i in scored]
+            if settings.align or not needs_reference:  # scored as new scans are (registered first with align)
+                evidence = {i: sub._evidence(sub._aligned(selection.reference[i], own=True)[0] if settings.align
+                                             else selection.reference[i], i, settings) for i in scored}
+            goods += [evidence[i] for i in scored]
+            if not needs_reference:
                 references += [None] * len(scored)
         return (goods, references) if goods else None
 
@@ -552,6 +594,13 @@ class Inspector(BaseEstimator):
         self.settings_ = calibration.config()
         ref = extra.get("reference")
         self.reference_ = None if ref is None else LocalReference.from_dict(ref)
+        self.aligner_ = None
+        if self.settings_.align:
+            if extra.get("align") is None:
+                raise ValueError("its settings say align=True but it stores no alignment target")
+            from .align import Aligner
+
+            self.aligner_ = Aligner.from_dict(extra["align"])
         rays = extra.get("rays")
         self.combination_ = None
         if rays is not None:
@@ -582,9 +631,11 @@ class Inspector(BaseEstimator):
         if getattr(self, "parts_", None):
             records = {p: one.calibration(fingerprint=fingerprint).as_dict() for p, one in sorted(self.parts_.items())}
             return Calibration(**common, extra={"config": settings.as_dict(), "parts": records})
+        aligner = getattr(self, "aligner_", None)
         return Calibration(**common, extra={"config": settings.as_dict(),
                                             "reference": None if self.reference_ is None else self.reference_.as_dict(),
-                                            "rays": self._ray_record()})
+                                            "rays": self._ray_record(),
+                                            "align": None if aligner is None else aligner.as_dict()})
 
     def _ray_record(self):
         """What the calibration stores about rays: None, or the calibration component scores (the options are in

@@ -6,7 +6,6 @@ is :mod:`inspection.results`'; a user's mistake is an :class:`inspection.errors.
 import time
 from pathlib import Path
 
-from .align import make_aligner
 from .errors import InspectionError, about
 from .loading import COLLECTION_SUFFIXES, load_scans, open_collection
 from .results import prepare_out, summarize_run, write_results, write_scan_maps
@@ -82,9 +81,10 @@ def describe_calibration(insp, info):
     return lines
 
 
-def _calibrate_for_scoring(handle, data, alpha, progress, echo):
+def _calibrate_for_scoring(handle, data, alpha, progress, echo, align=False):
     """An uncalibrated model scored on its own training collection: calibrate on the held-back good scans with the
-    defaults (stored in the model file, as ``calibrate`` would) and say so; anything else is an InspectionError."""
+    defaults (and ``align``; stored in the model file, as ``calibrate`` would) and say so; anything else is an
+    InspectionError."""
     from .config import InspectionConfig
 
     data = Path(data)
@@ -98,15 +98,15 @@ def _calibrate_for_scoring(handle, data, alpha, progress, echo):
                               f"--data GOOD_SCANS` first")
     echo(f"{handle.path} is not calibrated: calibrating on its {len(handle.heldback_names)} held-back good scans "
          f"of {data} first (stored in the model file)")
-    config = InspectionConfig() if alpha is None else InspectionConfig(alpha=alpha)
+    config = InspectionConfig(align=bool(align), **({} if alpha is None else {"alpha": alpha}))
     insp, info = calibrate(handle.path, data, config, progress=progress)
     for line in describe_calibration(insp, info):
         echo(line)
     return insp
 
 
-def score(model, data, out, split="test", alpha=None, maps="flagged", align=False, reference=None, progress=True,
-          overwrite=False, echo=print, uncertain=True, jobs=1):
+def score(model, data, out, split="test", alpha=None, maps="flagged", align=False, progress=True, overwrite=False,
+          echo=print, uncertain=True, jobs=1):
     """Score scans against a calibrated model and write report.html, scores.csv, summary.json, roc.png, scores.png,
     maps/.
 
@@ -117,6 +117,11 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
     the threshold's own uncertainty gets verdict ``'uncertain'`` (rescan it; ``summary['n_uncertain']``) unless
     ``uncertain`` is False (two classes). ``jobs`` > 1 scores the scans in that many processes, with the same
     results, in the same order, as one (:func:`_inspect_scans`).
+
+    ``align``: every scan is registered onto the good training scans before it is scored. It is a setting of the
+    calibration (``calibrate --align``), which registers the calibration scans the same way: an uncalibrated model
+    is calibrated with it; a model calibrated with it aligns whether or not ``align`` is given; asking for it of a
+    model calibrated without it is an InspectionError (its threshold was drawn from scans scored unmoved).
 
     Returns
     -------
@@ -131,18 +136,23 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
     if not isinstance(jobs, int) or jobs < 1:
         raise InspectionError(f"--jobs must be a whole number >= 1, got {jobs!r}")
     handle = load_model(model)
-    insp = _calibrated_inspector(handle, data, alpha, progress, echo)
+    insp = _calibrated_inspector(handle, data, alpha, progress, echo, align)
+    calibrated_aligned = any(one.settings_.align for one in (insp.parts_ or {"": insp}).values())
+    if align and not calibrated_aligned:
+        raise InspectionError(f"{handle.path}: --align, but the model was calibrated without it: its threshold was "
+                              f"drawn from scans scored where they lay, not registered ones; calibrate it again with "
+                              f"`python -m inspection calibrate --model {handle.path} --data TRAINING_COLLECTION "
+                              f"--align` (scoring then registers every scan by itself)")
     scans, info = load_scans(data, handle.frame, split=split, model_fingerprint=handle.fingerprint, errors="collect")
     if not scans:  # nothing to score: one line, the first scan's reason when there was one
         raise InspectionError(info["failed"][0][1] if info["failed"] else
                               f"{data}: no scans" + (f" in split {split!r}" if split else ""))
     out = prepare_out(out, overwrite=overwrite)
-    aligner = make_aligner(handle, info, reference) if align else None
     calibration = insp.calibration() if handle.calibration is None else handle.calibration
     spec = (handle.path, calibration, alpha)  # what a worker process builds its inspector from
-    results = _inspect_scans(insp, scans, aligner, maps, out / "maps", progress, uncertain, jobs, spec)
+    results = _inspect_scans(insp, scans, maps, out / "maps", progress, uncertain, jobs, spec)
     results["rows"] += [_error_row(name, reason) for name, reason in info["failed"]]
-    summary = summarize_run(handle, insp, data, split, align, results)
+    summary = summarize_run(handle, insp, data, split, calibrated_aligned, results)
     write_results(out, insp, results, summary)
     write_html_report(out / "report.html", results["rows"], summary, results["views"])  # the page of it all
     echo(format_table(results["rows"], summary))
@@ -151,13 +161,13 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
     return summary
 
 
-def _calibrated_inspector(handle, data, alpha, progress, echo):
+def _calibrated_inspector(handle, data, alpha, progress, echo, align=False):
     """The Inspector of ``handle`` with its stored calibration (``alpha`` None: the calibration's), calibrating
-    first when the model has none (:func:`_calibrate_for_scoring`)."""
+    first (with ``align``) when the model has none (:func:`_calibrate_for_scoring`)."""
     from .estimator import Inspector
 
     if handle.calibration is None:
-        return _calibrate_for_scoring(handle, data, alpha, progress, echo)
+        return _calibrate_for_scoring(handle, data, alpha, progress, echo, align)
     try:
         return Inspector.from_calibration(handle.model, handle.calibration, alpha, verbose=progress)
     except (KeyError, ValueError) as exc:
@@ -173,13 +183,12 @@ def _error_row(scan_or_name, reason):
             "verdict": "error", "reason": str(reason)}
 
 
-def _inspect_scans(insp, scans, aligner, maps, maps_dir, progress, uncertain=True, jobs=1, worker_spec=None):
-    """Inspect every scan (aligned first when ``aligner``) and write the anomaly maps ``maps`` asks for. A scan that
+def _inspect_scans(insp, scans, maps, maps_dir, progress, uncertain=True, jobs=1, worker_spec=None):
+    """Inspect every scan (registered first when the calibration aligns) and write the anomaly maps ``maps`` asks for. A scan that
     cannot be scored (a ValueError naming it) gets an ``'error'`` row and the others go on.
 
     With ``jobs`` > 1 the scans are scored by that many worker processes (a 'spawn' context, one torch thread each),
-    each of which builds its inspector once from ``worker_spec`` = (model path, calibration, alpha); scans are
-    aligned here first. A scan's scoring is deterministic (its projection is seeded), so the rows
+    each of which builds its inspector once from ``worker_spec`` = (model path, calibration, alpha). A scan's scoring is deterministic (its projection is seeded), so the rows
     are those of one process, in the input order whatever the order the workers finish in.
 
     Returns a dict: ``rows`` (one per scan, the CSV columns), ``point_labels``, ``point_scores`` and ``ray_maps``
@@ -191,10 +200,10 @@ def _inspect_scans(insp, scans, aligner, maps, maps_dir, progress, uncertain=Tru
                "views": []}  # views: report.html's 3D views (inspection.html_report.map_view), one per map
     jobs = min(int(jobs), len(scans))
     if jobs <= 1:
-        outs = (_inspect_one(insp, scan, i, maps, maps_dir, uncertain, aligner)
+        outs = (_inspect_one(insp, scan, i, maps, maps_dir, uncertain)
                 for i, scan in enumerate(tqdm(scans, desc="inspect", unit="scan", disable=not progress)))
     else:
-        outs = _inspect_in_workers(worker_spec, scans, aligner, maps, maps_dir, progress, uncertain, jobs)
+        outs = _inspect_in_workers(worker_spec, scans, maps, maps_dir, progress, uncertain, jobs)
     for one in outs:
         results["rows"].append(one["row"])
         if "seconds" not in one:  # an error row
@@ -216,7 +225,7 @@ def _first_line(exc):
     return lines[0] if lines else type(exc).__name__
 
 
-def _inspect_one(insp, scan, i, maps, maps_dir, uncertain=True, aligner=None):
+def _inspect_one(insp, scan, i, maps, maps_dir, uncertain=True):
     """Inspect one scan (the ``i``-th of the run: names a scan without a name, seeds its map's subsample) and write
     its map when ``maps`` asks for one. Returns a dict: ``row``; for a scored scan also ``seconds``, ``point_labels``, ``point_scores`` and
     ``ray_map`` (scans with ground-truth point labels) and ``view`` (with a map)."""
@@ -224,8 +233,6 @@ def _inspect_one(insp, scan, i, maps, maps_dir, uncertain=True, aligner=None):
 
     t0 = time.perf_counter()
     try:
-        if aligner is not None:
-            scan = aligner.align_scan(scan)
         one = insp.for_scan(scan)  # the scan's part's inspector (a model of several part types), else insp
         res = one.inspect(scan, i)
     except ValueError as exc:
@@ -276,7 +283,7 @@ def _worker_inspect(scan, i, maps, maps_dir, uncertain):
     return _inspect_one(_WORKER["insp"], scan, i, maps, maps_dir, uncertain)
 
 
-def _inspect_in_workers(spec, scans, aligner, maps, maps_dir, progress, uncertain, jobs):
+def _inspect_in_workers(spec, scans, maps, maps_dir, progress, uncertain, jobs):
     """:func:`_inspect_one` of every scan in ``jobs`` processes; yields their outputs in the input order."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -289,12 +296,6 @@ def _inspect_in_workers(spec, scans, aligner, maps, maps_dir, progress, uncertai
     try:
         futures = {}
         for i, scan in enumerate(scans):
-            if aligner is not None:
-                try:
-                    scan = aligner.align_scan(scan)
-                except ValueError as exc:
-                    outs[i] = {"row": _error_row(scan, _first_line(exc))}
-                    continue
             futures[pool.submit(_worker_inspect, scan, i, maps, maps_dir, uncertain)] = i
         for fut in tqdm(as_completed(futures), total=len(futures), desc=f"inspect ({jobs} processes)", unit="scan",
                         disable=not progress):

@@ -36,3 +36,163 @@ def test_a_real_view_moved_by_hand_is_registered_back(seed):
     # the transform found is the inverse of the one applied
     undo = Rotation.from_matrix(transform[:3, :3] @ rotation).magnitude()
     assert np.degrees(undo) < 0.1
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Alignment as a setting of the calibration: calibration scans are registered exactly as new scans are.
+# Core tests: their own small data (no ../shared).
+
+def _corner(name, split, seed, rotation_deg=0.0, n=600):
+    """The three faces of a cube's corner (half side 0.25) that a sensor on the (1, 1, 1) diagonal sees: a view that
+    pins all six degrees of freedom of a registration. Turned by ``rotation_deg`` about a seeded axis through the
+    cube's centre and shifted by 1 % of its size when ``rotation_deg`` is not 0."""
+    from scipy.spatial.transform import Rotation
+
+    from datasets import Scan
+
+    rng = np.random.default_rng(seed)
+    face = rng.integers(0, 3, n)
+    p = rng.uniform(-0.25, 0.25, (n, 3))
+    p[np.arange(n), face] = 0.25
+    normals = np.eye(3)[face]
+    p += rng.normal(0, 0.001, (n, 3))
+    if rotation_deg:
+        axis = rng.normal(size=3)
+        turn = Rotation.from_rotvec(np.radians(rotation_deg) * axis / np.linalg.norm(axis))
+        shift = rng.normal(size=3)
+        p, normals = turn.apply(p) + 0.01 * 0.87 * shift / np.linalg.norm(shift), turn.apply(normals)
+    return Scan(name=name, points=p.astype(np.float32), normals=normals.astype(np.float32), split=split,
+                label="good", point_labels=None if split == "train" else np.zeros(n, np.uint8))
+
+
+@pytest.fixture(scope="module")
+def placed_by_hand(tmp_path_factory):
+    """A collection of cube corners: 4 training scans in place, 3 held-back and 2 test scans turned by 4 degrees and
+    shifted by 1 % of the size (parts placed by hand), with the tiny untrained field model of
+    tests/inspection/tiny.py."""
+    from tests.inspection.tiny import tiny_field_model
+
+    scans = ([_corner(f"train/good/{i:03d}", "train", i) for i in range(4)]
+             + [_corner(f"validation/good/{i:03d}", "validation", 10 + i, 4.0) for i in range(3)]
+             + [_corner(f"test/good/{i:03d}", "test", 20 + i, 4.0) for i in range(2)])
+    return tiny_field_model(tmp_path_factory.mktemp("placed"), scans, n_train=4, n_heldback=3), scans
+
+
+def test_calibration_scans_are_registered_as_new_scans_are(placed_by_hand, one_torch_thread):
+    from datasets import ScanCollection
+    from inspection import Inspector
+    from inspection.model_io import load_model
+
+    root, scans = placed_by_hand
+    model = load_model(root / "model.pt").model
+    with ScanCollection(root / "tree.h5") as c:
+        aligned = Inspector(model, align=True).fit(c)
+        unmoved = Inspector(model).fit(c)
+        held = c.read_many(c.select(split="validation"))
+    assert aligned.aligner_ is not None and unmoved.aligner_ is None
+    names = list(aligned.calibration_names_)
+    for i, scan in enumerate(held):
+        # a held-back scan's calibration score is the score it gets as a new scan: registered the same way (the
+        # index seeds what is drawn per scan, as in calibration)
+        result = aligned.inspect(scan, index=i)
+        assert result.transform is not None and not np.allclose(result.transform, np.eye(4))
+        assert aligned.calibration_scores_[names.index(scan.name)] == pytest.approx(result.score, rel=1e-9)
+    # registration moves these scans: without it the calibration scores differ
+    k = [names.index(s.name) for s in held]
+    assert not np.allclose(aligned.calibration_scores_[k], unmoved.calibration_scores_[k], rtol=1e-3)
+
+
+def test_a_training_scan_is_not_registered_onto_itself(placed_by_hand):
+    from inspection.align import Aligner
+
+    _, scans = placed_by_hand
+    train = [s for s in scans if s.split == "train"]
+    aligner = Aligner.from_scans(train)
+    assert set(aligner.owners) == {s.name for s in train}
+    for scan in train:
+        without = aligner.without(scan.name)
+        assert scan.name not in set(without.owners) and len(without.owners) == (aligner.owners != scan.name).sum()
+    assert aligner.without("test/good/000") is aligner
+
+
+def test_the_stored_alignment_moves_scans_as_the_calibration_did(placed_by_hand, one_torch_thread):
+    from datasets import ScanCollection
+    from inspection import Inspector
+    from inspection.model_io import load_model
+
+    root, scans = placed_by_hand
+    model = load_model(root / "model.pt").model
+    with ScanCollection(root / "tree.h5") as c:
+        fitted = Inspector(model, align=True).fit(c)
+    restored = Inspector.from_calibration(model, fitted.calibration())
+    test = [s for s in scans if s.split == "test"]
+    for scan in test:
+        a, b = fitted.inspect(scan), restored.inspect(scan)
+        np.testing.assert_allclose(a.transform, b.transform, atol=1e-6)
+        assert a.score == pytest.approx(b.score, rel=1e-6)
+
+
+def test_score_align_needs_a_calibration_with_it(placed_by_hand, tmp_path, one_torch_thread):
+    import json
+    import shutil
+
+    from inspection.errors import InspectionError
+    from inspection.run import calibrate, score
+
+    root, _ = placed_by_hand
+    # uncalibrated: score --align calibrates with alignment, and the calibration then aligns by itself
+    model = tmp_path / "model.pt"
+    shutil.copyfile(root / "model.pt", model)
+    summary = score(model, root / "tree.h5", tmp_path / "out", align=True, progress=False, maps="none",
+                    echo=lambda line: None)
+    assert summary["aligned"] is True
+    again = score(model, root / "tree.h5", tmp_path / "out2", progress=False, maps="none", echo=lambda line: None)
+    assert again["aligned"] is True
+    assert json.loads((tmp_path / "out2" / "summary.json").read_text())["aligned"] is True
+    # calibrated without it: --align is refused with the command that fixes it
+    plain = tmp_path / "plain.pt"
+    shutil.copyfile(root / "model.pt", plain)
+    calibrate(plain, root / "tree.h5", progress=False)
+    with pytest.raises(InspectionError, match=r"calibrated without it.*calibrate --model .*--align"):
+        score(plain, root / "tree.h5", tmp_path / "out3", align=True, progress=False, echo=lambda line: None)
+
+
+def test_align_without_training_scans_is_one_clear_error(placed_by_hand, one_torch_thread):
+    from inspection import Inspector
+    from inspection.model_io import load_model
+
+    root, scans = placed_by_hand
+    model = load_model(root / "model.pt").model
+    held = [s for s in scans if s.split == "validation"]
+    with pytest.raises(ValueError, match="align=True registers every scan onto the model's good training scans"):
+        Inspector(model, align=True).fit(held)
+
+
+def test_registration_recovers_a_hand_placement_and_repeats_exactly():
+    """A cube corner (a view that pins the pose) turned by 4 degrees and shifted by 1 % is moved back to within a
+    small fraction of its point spacing, and the same call gives the same transform to the bit."""
+    from inspection.align import Aligner
+
+    target = _corner("target", "train", 0, n=6000)
+    placed = _corner("placed", "test", 1, n=1500)  # a fresh sample of the same corner ...
+    truth = placed.points.astype(np.float64)
+    moved = _corner("placed", "test", 1, rotation_deg=4.0, n=1500)  # ... turned and shifted (same seed, same draw)
+    aligner = Aligner(target.points, target.normals)
+    back, _, T = aligner.align(moved.points)
+    assert np.median(np.linalg.norm(back - truth, axis=1)) < 0.25 * aligner.spacing
+    np.testing.assert_array_equal(T, aligner.transform(moved.points))
+
+
+def test_a_view_that_does_not_pin_the_pose_stays_where_it_was_placed():
+    """A flat patch can slide along its plane at no cost to point-to-plane ICP: the placement prior keeps it in
+    place (within 0.1 % of the target's size along the plane) while its offset off the plane is corrected."""
+    from inspection.align import Aligner
+
+    rng = np.random.default_rng(0)
+    plane = np.c_[rng.uniform(-0.5, 0.5, (8000, 2)), np.zeros(8000)]
+    patch = np.c_[rng.uniform(-0.1, 0.1, (1500, 2)), np.full(1500, 0.004)] + rng.normal(0, 0.0005, (1500, 3))
+    aligner = Aligner(plane, np.tile([0.0, 0.0, 1.0], (8000, 1)))
+    T = aligner.transform(patch)
+    assert abs(T[2, 3] + 0.004) < 0.001  # pulled onto the plane
+    assert np.abs(T[:2, 3]).max() < 1e-3 * aligner.size  # not slid along it
+    assert np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1))) < 0.1
