@@ -253,3 +253,24 @@ def test_ablation_settings_vary_one_thing_at_a_time():
     pairs = settings(["joint", "residual", "nll"], ["top1", "mean"], "joint", "top1")
     assert pairs == [("joint", "top1"), ("residual", "top1"), ("nll", "top1"), ("joint", "mean")]
     assert len(settings(["joint", "residual"], ["top1", "mean", "q99"], "joint", "top1", grid=True)) == 6
+
+
+def test_verdict_targets_are_checked_as_the_issue_states():
+    """benchmarks/suites/verdicts.py: the mean realised false-alarm rate against 2 alpha, runs above 1 of 16 good
+    scans, and the detection target (>= 0.9 at AUROC >= 0.99, else within 0.05 of the oracle)."""
+    from benchmarks.suites.verdicts import TREES, check_targets
+
+    def run(tree, good, n_good=16, auroc=1.0, defective=1.0, oracle=1.0):
+        return dict(tree=tree, seed=0, auroc=auroc, defective=defective, good=good / n_good, n_good=n_good,
+                    good_text=f"{good} of {n_good}", oracle=oracle, alpha=0.02)
+
+    fine = [run("a", 0), run("b", 1), run("c", 0, auroc=0.95, defective=0.80, oracle=0.84)]
+    out = check_targets(fine)
+    assert out["far_ok"] and out["mean_far"] == pytest.approx(1 / 48) and not out["over_one_in_16"]
+    assert not out["detection_misses"]
+    bad = [run("a", 2), run("b", 0, defective=0.85), run("c", 0, auroc=0.95, defective=0.70, oracle=0.80)]
+    out = check_targets(bad)
+    assert not out["far_ok"]  # 2 / 48 = 0.042 > 0.04
+    assert out["over_one_in_16"] == ["a seed 0 (2 of 16)"]
+    assert [m.split(" (")[0] for m in out["detection_misses"]] == ["b seed 0", "c seed 0"]
+    assert len(TREES) >= 10
