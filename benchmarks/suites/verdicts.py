@@ -29,22 +29,23 @@ DESCRIPTION = ("the defaults' verdicts on many trees x seeds (issue 27): AUROC, 
                "predicted rate; whether the stated false-alarm rate holds")
 WORK = "results/verdicts"
 
-# name -> (suite, its options); the issue's trees: solid and thin-walled parts, 5 degrees of placement jitter with
-# --align, few training scans, the real bunny (per-scan pose change; half-depth defects), four complete templates
+# name -> (suite, its options); the issue's trees: solid (fandisk, the bracket) and thin-walled parts (cup,
+# enclosure), 5 degrees of placement jitter with --align, 8 training scans (+2 held back, 50 good test scans), the
+# real bunny (2 degrees of per-scan pose change; half-depth defects), four complete templates (Real3D-AD layout)
 TREES = {
     "fandisk": ("inspection", ["--parts", "fandisk"]),
     "bracket": ("inspection", ["--parts", "builtin"]),
-    "cup (thin)": ("inspection", ["--parts", "cup"]),
-    "enclosure (thin)": ("inspection", ["--parts", "enclosure"]),
-    "bracket, 5 deg jitter, --align": ("inspection", ["--parts", "builtin", "--jitter", "5", "--align"]),
-    "fandisk, 8 training scans": ("inspection", ["--parts", "fandisk", "--train", "10", "--test-good", "50",
+    "cup": ("inspection", ["--parts", "cup"]),
+    "enclosure": ("inspection", ["--parts", "enclosure"]),
+    "bracket-jitter5-align": ("inspection", ["--parts", "builtin", "--jitter", "5", "--align"]),
+    "fandisk-8train": ("inspection", ["--parts", "fandisk", "--train", "10", "--test-good", "50",
                                                  "--per-defect", "4"]),
-    "cup, 8 training scans": ("inspection", ["--parts", "cup", "--train", "10", "--test-good", "50",
+    "cup-8train": ("inspection", ["--parts", "cup", "--train", "10", "--test-good", "50",
                                              "--per-defect", "4"]),
-    "real bunny (2 deg pose)": ("real", []),
-    "real bunny, half-depth defects": ("real", ["--size", "0.5"]),
-    "4 templates, bracket": ("inspection", ["--templates", "--parts", "builtin"]),
-    "4 templates, fandisk": ("inspection", ["--templates", "--parts", "fandisk"]),
+    "bunny": ("real", []),
+    "bunny-half-depth": ("real", ["--size", "0.5"]),
+    "templates-bracket": ("inspection", ["--templates", "--parts", "builtin"]),
+    "templates-fandisk": ("inspection", ["--templates", "--parts", "fandisk"]),
 }
 TARGET_FAR_FACTOR = 2.0  # realised false-alarm rate over all runs at most this many alphas
 TARGET_MAX_GOOD = 1 / 16  # no run flags more than this share of its good scans
