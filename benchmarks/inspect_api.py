@@ -49,7 +49,7 @@ def defaults():
 
 
 def calibrate_and_score(model_path, data_path, out_dir, *, rays=None, point_score=None, aggregate=None,
-                        alpha=None, align=False, maps="flagged", progress=False, echo=print, folds=True):
+                        alpha=None, align=None, maps="flagged", progress=False, echo=print, folds=True):
     """The README's path on an uncalibrated copy of a model: ``python -m inspection calibrate`` on the model's training
     collection (timed: ``calibration_seconds`` in the summary returned; with no settings exactly what ``score`` does
     by itself on an uncalibrated model), then ``python -m inspection score``.
@@ -66,9 +66,10 @@ def calibrate_and_score(model_path, data_path, out_dir, *, rays=None, point_scor
         Calibrate with (True) or without (False) the ray score; None: the inspection's own choice.
     point_score, aggregate, alpha : optional
         Calibration settings; None: the inspection's defaults.
-    align : bool
-        Calibrate and score with ``--align`` (every scan, the calibration scans included, registered onto the
-        training scans first).
+    align : bool, optional
+        Calibrate and score with ``--align`` (True: every scan, the calibration scans included, registered onto the
+        training scans first) or ``--no-align`` (False); None: the inspection's default (registered when the
+        training scans' poses spread).
     maps : {'flagged', 'all', 'none'}
     folds : bool
         False: the copy is the model without its fold models (as trained with ``--calibration-folds 0``), so that it
@@ -92,7 +93,7 @@ def calibrate_and_score(model_path, data_path, out_dir, *, rays=None, point_scor
         _drop_folds(copy)
     lines = []
     settings = {k: v for k, v in dict(rays=rays, point_score=point_score, aggregate=aggregate, alpha=alpha,
-                                      align=bool(align)).items() if v is not None}
+                                      align=align).items() if v is not None}
     t0 = time.perf_counter()
     insp, info = calibrate(copy, data_path, config=InspectionConfig(**settings), progress=progress)
     calibration_seconds = time.perf_counter() - t0

@@ -1,6 +1,6 @@
 """Command line of the inspection package: calibrate a model on good scans, score scans, run the demo.
 
-    python -m inspection calibrate --model model.pt --data good.h5 [--alpha 0.02] [--no-rays] [--align]
+    python -m inspection calibrate --model model.pt --data good.h5 [--alpha 0.02] [--no-rays] [--[no-]align]
     python -m inspection score --model model.pt --data tree.h5 --out results/ [--split test] [--align] [--jobs 4]
     python -m inspection watch --model model.pt --data drop_folder/ --out results/ [--once] [--settle 1]
     python -m inspection demo --out demo_output
@@ -61,9 +61,13 @@ def _parser():
                                                       "n_empty=128, gap=2.0, aggregate=top1, seed=0, band=0.5 (kernel "
                                                       "lengthscales), clearance=WORLD UNITS; default: the field's "
                                                       "lengthscale)")
-    c.add_argument("--align", action="store_true",
-                   help="parts not held in a fixture: register every scan (these and the ones scored later) onto the "
-                        "good training scans first (ICP)")
+    align = c.add_mutually_exclusive_group()
+    align.add_argument("--align", dest="align", action="store_const", const=True, default=defaults.align,
+                       help="parts not held in a fixture: register every scan (these and the ones scored later) onto "
+                            "the good training scans first (ICP)")
+    align.add_argument("--no-align", dest="align", action="store_const", const=False,
+                       help="never register (default: register when the training scans' poses spread; one line "
+                            "says so)")
     c.add_argument("--quiet", action="store_true")
 
     s = sub.add_parser("score", help="score scans, write scores.csv, summary.json, roc.png, scores.png, maps/")
@@ -76,8 +80,8 @@ def _parser():
                    help="which scans get a coloured PLY in OUT/maps (default flagged)")
     s.add_argument("--align", action="store_true",
                    help="register each scan onto the good training scans first (ICP); a setting of the calibration: "
-                        "an uncalibrated model is calibrated with it, a model calibrated with `calibrate --align` "
-                        "aligns without it")
+                        "an uncalibrated model is calibrated with it (without it: registered when the training "
+                        "scans' poses spread), a model calibrated with `calibrate --align` aligns without it")
     s.add_argument("--two-class", action="store_true",
                    help="good or defective only (default: a scan whose score lies within the threshold's own "
                         "uncertainty is 'uncertain': rescan it)")

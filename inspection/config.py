@@ -11,6 +11,9 @@ what it chose in its fitted attributes, never in the parameters):
   give the per-location reference), else ``'residual'``, the one score that needs nothing but the projected field.
 * ``rays='auto'``: the sensor's rays are used when there is a per-location reference (its training scans give the
   band of good surfaces the rays are tested in) and every good scan records a sensor origin.
+* ``align='auto'``: scans are registered when the training scans' poses spread: registering each of them onto the
+  others lowers its point-to-plane residuals by a median factor above ``inspection.align.AUTO_RATIO``
+  (:func:`inspection.align.pose_spread`; a part in a fixture gives 1.0); never without training scans.
 """
 from dataclasses import asdict, dataclass, fields, replace
 
@@ -47,10 +50,10 @@ class InspectionConfig:
         Also score the sensor's rays (:mod:`inspection.ray_evidence`); ``'auto'``: module docstring.
     ray_options : dict or None
         Settings of the ray score (keys of ``inspection.ray_evidence.RAY_DEFAULTS``).
-    align : bool
+    align : True, False or 'auto'
         Register every scan onto good training scans (rigid ICP, :mod:`inspection.align`) before scoring it, for
         parts not held in a fixture. The calibration scans are registered as new scans are, so that the threshold
-        is drawn from scores of scans moved the same way as those it judges.
+        is drawn from scores of scans moved the same way as those it judges. ``'auto'``: module docstring.
     """
 
     alpha: float = DEFAULT_ALPHA
@@ -60,7 +63,7 @@ class InspectionConfig:
     projection: object = "default"
     rays: object = "auto"
     ray_options: object = None
-    align: bool = False
+    align: object = "auto"
 
     def validated(self):
         """This configuration with every value checked (ValueError naming the setting, the expected values and the
@@ -90,8 +93,8 @@ class InspectionConfig:
 
             check_ray_options(self.ray_options)
             ray_options = dict(self.ray_options)
-        if not isinstance(self.align, bool):
-            raise ValueError(f"align must be True or False, got {self.align!r}")
+        if self.align not in (True, False, "auto") or not isinstance(self.align, (bool, str)):
+            raise ValueError(f"align must be True, False or 'auto', got {self.align!r}")
         return replace(self, alpha=float(self.alpha), noise=noise, projection=check_projection(self.projection),
                        ray_options=ray_options)
 

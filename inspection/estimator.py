@@ -140,6 +140,8 @@ class Inspector(BaseEstimator):
     aligner_ : inspection.align.Aligner or None
         With ``align``: the registration onto good training scans that every scan, calibration scans included,
         goes through before it is scored (stored with the calibration).
+    alignment_note_ : str
+        One line when ``align='auto'`` decided to register the scans ('' otherwise; set by :meth:`fit`).
     parts_ : dict of str -> Inspector, or None
         A model of several part types: one fitted inspector per part (:meth:`for_scan` picks a scan's); this
         inspector's own calibration attributes then hold every part's scores together (for reading, not for a
@@ -147,7 +149,7 @@ class Inspector(BaseEstimator):
     """
 
     def __init__(self, model, alpha=DEFAULT_ALPHA, aggregate=DEFAULT_AGGREGATE, point_score="auto", noise=None,
-                 projection="default", rays="auto", ray_options=None, align=False, verbose=False):
+                 projection="default", rays="auto", ray_options=None, align="auto", verbose=False):
         self.model = model
         self.alpha = alpha
         self.aggregate = aggregate
@@ -221,6 +223,8 @@ class Inspector(BaseEstimator):
         settings = getattr(self, "settings_", None)
         if settings is None:
             settings = self._resolved(self.config.validated(), False, False)
+            if settings.align == "auto":  # no training scans to decide it from: as without them, unregistered
+                settings = replace(settings, align=False)
         return settings
 
     # ------------------------------------------------------------------------------------------------ scoring
@@ -267,7 +271,7 @@ class Inspector(BaseEstimator):
             raise NotFittedError(f"point_score {settings.point_score!r} needs the per-location reference: call "
                                  "fit(good_scans) with the model's training scans among them first")
         transform = None
-        if settings.align:
+        if settings.align is True:
             with stage(timings, "align"):
                 scan, transform = self._aligned(scan)
         result = self._score(self._evidence(scan, index, settings, timings=timings),
@@ -421,10 +425,20 @@ class Inspector(BaseEstimator):
                                  f"origin (e.g. {missing[0]!r}); the ray score needs where the sensor was (scanner "
                                  f"files: a <stem>.json sidecar {{\"sensor_origin\": [x, y, z]}}); calibrate "
                                  f"without rays")
+        self.alignment_note_ = ""
+        if settings.align == "auto":  # registered when the training scans' poses spread (inspection.config)
+            from .align import AUTO_RATIO, pose_spread
+
+            spread = pose_spread(reference) if reference else 1.0
+            settings = replace(settings, align=bool(spread > AUTO_RATIO))
+            if settings.align is True:
+                self.alignment_note_ = (f"the training scans' poses spread (registered onto the others, their "
+                                        f"residuals fall by a median {100 * (1 - 1 / spread):.0f} %): every scan is "
+                                        f"registered first (calibrate --no-align turns it off)")
         self.settings_ = settings
         self.reference_ = None
         self.aligner_ = None
-        if settings.align:
+        if settings.align is True:
             if not reference:
                 raise ValueError("align=True registers every scan onto the model's good training scans: include them "
                                  "among the good scans (calibrate on the model's training collection)")
@@ -435,10 +449,10 @@ class Inspector(BaseEstimator):
         if POINT_SCORES[settings.point_score].reference:
             crossed = self._fit_reference(_progress(reference, self.verbose, f"reference{desc}"), selection.surface,
                                           settings)
-            if settings.align and cross_fit:  # the training scans scored as new ones are: registered first
+            if settings.align is True and cross_fit:  # the training scans scored as new ones are: registered first
                 crossed = [self._evidence(self._aligned(s, own=True)[0], i, settings, exclude_own_code=True)
                            for i, s in enumerate(_progress(reference, self.verbose, f"align{desc}"))]
-        held = [self._evidence(self._aligned(s)[0] if settings.align else s, i, settings) for i, s in
+        held = [self._evidence(self._aligned(s)[0] if settings.align is True else s, i, settings) for i, s in
                 enumerate(_progress(selection.calibration, self.verbose, f"calibrate{desc}"))]
         names = [g.name for g in held]
         needs_reference = POINT_SCORES[settings.point_score].reference
@@ -496,8 +510,8 @@ class Inspector(BaseEstimator):
                 evidence = sub._fit_reference(_progress(selection.reference, self.verbose, f"fold {j + 1}{desc}"),
                                               selection.surface, settings)
                 references += [sub.reference_.without(i) for i in scored]
-            if settings.align or not needs_reference:  # scored as new scans are (registered first with align)
-                evidence = {i: sub._evidence(sub._aligned(selection.reference[i], own=True)[0] if settings.align
+            if settings.align is True or not needs_reference:  # scored as new scans are (registered first with align)
+                evidence = {i: sub._evidence(sub._aligned(selection.reference[i], own=True)[0] if settings.align is True
                                              else selection.reference[i], i, settings) for i in scored}
             goods += [evidence[i] for i in scored]
             if not needs_reference:
@@ -595,7 +609,10 @@ class Inspector(BaseEstimator):
         ref = extra.get("reference")
         self.reference_ = None if ref is None else LocalReference.from_dict(ref)
         self.aligner_ = None
-        if self.settings_.align:
+        if self.settings_.align == "auto":  # a record from before alignment was a setting: never registered
+            self.settings_ = replace(self.settings_, align=False)
+        self.alignment_note_ = ""
+        if self.settings_.align is True:
             if extra.get("align") is None:
                 raise ValueError("its settings say align=True but it stores no alignment target")
             from .align import Aligner

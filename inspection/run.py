@@ -72,16 +72,19 @@ def describe_calibration(insp, info):
                          f"{one.n_calibration_} scans")
             if t.note:
                 lines.append(f"note: part {part}: {t.note}")
+            if getattr(one, "alignment_note_", ""):
+                lines.append(f"note: part {part}: {one.alignment_note_}")
         return lines
     t = insp.decision_threshold_
+    aligned = [f"note: {insp.alignment_note_}"] if getattr(insp, "alignment_note_", "") else []
     lines = [f"calibrated on {info['n']} scans ({info['how']}): {what}; threshold {t.value:.4g} at alpha={t.alpha:g} "
              f"({t.basis})"]
     if t.note:
         lines.append(f"note: {t.note}")
-    return lines
+    return lines + aligned
 
 
-def _calibrate_for_scoring(handle, data, alpha, progress, echo, align=False):
+def _calibrate_for_scoring(handle, data, alpha, progress, echo, align="auto"):
     """An uncalibrated model scored on its own training collection: calibrate on the held-back good scans with the
     defaults (and ``align``; stored in the model file, as ``calibrate`` would) and say so; anything else is an
     InspectionError."""
@@ -98,7 +101,7 @@ def _calibrate_for_scoring(handle, data, alpha, progress, echo, align=False):
                               f"--data GOOD_SCANS` first")
     echo(f"{handle.path} is not calibrated: calibrating on its {len(handle.heldback_names)} held-back good scans "
          f"of {data} first (stored in the model file)")
-    config = InspectionConfig(align=bool(align), **({} if alpha is None else {"alpha": alpha}))
+    config = InspectionConfig(align=align, **({} if alpha is None else {"alpha": alpha}))
     insp, info = calibrate(handle.path, data, config, progress=progress)
     for line in describe_calibration(insp, info):
         echo(line)
@@ -120,8 +123,9 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
 
     ``align``: every scan is registered onto the good training scans before it is scored. It is a setting of the
     calibration (``calibrate --align``), which registers the calibration scans the same way: an uncalibrated model
-    is calibrated with it; a model calibrated with it aligns whether or not ``align`` is given; asking for it of a
-    model calibrated without it is an InspectionError (its threshold was drawn from scans scored unmoved).
+    is calibrated with it (without it: ``align='auto'``, registered when the training scans' poses spread); a model
+    calibrated with it aligns whether or not ``align`` is given; asking for it of a model calibrated without it is an
+    InspectionError (its threshold was drawn from scans scored unmoved).
 
     Returns
     -------
@@ -136,8 +140,8 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
     if not isinstance(jobs, int) or jobs < 1:
         raise InspectionError(f"--jobs must be a whole number >= 1, got {jobs!r}")
     handle = load_model(model)
-    insp = _calibrated_inspector(handle, data, alpha, progress, echo, align)
-    calibrated_aligned = any(one.settings_.align for one in (insp.parts_ or {"": insp}).values())
+    insp = _calibrated_inspector(handle, data, alpha, progress, echo, True if align else "auto")
+    calibrated_aligned = any(one.settings_.align is True for one in (insp.parts_ or {"": insp}).values())
     if align and not calibrated_aligned:
         raise InspectionError(f"{handle.path}: --align, but the model was calibrated without it: its threshold was "
                               f"drawn from scans scored where they lay, not registered ones; calibrate it again with "
@@ -161,7 +165,7 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
     return summary
 
 
-def _calibrated_inspector(handle, data, alpha, progress, echo, align=False):
+def _calibrated_inspector(handle, data, alpha, progress, echo, align="auto"):
     """The Inspector of ``handle`` with its stored calibration (``alpha`` None: the calibration's), calibrating
     first (with ``align``) when the model has none (:func:`_calibrate_for_scoring`)."""
     from .estimator import Inspector

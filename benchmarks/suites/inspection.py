@@ -44,7 +44,12 @@ def add_arguments(p):
     p.add_argument("--points", type=int, default=4000, help="points per scan (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="synthesis and training seed (default: %(default)s)")
     p.add_argument("--jitter", type=float, default=0.0, help="pose jitter of every scan, degrees (default: none)")
-    p.add_argument("--align", action="store_true", help="score with --align (ICP onto the training scans first)")
+    align = p.add_mutually_exclusive_group()
+    align.add_argument("--align", dest="align", action="store_const", const=True, default=None,
+                       help="calibrate and score with --align (every scan registered onto the training scans first)")
+    align.add_argument("--no-align", dest="align", action="store_const", const=False,
+                       help="with --no-align (default: the inspection's own choice, registered when the training "
+                            "scans' poses spread)")
     rays = p.add_mutually_exclusive_group()
     rays.add_argument("--rays", dest="rays", action="store_const", const=True, default=None,
                       help="calibrate with the ray score (default: the inspection's choice, the rays when every "
@@ -103,7 +108,8 @@ def _train_options(args):
 def _run_name(args):
     """The scoring run's folder: what sets it apart from the defaults' (``defaults`` alone for the defaults)."""
     return ("defaults" + (f"_e{args.epochs}" if args.epochs else "")
-            + (f"_{args.representation}" if args.representation else "") + ("_aligned" if args.align else "")
+            + (f"_{args.representation}" if args.representation else "")
+            + {True: "_aligned", False: "_noalign", None: ""}[args.align]
             + {True: "_rays", False: "_norays", None: ""}[args.rays])
 
 

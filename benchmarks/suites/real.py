@@ -10,7 +10,8 @@ real range images in metres, ``bun.conf`` aligning them), in the layout the data
 Every scan is one real view, a fresh random subset of its points (4,000 by default) with the scanner's own stray
 points kept, a few synthetic spurious returns on half the scans (points on the sensor's ray, 5-30 mm in front of
 the surface: what a real scanner's multipath and mixed pixels give; labelled 0, listed in the sidecar), and a
-random pose change of up to ``--jitter`` degrees about the part's centre. Defects are made in the real points
+random pose change of up to ``--jitter`` degrees about the part's centre (and a shift of up to ``--shift`` of its diagonal:
+parts placed by hand). Defects are made in the real points
 (the full-resolution view, before subsampling), so everything outside them is real data:
 
 - dent / bump: the points of the patch (radius ``RADIUS_RANGE`` x the part's diagonal, ``datasets.defects``'
@@ -60,6 +61,14 @@ def add_arguments(p):
     p.add_argument("--per-defect", type=int, default=16, help="test scans per defect type (default: %(default)s)")
     p.add_argument("--points", type=int, default=4000, help="points per scan (default: %(default)s)")
     p.add_argument("--jitter", type=float, default=2.0, help="pose change, degrees (default: %(default)s)")
+    p.add_argument("--shift", type=float, default=0.0, help="and a shift of up to this fraction of the part's "
+                                                            "diagonal, per scan (parts placed by hand; default none)")
+    align = p.add_mutually_exclusive_group()
+    align.add_argument("--align", dest="align", action="store_const", const=True, default=None,
+                       help="calibrate and score with --align (every scan registered onto the training scans first)")
+    align.add_argument("--no-align", dest="align", action="store_const", const=False,
+                       help="with --no-align (default: the inspection's own choice, registered when the training "
+                            "scans' poses spread)")
     p.add_argument("--strays", type=int, default=4, help="up to this many spurious returns on half the scans "
                                                          "(default: %(default)s)")
     p.add_argument("--size", type=float, default=1.0, help="defect size factor on datasets.defects' ranges")
@@ -85,7 +94,8 @@ def run(args):
                                 calibration_folds=None if args.folds == "off" else SUGGESTED_FOLDS)
     run_dir = Path(args.work) / data.parent.name / ("defaults" + (f"_e{args.epochs}" if args.epochs else "")
                                                     + (f"_t{args.train_seed}" if args.train_seed else "")
-                                                    + ("_norays" if args.no_rays else ""))
+                                                    + ("_norays" if args.no_rays else "")
+                                                    + {True: "_aligned", False: "_noalign", None: ""}[args.align])
     figures = score(data, model, run_dir, args)
     if args.diagnose:
         diagnose(data, run_dir)
@@ -315,6 +325,8 @@ def real_collection(args):
     params = {k: getattr(args, k) for k in ("train", "test_good", "per_defect", "points", "jitter", "strays",
                                             "size", "seed")}
     params["source"] = str(Path(args.source).resolve())
+    if args.shift:  # only when set, so that the trees built before the option keep their cache keys
+        params["shift"] = args.shift
 
     def build(folder):
         from datasets.importer import import_tree
@@ -362,14 +374,19 @@ def build_tree(tree, args):
         lab = np.zeros(len(merged), np.uint8)
         lab[order] = labels
         rot = random_rotation(args.jitter, rng)
-        merged = (merged - centre) @ rot.T + centre
-        sensor = (v["sensor"] - centre) @ rot.T + centre
+        shift = np.zeros(3)
+        if args.shift:
+            shift = rng.normal(size=3)
+            shift *= rng.uniform(0, args.shift) * diagonal / np.linalg.norm(shift)
+        merged = (merged - centre) @ rot.T + centre + shift
+        sensor = (v["sensor"] - centre) @ rot.T + centre + shift
         stem = f"{n:03d}_{v['name']}"
         folder = tree / split / kind
         write_cloud(folder / f"{stem}.ply", merged)
         angle = float(np.degrees(np.arccos(np.clip((np.trace(rot) - 1) / 2, -1, 1))))
         side = {"sensor_origin": [float(x) for x in sensor], "view": v["name"], "stray_points": at.tolist(),
-                "rotation_deg": angle, "defect": info}
+                "rotation_deg": angle, "shift": shift.tolist(),
+                "defect": info}
         _write_text(folder / f"{stem}.json", json.dumps(side))
         if kind in KINDS:
             gt = tree / "ground_truth" / kind / f"{stem}.txt"
@@ -396,7 +413,7 @@ def score(data, model, run_dir, args):
         one_dir = run_dir if folds else run_dir.with_name(run_dir.name + "_nofolds")
         t0 = time.perf_counter()
         summary = inspect_api.calibrate_and_score(model, data, one_dir, rays=False if args.no_rays else None,
-                                                  maps="all", progress=args.progress, folds=folds,
+                                                  maps="all", align=args.align, progress=args.progress, folds=folds,
                                                   echo=lambda line: print(f"  real: {line}"))
         t_score = time.perf_counter() - t0
         scored = inspect_api.read_scores(one_dir / "results")

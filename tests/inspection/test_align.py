@@ -196,3 +196,43 @@ def test_a_view_that_does_not_pin_the_pose_stays_where_it_was_placed():
     assert abs(T[2, 3] + 0.004) < 0.001  # pulled onto the plane
     assert np.abs(T[:2, 3]).max() < 1e-3 * aligner.size  # not slid along it
     assert np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1))) < 0.1
+
+
+def test_pose_spread_tells_a_fixture_from_parts_placed_by_hand():
+    """Registering each training scan onto the others lowers its residuals by almost nothing in a fixture (ratio
+    within 2 % of 1) and by far more when every scan was placed by hand (4 degrees, 1 %)."""
+    from inspection.align import AUTO_RATIO, pose_spread
+
+    fixture = [_corner(f"train/good/{i:03d}", "train", i, n=800) for i in range(6)]
+    by_hand = [_corner(f"train/good/{i:03d}", "train", i, rotation_deg=4.0, n=800) for i in range(6)]
+    assert abs(pose_spread(fixture) - 1) < 0.02
+    assert pose_spread(by_hand) > 1.5 * AUTO_RATIO
+    assert pose_spread(by_hand[:2]) == 1.0  # too few to compare
+
+
+def test_align_auto_registers_only_where_the_poses_spread(tmp_path, one_torch_thread):
+    """The default align='auto' registers the scans of parts placed by hand (and says so in one line) and leaves a
+    fixture's alone; --no-align is never overridden."""
+    from datasets import ScanCollection
+    from inspection import Inspector
+    from inspection.model_io import load_model
+    from inspection.run import calibrate, describe_calibration
+    from tests.inspection.tiny import tiny_field_model
+
+    def tree(name, degrees):
+        scans = ([_corner(f"train/good/{i:03d}", "train", i, rotation_deg=degrees, n=500) for i in range(6)]
+                 + [_corner(f"validation/good/{i:03d}", "validation", 10 + i, rotation_deg=degrees, n=500)
+                    for i in range(3)])
+        (tmp_path / name).mkdir()
+        return tiny_field_model(tmp_path / name, scans, n_train=6, n_heldback=3)
+
+    fixture, by_hand = tree("fixture", 0.0), tree("by_hand", 4.0)
+    insp, info = calibrate(by_hand / "model.pt", by_hand / "tree.h5", progress=False)
+    assert insp.settings_.align is True and insp.aligner_ is not None
+    notes = [line for line in describe_calibration(insp, info) if "poses spread" in line]
+    assert len(notes) == 1 and "--no-align" in notes[0]
+    insp, info = calibrate(fixture / "model.pt", fixture / "tree.h5", progress=False)
+    assert insp.settings_.align is False and insp.aligner_ is None and insp.alignment_note_ == ""
+    model = load_model(by_hand / "model.pt").model
+    with ScanCollection(by_hand / "tree.h5") as c:
+        assert Inspector(model, align=False).fit(c).settings_.align is False
