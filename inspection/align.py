@@ -244,3 +244,53 @@ def pose_spread(scans, max_scans=AUTO_SCANS, seed=0):
         if len(residuals) == 2 and residuals[1] > 0:
             ratios.append(residuals[0] / residuals[1])
     return float(np.median(ratios)) if ratios else 1.0
+
+
+GROUP_ROUNDS = 6  # at most this many rounds of registering each training scan onto the others (register_group)
+GROUP_SETTLED = 0.05  # ... stopping once a round moves the median scan by less than this many point spacings
+
+
+def register_group(scans, rounds=GROUP_ROUNDS, seed=0):
+    """Good scans of parts placed by hand moved into one common pose: in each round every scan is registered onto
+    all the others (as they stand after the previous round), until a round moves the median scan by less than
+    ``GROUP_SETTLED`` point spacings (at most ``rounds``: the blur of the first target makes one round go only part
+    of the way; on tests/inspection/test_align.py's corners 3 rounds settle 4 degrees), so that the target the scored
+    scans are registered onto, and the per-location reference they are compared with, are as sharp as a fixture's rather than the blur
+    of every placement. Returns copies of ``scans`` (the same order; :meth:`Aligner.align_scan`'s, the transform of
+    all rounds in ``extra['align']`` for a :class:`datasets.Scan`). Fewer than 3 scans: returned as they are."""
+    from dataclasses import replace
+
+    from datasets.validation import points_and_normals
+
+    scans = list(scans)
+    if len(scans) < 3:
+        return scans
+    names = [str(getattr(s, "name", "") or f"scan {i}") for i, s in enumerate(scans)]
+    points = [np.asarray(points_and_normals(s)[0], dtype=np.float64).reshape(-1, 3) for s in scans]
+    total = [np.eye(4) for _ in scans]
+    for _ in range(int(rounds)):
+        owners = np.concatenate([np.full(len(p), n) for p, n in zip(points, names)])
+        target = Aligner(np.concatenate(points), owners=owners, seed=seed)
+        steps = [target.without(n).transform(p) for p, n in zip(points, names)]  # all onto the same round's poses
+        motion = []
+        for i, T in enumerate(steps):
+            moved = points[i] @ T[:3, :3].T + T[:3, 3]
+            motion.append(np.linalg.norm(moved - points[i], axis=1).mean())
+            points[i], total[i] = moved, T @ total[i]
+        if np.median(motion) < GROUP_SETTLED * target.spacing:
+            break
+    out = []
+    for scan, T in zip(scans, total):
+        if isinstance(scan, np.ndarray) or not hasattr(scan, "points"):
+            out.append(np.asarray(scan, dtype=np.float64).reshape(-1, 3) @ T[:3, :3].T + T[:3, 3])
+            continue
+        normals = getattr(scan, "normals", None)
+        origin = getattr(scan, "sensor_origin", None)
+        changes = dict(points=np.asarray(scan.points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3],
+                       normals=None if normals is None else np.asarray(normals, dtype=np.float64) @ T[:3, :3].T)
+        if hasattr(scan, "sensor_origin"):
+            changes["sensor_origin"] = None if origin is None else T[:3, :3] @ np.asarray(origin, np.float64) + T[:3, 3]
+        if isinstance(getattr(scan, "extra", None), dict):
+            changes["extra"] = {**scan.extra, "align": T}
+        out.append(replace(scan, **changes))
+    return out

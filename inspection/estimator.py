@@ -279,15 +279,12 @@ class Inspector(BaseEstimator):
         result.transform = transform
         return result
 
-    def _aligned(self, scan, own=False):
-        """``scan`` registered by ``aligner_`` (without ``scan``'s own points in the target when ``own``: a training
-        scan scored as if new is not registered onto itself). Returns (the moved scan, the transform (4, 4))."""
+    def _aligned(self, scan):
+        """``scan`` registered by ``aligner_``. Returns (the moved scan, the transform (4, 4))."""
         aligner = getattr(self, "aligner_", None)
         if aligner is None:
             raise NotFittedError("align=True registers scans onto the good training scans chosen by fit: call fit "
                                  "first")
-        if own:
-            aligner = aligner.without(getattr(scan, "name", ""))
         moved = aligner.align_scan(scan)
         extra = getattr(moved, "extra", None)
         transform = extra.get("align") if isinstance(extra, dict) else None
@@ -442,16 +439,20 @@ class Inspector(BaseEstimator):
             if not reference:
                 raise ValueError("align=True registers every scan onto the model's good training scans: include them "
                                  "among the good scans (calibrate on the model's training collection)")
-            from .align import Aligner
+            from .align import Aligner, register_group
 
-            self.aligner_ = Aligner.from_scans(reference)
+            # the training scans moved into one common pose (each registered onto the others): the target of every
+            # later registration and the reference they are compared with; a training scan scored as if new is
+            # then one registered onto the others, as a new scan is
+            surface = selection.surface or reference
+            moved = dict(zip(map(id, surface), register_group(surface)))
+            reference = [moved.get(id(s), s) for s in reference]
+            selection = replace(selection, reference=reference, surface=[moved[id(s)] for s in surface])
+            self.aligner_ = Aligner.from_scans(selection.surface)
         crossed = []
         if POINT_SCORES[settings.point_score].reference:
             crossed = self._fit_reference(_progress(reference, self.verbose, f"reference{desc}"), selection.surface,
                                           settings)
-            if settings.align is True and cross_fit:  # the training scans scored as new ones are: registered first
-                crossed = [self._evidence(self._aligned(s, own=True)[0], i, settings, exclude_own_code=True)
-                           for i, s in enumerate(_progress(reference, self.verbose, f"align{desc}"))]
         held = [self._evidence(self._aligned(s)[0] if settings.align is True else s, i, settings) for i, s in
                 enumerate(_progress(selection.calibration, self.verbose, f"calibrate{desc}"))]
         names = [g.name for g in held]
@@ -510,9 +511,8 @@ class Inspector(BaseEstimator):
                 evidence = sub._fit_reference(_progress(selection.reference, self.verbose, f"fold {j + 1}{desc}"),
                                               selection.surface, settings)
                 references += [sub.reference_.without(i) for i in scored]
-            if settings.align is True or not needs_reference:  # scored as new scans are (registered first with align)
-                evidence = {i: sub._evidence(sub._aligned(selection.reference[i], own=True)[0] if settings.align is True
-                                             else selection.reference[i], i, settings) for i in scored}
+            if not needs_reference:  # (with align, the reference scans come registered onto each other)
+                evidence = {i: sub._evidence(selection.reference[i], i, settings) for i in scored}
             goods += [evidence[i] for i in scored]
             if not needs_reference:
                 references += [None] * len(scored)
