@@ -422,33 +422,10 @@ class Inspector(BaseEstimator):
                                  f"origin (e.g. {missing[0]!r}); the ray score needs where the sensor was (scanner "
                                  f"files: a <stem>.json sidecar {{\"sensor_origin\": [x, y, z]}}); calibrate "
                                  f"without rays")
-        self.alignment_note_ = ""
-        if settings.align == "auto":  # registered when the training scans' poses spread (inspection.config)
-            from .align import AUTO_RATIO, pose_spread
-
-            spread = pose_spread(reference) if reference else 1.0
-            settings = replace(settings, align=bool(spread > AUTO_RATIO))
-            if settings.align is True:
-                self.alignment_note_ = (f"the training scans' poses spread (registered onto the others, their "
-                                        f"residuals fall by a median {100 * (1 - 1 / spread):.0f} %): every scan is "
-                                        f"registered first (calibrate --no-align turns it off)")
+        settings, selection = self._fit_alignment(settings, selection)
+        reference = selection.reference
         self.settings_ = settings
         self.reference_ = None
-        self.aligner_ = None
-        if settings.align is True:
-            if not reference:
-                raise ValueError("align=True registers every scan onto the model's good training scans: include them "
-                                 "among the good scans (calibrate on the model's training collection)")
-            from .align import Aligner, register_group
-
-            # the training scans moved into one common pose (each registered onto the others): the target of every
-            # later registration and the reference they are compared with; a training scan scored as if new is
-            # then one registered onto the others, as a new scan is
-            surface = selection.surface or reference
-            moved = dict(zip(map(id, surface), register_group(surface)))
-            reference = [moved.get(id(s), s) for s in reference]
-            selection = replace(selection, reference=reference, surface=[moved[id(s)] for s in surface])
-            self.aligner_ = Aligner.from_scans(selection.surface)
         crossed = []
         if POINT_SCORES[settings.point_score].reference:
             crossed = self._fit_reference(_progress(reference, self.verbose, f"reference{desc}"), selection.surface,
@@ -481,6 +458,37 @@ class Inspector(BaseEstimator):
                     else f" and {len(crossed)} training scans cross-fitted")
         self.calibration_source_ = how
         return self._calibrate_from(components, names + [g.name for g in crossed], roles)
+
+    def _fit_alignment(self, settings, selection):
+        """Decide ``align='auto'`` (the training scans' pose spread, :func:`inspection.align.pose_spread`) and, when
+        scans are registered, move the training scans into one common pose (each registered onto the others,
+        :func:`inspection.align.register_group`): the target of every later registration (``aligner_``) and the
+        scans the per-location reference is built from. Sets ``aligner_`` and ``alignment_note_``; returns the
+        settings with ``align`` decided and the selection with its reference and surface scans registered."""
+        self.alignment_note_, self.aligner_ = "", None
+        reference = selection.reference
+        if settings.align == "auto":
+            from .align import AUTO_RATIO, pose_spread
+
+            spread = pose_spread(reference) if reference else 1.0
+            settings = replace(settings, align=bool(spread > AUTO_RATIO))
+            if settings.align is True:
+                self.alignment_note_ = (f"the training scans' poses spread (registered onto the others, their "
+                                        f"residuals fall by a median {100 * (1 - 1 / spread):.0f} %): every scan is "
+                                        f"registered first (calibrate --no-align turns it off)")
+        if settings.align is not True:
+            return settings, selection
+        if not reference:
+            raise ValueError("align=True registers every scan onto the model's good training scans: include them "
+                             "among the good scans (calibrate on the model's training collection)")
+        from .align import Aligner, register_group
+
+        surface = selection.surface or reference
+        moved = dict(zip(map(id, surface), register_group(surface)))
+        selection = replace(selection, reference=[moved.get(id(s), s) for s in reference],
+                            surface=[moved[id(s)] for s in surface])
+        self.aligner_ = Aligner.from_scans(selection.surface)
+        return settings, selection
 
     def _fold_evidence(self, selection, settings, desc=""):
         """The training scans' evidence under the model's fold models (:mod:`autodecoder.latent.folds`): each
