@@ -25,6 +25,8 @@ DEFAULT_LEVELS = (4.0, 2.0, 1.0)  # ICP voxel sizes in multiples of the target's
 PRIOR_DEGREES = 5.0  # the placement prior: rotation sd (degrees) ...
 PRIOR_SIZE = 0.02  # ... and translation sd per axis, in target bounding-box diagonals (module docstring)
 HUBER = 1.5  # residuals beyond this many robust standard deviations count linearly (stray points, defects)
+MAX_SOURCE = 5000  # a scan with more points is registered by an evenly spread subset of this many (full-resolution
+# scans: the pose of a rigid part needs a few thousand residuals, and the time grows with them)
 ALIGN_SCANS = 64  # good training scans stacked as the target (subsampled to max_points): the more, the more of the part it covers
 
 
@@ -140,6 +142,8 @@ class Aligner:
         if self._tree is None:
             self._tree = cKDTree(self.points)
         centre = pts.mean(0)
+        if len(pts) > MAX_SOURCE:
+            pts = pts[np.linspace(0, len(pts) - 1, MAX_SOURCE).round().astype(np.int64)]
         # the prior's precision per squared radian / squared unit; times the residuals' variance below
         prior = np.r_[np.full(3, 1 / np.radians(PRIOR_DEGREES) ** 2), np.full(3, 1 / (PRIOR_SIZE * self.size) ** 2)]
         R, t = np.eye(3), np.zeros(3)  # current motion: p -> R (p - centre) + centre + t

@@ -250,3 +250,16 @@ def test_a_group_placed_by_hand_is_moved_into_one_pose():
     for scan, m in zip(by_hand, moved):  # each copy is its scan under the transform it records
         T = m.extra["align"]
         np.testing.assert_allclose(m.points, scan.points @ T[:3, :3].T + T[:3, 3], atol=1e-5)
+
+
+def test_a_full_resolution_scan_is_registered_by_a_subset_as_well():
+    """Above MAX_SOURCE points a scan is registered by an evenly spread subset: the whole scan still comes back."""
+    from inspection.align import MAX_SOURCE, Aligner
+
+    n = 3 * MAX_SOURCE
+    target = _corner("target", "train", 0, n=6000)
+    truth = _corner("placed", "test", 1, n=n).points.astype(np.float64)
+    moved = _corner("placed", "test", 1, rotation_deg=4.0, n=n)
+    aligner = Aligner(target.points, target.normals)
+    back, _, _ = aligner.align(moved.points)
+    assert np.median(np.linalg.norm(back - truth, axis=1)) < 0.25 * aligner.spacing
