@@ -577,10 +577,10 @@ class Inspector(BaseEstimator):
             return self._set([c["points"] for c in components], names, roles)
         from autodecoder.scanning.free_space import MAX_SURPRISAL
 
-        from .combine import Combination
+        from .combine import RAY_GATE_FLOOR, Combination
 
         self.combination_ = Combination(components, names=("points", "rays"), rule=COMBINATION_RULE,
-                                        ceiling=MAX_SURPRISAL)
+                                        ceiling=MAX_SURPRISAL, floor=RAY_GATE_FLOOR)
         return self._set(self.combination_.calibration_scores(), names, roles)
 
     def _set(self, scores, names, roles):

@@ -526,3 +526,31 @@ def test_grazing_rays_are_not_tested():
                             min_cos=0.0).ray_index) == len(points)
     with pytest.raises(ValueError, match="min_cos"):
         check_ray_options({"min_cos": 1.0})
+
+
+def test_log_gate_stays_above_the_floor():
+    """Calibration scans whose rays are all near 0 (few training scans on a solid part) would put the quantile gate
+    at a nat or two, where a good scan's grazing rays pass it; with the floor given the gate is log(1 + floor), by
+    hand, so a few nats change nothing while missing material's hundreds still count."""
+    from autodecoder.scanning.free_space import MAX_SURPRISAL
+    from inspection.combine import LOG_GATE_WEIGHT as w, RAY_GATE_FLOOR
+
+    rays = np.array([0.0, 0.0, 0.1, 0.1, 0.1, 0.2, 0.3, 0.4, 0.0, 0.7])  # fandisk, 8 training scans + 2 held back
+    points = np.linspace(1.0, 2.0, len(rays))
+    cal = {"points": points, "rays": rays}
+    plain = Combination(cal, ceiling=MAX_SURPRISAL)
+    floored = Combination(cal, ceiling=MAX_SURPRISAL, floor=RAY_GATE_FLOOR)
+    lr = np.log1p(rays)
+    m_r, sd_r = lr.mean(), lr.std(ddof=1)
+    assert np.expm1(m_r + sd_r * plain.gate[1]) < 2.0  # the gate without the floor: under 2 nats
+    assert floored.gate[1] == pytest.approx((np.log1p(RAY_GATE_FLOOR) - m_r) / sd_r)
+    new = {"points": np.full(3, 1.5), "rays": np.array([3.0, 30.0, 400.0])}
+    z_r = (np.log1p(new["rays"]) - m_r) / sd_r
+    m_p, sd_p = points.mean(), points.std(ddof=1)
+    np.testing.assert_allclose(floored.score(new), 1.5 + sd_p * w * np.maximum(z_r - floored.gate[1], 0.0))
+    assert floored.score(new)[:2].tolist() == [1.5, 1.5] and floored.score(new)[2] > 1.5
+    assert plain.score(new)[0] > 10  # without it 3 nats of grazing rays would outrank most defects
+    again = Combination.from_dict(floored.as_dict())
+    assert again.floor == RAY_GATE_FLOOR and again.score(new).tolist() == floored.score(new).tolist()
+    with pytest.raises(ValueError, match="floor"):
+        Combination(cal, floor=-1.0)
