@@ -48,6 +48,17 @@ def defaults():
             "projection": dict(DEFAULT_PROJECTION)}
 
 
+def add_align_options(parser):
+    """``--align`` / ``--no-align`` on a suite's parser (``args.align``: True, False or None, the inspection's own
+    choice: registered when the training scans' poses spread), for :func:`calibrate_and_score`'s ``align``."""
+    align = parser.add_mutually_exclusive_group()
+    align.add_argument("--align", dest="align", action="store_const", const=True, default=None,
+                       help="calibrate and score with --align (every scan registered onto the training scans first)")
+    align.add_argument("--no-align", dest="align", action="store_const", const=False,
+                       help="with --no-align (default: the inspection's own choice, registered when the training "
+                            "scans' poses spread)")
+
+
 def calibrate_and_score(model_path, data_path, out_dir, *, rays=None, point_score=None, aggregate=None,
                         alpha=None, align=None, maps="flagged", progress=False, echo=print, folds=True):
     """The README's path on an uncalibrated copy of a model: ``python -m inspection calibrate`` on the model's training

@@ -44,12 +44,7 @@ def add_arguments(p):
     p.add_argument("--points", type=int, default=4000, help="points per scan (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="synthesis and training seed (default: %(default)s)")
     p.add_argument("--jitter", type=float, default=0.0, help="pose jitter of every scan, degrees (default: none)")
-    align = p.add_mutually_exclusive_group()
-    align.add_argument("--align", dest="align", action="store_const", const=True, default=None,
-                       help="calibrate and score with --align (every scan registered onto the training scans first)")
-    align.add_argument("--no-align", dest="align", action="store_const", const=False,
-                       help="with --no-align (default: the inspection's own choice, registered when the training "
-                            "scans' poses spread)")
+    inspect_api.add_align_options(p)
     rays = p.add_mutually_exclusive_group()
     rays.add_argument("--rays", dest="rays", action="store_const", const=True, default=None,
                       help="calibrate with the ray score (default: the inspection's choice, the rays when every "

@@ -63,12 +63,7 @@ def add_arguments(p):
     p.add_argument("--jitter", type=float, default=2.0, help="pose change, degrees (default: %(default)s)")
     p.add_argument("--shift", type=float, default=0.0, help="and a shift of up to this fraction of the part's "
                                                             "diagonal, per scan (parts placed by hand; default none)")
-    align = p.add_mutually_exclusive_group()
-    align.add_argument("--align", dest="align", action="store_const", const=True, default=None,
-                       help="calibrate and score with --align (every scan registered onto the training scans first)")
-    align.add_argument("--no-align", dest="align", action="store_const", const=False,
-                       help="with --no-align (default: the inspection's own choice, registered when the training "
-                            "scans' poses spread)")
+    inspect_api.add_align_options(p)
     p.add_argument("--strays", type=int, default=4, help="up to this many spurious returns on half the scans "
                                                          "(default: %(default)s)")
     p.add_argument("--size", type=float, default=1.0, help="defect size factor on datasets.defects' ranges")
