@@ -48,6 +48,15 @@ def defaults():
             "projection": dict(DEFAULT_PROJECTION)}
 
 
+def registered_onto(scans, good_scans):
+    """``scans`` each registered onto the union of ``good_scans`` by the inspection's registration
+    (``inspection.align.Aligner``): a baseline given the scans as aligned as the toolkit's are."""
+    from inspection.align import Aligner
+
+    aligner = Aligner.from_scans(good_scans)
+    return [aligner.align_scan(s) for s in scans]
+
+
 def add_align_options(parser):
     """``--align`` / ``--no-align`` on a suite's parser (``args.align``: True, False or None, the inspection's own
     choice: registered when the training scans' poses spread), for :func:`calibrate_and_score`'s ``align``."""

@@ -424,10 +424,7 @@ def score(data, model, run_dir, args):
         test = c.read_many([c.index_of(n) for n in scored["name"]])
     t0 = time.perf_counter()
     if summary.get("aligned"):  # the baseline with ICP where the toolkit registered: each scan onto the training scans
-        from inspection.align import Aligner
-
-        aligner = Aligner.from_scans(train)
-        test = [aligner.align_scan(s) for s in test]
+        test = inspect_api.registered_onto(test, train)
     nn = np.array([v for v, _ in baselines.nn_baseline(np.concatenate([s.points for s in train]), test)])
     t_nn = (time.perf_counter() - t0) / len(test)
     ours = metrics.auroc_per_defect(scored["score"], scored["label"], scored["defect"])

@@ -8,16 +8,17 @@ basis and predicted false-alarm rate. Then the issue's targets: the realised fal
 tree and seed at most 2 alpha and no run above 1 of 16 good scans (scaled to the run's good scans); defective
 flagged at least 0.9 where the AUROC is at least 0.99, and within 0.05 of the oracle elsewhere.
 
-``--jobs N`` runs N (tree, seed) pairs at once in worker processes (one thread each; each pair's output goes to
-``WORK/logs/``); the figures do not depend on it.
+Each run is ``python -m benchmarks SUITE ...`` in a process of its own (one thread; its output in ``WORK/logs/``,
+its record in ``WORK/records/``, whose figures are read back): the suites stay independent of each other.
+``--jobs N`` runs N of them at once; the figures do not depend on it.
 """
-import argparse
-import contextlib
-import io
-import multiprocessing
+import json
 import os
+import shutil
+import subprocess
+import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
@@ -58,7 +59,7 @@ def add_arguments(p):
     p.add_argument("--trees", default=",".join(TREES),
                    help="comma-separated tree names (default: all: %(default)s)")
     p.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (default: %(default)s)")
-    p.add_argument("--jobs", type=int, default=1, help="(tree, seed) runs at once, in processes (default 1)")
+    p.add_argument("--jobs", type=int, default=1, help="(tree, seed) runs at once, each a process (default 1)")
     p.add_argument("--cache", default=cache.CACHE, help="collections and models (default: %(default)s)")
     p.add_argument("--work", default=WORK, help="scored runs and logs (default: %(default)s)")
 
@@ -70,20 +71,12 @@ def run(args):
         raise SystemExit(f"verdicts: unknown tree(s) {unknown}; known: {list(TREES)}")
     seeds = [int(s) for s in args.seeds.split(",")]
     jobs = [(name, seed) for seed in seeds for name in names]
-    logs = Path(args.work) / "logs"
-    logs.mkdir(parents=True, exist_ok=True)
     results = {}
-    if args.jobs <= 1:
-        for name, seed in jobs:
-            results[(name, seed)] = _one(name, seed, args.cache, args.work)
-            _report(name, seed, results[(name, seed)])
-    else:
-        ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(args.jobs, mp_context=ctx, initializer=_one_thread) as pool:
-            futures = {pool.submit(_one, name, seed, args.cache, args.work): (name, seed) for name, seed in jobs}
-            for fut in as_completed(futures):
-                results[futures[fut]] = fut.result()
-                _report(*futures[fut], results[futures[fut]])
+    with ThreadPoolExecutor(max(1, args.jobs)) as pool:  # threads that wait on one process each
+        futures = {pool.submit(_one, name, seed, args.cache, args.work): (name, seed) for name, seed in jobs}
+        for fut in as_completed(futures):
+            results[futures[fut]] = fut.result()
+            _report(*futures[fut], results[futures[fut]])
     rows = [dict(tree=name, seed=seed, **results[(name, seed)]) for name, seed in jobs]
     print()
     print(format_table(rows, [("tree", "tree", ""), ("seed", "seed", "d"), ("auroc", "AUROC", ".3f"),
@@ -97,35 +90,30 @@ def run(args):
     return {"runs": rows, "targets": {k: v for k, v in targets.items() if k != "lines"}}
 
 
-def _one_thread():
-    os.environ["OMP_NUM_THREADS"] = "1"
-    import torch
-
-    torch.set_num_threads(1)
-
-
 def _report(name, seed, r):
     print(f"{name}, seed {seed}: AUROC {r['auroc']:.3f}, defective flagged {r['defective']:.3f}, good flagged "
           f"{r['good_text']}, oracle {r['oracle']:.3f} ({r['seconds']:.0f} s; log {r['log']})", flush=True)
 
 
 def _one(name, seed, cache_root, work):
-    """Run one tree at one seed with its suite (output to a log file). Returns its figures."""
-    from benchmarks.suites import inspection, real
-
+    """Run one tree at one seed: ``python -m benchmarks SUITE ...`` in a process of its own, its output to a log
+    file; returns the figures of its record (a RuntimeError naming the log when the run fails)."""
     suite, options = TREES[name]
-    module = {"inspection": inspection, "real": real}[suite]
     seeds = ["--seed", str(seed)] + (["--train-seed", str(seed)] if suite == "real" else [])
-    parser = argparse.ArgumentParser()
-    module.add_arguments(parser)
-    args = parser.parse_args(options + seeds + ["--cache", str(cache_root), "--work",
-                                                str(Path(work) / "runs" / suite)])
-    log = Path(work) / "logs" / f"{_slug(name)}_seed{seed}.log"
+    slug = f"{_slug(name)}_seed{seed}"
+    log, records = Path(work) / "logs" / f"{slug}.log", Path(work) / "records" / slug
+    log.parent.mkdir(parents=True, exist_ok=True)
+    shutil.rmtree(records, ignore_errors=True)
+    command = [sys.executable, "-m", "benchmarks", "--records", str(records), suite, *options, *seeds,
+               "--cache", str(cache_root), "--work", str(Path(work) / "runs" / suite)]
     t0 = time.perf_counter()
-    buffer = io.StringIO()
-    with contextlib.redirect_stdout(buffer):
-        figures = module.run(args)
-    log.write_text(buffer.getvalue())
+    with open(log, "w") as out:
+        done = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT,
+                              env={**os.environ, "OMP_NUM_THREADS": "1"})
+    found = sorted(records.glob(f"{suite}_*.json"))
+    if done.returncode != 0 or not found:
+        raise RuntimeError(f"verdicts: {name}, seed {seed} failed (exit status {done.returncode}); see {log}")
+    figures = json.loads(found[-1].read_text())["figures"]
     one = _pick(suite, options, figures)
     flagged = one["flagged"]
     n_good = int(flagged.get("n_good") or 0)
