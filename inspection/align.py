@@ -221,8 +221,6 @@ def pose_spread(scans, max_scans=AUTO_SCANS, seed=0):
     few degrees of hand placement give 1.3 and more (docs/results.md#parts-placed-by-hand-alignment-in-the-calibration-issue-27).
     Fewer than 3 scans: 1.0 (nothing to compare).
     """
-    from scipy.spatial import cKDTree
-
     from datasets.validation import points_and_normals
 
     scans = list(scans)
@@ -236,7 +234,7 @@ def pose_spread(scans, max_scans=AUTO_SCANS, seed=0):
         others = aligner.without(str(getattr(scan, "name", "") or f"scan {i}"))
         pts = np.asarray(points_and_normals(scan)[0], dtype=np.float64).reshape(-1, 3)
         T = others.transform(pts)
-        tree = cKDTree(others.points)
+        tree = others._tree  # built by transform
         residuals = []
         for p in (pts, pts @ T[:3, :3].T + T[:3, 3]):
             dist, j = tree.query(p, distance_upper_bound=12.0 * others.spacing)

@@ -285,12 +285,14 @@ class Inspector(BaseEstimator):
         if aligner is None:
             raise NotFittedError("align=True registers scans onto the good training scans chosen by fit: call fit "
                                  "first")
+        if isinstance(scan, np.ndarray) or not hasattr(scan, "points"):  # bare points: moved, with their transform
+            moved, _, transform = aligner.align(np.asarray(scan, dtype=np.float64).reshape(-1, 3))
+            return moved, transform
         moved = aligner.align_scan(scan)
         extra = getattr(moved, "extra", None)
-        transform = extra.get("align") if isinstance(extra, dict) else None
-        if transform is None:  # an array: the transform of the same registration
-            transform = aligner.transform(np.asarray(scan, dtype=np.float64).reshape(-1, 3))
-        return moved, transform
+        if isinstance(extra, dict) and "align" in extra:
+            return moved, extra["align"]
+        return moved, aligner.transform(np.asarray(scan.points, dtype=np.float64))  # a scan-like without extra
 
     def _evidence(self, scan, index, settings, exclude_own_code=False, timings=None):
         quantity = REFERENCE_QUANTITY if POINT_SCORES[settings.point_score].reference else None
