@@ -1,6 +1,8 @@
 """Stray points of a scan: isolated returns off the surface that the scan's other points define."""
 import numpy as np
 
+from .local_planes import smallest_eigenpairs
+
 STRAY_NEIGHBOURS = 8  # the local plane of a point is fitted to this many nearest neighbours (the point excluded)
 STRAY_FACTOR = 3.0  # a point this many local spacings off that plane is stray
 _CHUNK = 100_000  # points per block of neighbourhood arrays
@@ -57,8 +59,7 @@ def stray_points(points, k=STRAY_NEIGHBOURS, factor=STRAY_FACTOR):
         q = p[nb]  # (n, k, 3)
         centre = q.mean(axis=1)
         d = q - centre[:, None]
-        _, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", d, d))
-        normal = vecs[:, :, 0]  # eigenvector of the smallest eigenvalue: the plane's normal
+        _, normal = smallest_eigenpairs(np.matmul(d.transpose(0, 2, 1), d))  # the plane's normal
         off = np.abs(np.einsum("ni,ni->n", p[q_idx] - centre, normal))
         spacing = np.median(nn[nb], axis=1)
         out[q_idx] = off > factor * np.maximum(spacing, floor)

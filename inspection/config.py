@@ -21,9 +21,10 @@ from .threshold import DEFAULT_ALPHA, check_alpha
 
 DEFAULT_AGGREGATE = "top1"
 # Projection settings for inspection (autodecoder.latent.projection.ProjectionOptions fields): a shorter run from fewer
-# starts than the trainer's defaults that reaches the same projection loss at a fraction of the time
-# (docs/results.md). ``projection='default'`` means these; None means the projector's own defaults.
-DEFAULT_PROJECTION = {"steps": 60, "starts": 2, "explore": 20, "max_candidates": 16}
+# starts, on 128 points a step, than the trainer's defaults that reaches the same projection loss at a fraction of the
+# time (docs/results.md#at-the-line-seconds-per-scan-issue-30). ``projection='default'`` means these; None means the
+# projector's own defaults.
+DEFAULT_PROJECTION = {"steps": 60, "starts": 2, "explore": 20, "max_candidates": 16, "sample": 128}
 RAYS_CHOICES = (True, False, "auto")
 
 

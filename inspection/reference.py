@@ -8,6 +8,8 @@ import math
 
 import numpy as np
 
+from datasets.local_planes import smallest_eigenpairs
+
 REFERENCE_NEIGHBOURS = 16
 # |grad E f| is unitless (~1 on the mean surface of a well-fitted field, -> 0 far from it, where E f saturates); the
 # floor keeps E f / |grad E f| finite there while still growing well past the saturation distance
@@ -59,9 +61,8 @@ def _plane(points, nb, valid, k):
     centred = nb - centroid[:, None]
     # (m, 3, 3): sum_k w_k c_k c_k^T as one batched product (a three-operand einsum is ten times slower)
     cov = np.matmul((weight[:, :, None] * centred).transpose(0, 2, 1), centred) / count[:, None, None]
-    eigval, eigvec = np.linalg.eigh(cov)  # ascending
-    normal = eigvec[:, :, 0]
-    return np.einsum("mi,mi->m", normal, points - centroid), np.maximum(eigval[:, 0], 0.0)
+    spread, normal = smallest_eigenpairs(cov)
+    return np.einsum("mi,mi->m", normal, points - centroid), np.maximum(spread, 0.0)
 
 
 class LocalReference:
