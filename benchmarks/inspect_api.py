@@ -128,6 +128,37 @@ def calibrate_and_score(model_path, data_path, out_dir, *, rays=None, point_scor
     return summary
 
 
+def scoring_seconds(model_path, data_path, out_dir, jobs_list=(1, 2), progress=False):
+    """Throughput of ``python -m inspection score --jobs N``: an uncalibrated copy of a model calibrated once (the
+    defaults, on its training collection), then its test split scored with ``--maps none`` once per N.
+
+    Returns
+    -------
+    dict
+        ``scans`` (scored per run), ``calibration_seconds``, and per N (str) ``{"seconds", "scans_per_second",
+        "scores"}`` with ``scores`` the scores.csv rows' scores (equal across N: the runs must agree).
+    """
+    from inspection.run import calibrate, score
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    copy = out_dir / "model.pt"
+    shutil.copyfile(model_path, copy)
+    t0 = time.perf_counter()
+    calibrate(copy, data_path, progress=progress)
+    figures = {"calibration_seconds": time.perf_counter() - t0, "jobs": {}}
+    for jobs in jobs_list:
+        t0 = time.perf_counter()
+        score(copy, data_path, out_dir / f"jobs{jobs}", split="test", progress=progress, maps="none",
+              echo=lambda line: None, overwrite=True, jobs=int(jobs))
+        seconds = time.perf_counter() - t0
+        scores = read_scores(out_dir / f"jobs{jobs}")["score"].tolist()
+        figures["scans"] = len(scores)
+        figures["jobs"][str(jobs)] = {"seconds": seconds, "scans_per_second": len(scores) / seconds,
+                                      "scores": scores}
+    return figures
+
+
 def _drop_folds(model_path):
     """Remove the fold models from a model file (a copy), atomically."""
     from autodecoder.latent.folds import FOLDS_KEY

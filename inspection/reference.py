@@ -22,6 +22,9 @@ REFERENCE_QUANTITY = "distance"
 SELF_DISTANCE = 1e-6
 # candidates per plane neighbour searched for points on the same side as the scored point (LocalReference.surface)
 SURFACE_CANDIDATES = 4
+# scored points per block of neighbour queries: a 500,000-point scan's (m, 4 k + 1, 3) neighbourhoods and their
+# arrays would take gigabytes at once, a block of this many some 150 MB
+QUERY_CHUNK = 32768
 _MIN_VARIANCE = 1e-20  # total variances are floored here
 
 
@@ -224,15 +227,24 @@ class LocalReference:
         spread : (m,) float64
             The neighbours' variance along n, squared world units (>= 0).
         """
-        tree, surface_normals, self_distance = self._surface_tree()
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if normals is not None:
+            normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+        offset, spread = np.empty(len(points)), np.empty(len(points))
+        for start in range(0, len(points), QUERY_CHUNK):  # blocks keep a full-resolution scan's memory bounded
+            block = slice(start, start + QUERY_CHUNK)
+            offset[block], spread[block] = self._surface_block(points[block],
+                                                               None if normals is None else normals[block])
+        return offset, spread
+
+    def _surface_block(self, points, normals):
+        """:meth:`surface` of one block of (b, 3) points (float64) and their normals (b, 3) or None."""
+        tree, surface_normals, self_distance = self._surface_tree()
         k = min(self.k, tree.n - 1)
         if k < 3:
             raise ValueError(f"the reference surface needs >= 4 distinct points, got {tree.n}")
         sided = normals is not None and surface_normals is not None
         wide = min(SURFACE_CANDIDATES * k + 1, tree.n) if sided else k + 1
-        if sided:
-            normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
         offset, spread = np.empty(len(points)), np.empty(len(points))
         todo = np.arange(len(points))
         # the k + 1 nearest first: where k of them are valid and on the point's side (most points, away from thin
@@ -267,9 +279,14 @@ class LocalReference:
 
     def stats(self, points):
         """Local mean and standard deviation of the reference values around each point: (m,), (m,)."""
-        _, idx = self.tree.query(np.asarray(points, dtype=np.float64), self.k)
-        v = self.values[idx].astype(np.float64)  # (m, k)
-        return v.mean(1), v.std(1)
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        mean, std = np.empty(len(points)), np.empty(len(points))
+        for start in range(0, len(points), QUERY_CHUNK):
+            block = slice(start, start + QUERY_CHUNK)
+            _, idx = self.tree.query(points[block], self.k)
+            v = self.values[idx].astype(np.float64)  # (b, k)
+            mean[block], std[block] = v.mean(1), v.std(1)
+        return mean, std
 
     def standardized(self, points, value, variance, noise, grazing=None):
         """The point score (class docstring) of values (m,) with field variances (m,) and grazing factors (m,)

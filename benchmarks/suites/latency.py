@@ -8,7 +8,9 @@ load, projection, field quantities, grazing factors, stray points, reference (th
 rays, combine. Each point count of ``--points`` other than 4,000 gets its own cached collection of the same part
 and seed (the same frame; ``--scans`` test scans of it are timed under the same calibration). Beside it the
 nearest-neighbour baseline's seconds per scan (:func:`benchmarks.baselines.nn_baseline`, on the model's training
-scans' points). One warm-up scan per size is not counted.
+scans' points). One warm-up scan per size is not counted. Then the throughput of ``python -m inspection score
+--jobs N`` over the 4,000-point test split for each ``--jobs`` N (:func:`benchmarks.inspect_api.scoring_seconds`:
+wall time of the whole command, worker start-up included, and whether every N gave the same scores).
 """
 import time
 
@@ -34,6 +36,10 @@ def add_arguments(p):
                         "(default: %(default)s good, 1 per defect type)")
     p.add_argument("--threads", type=int, default=1, help="torch threads (default: %(default)s)")
     p.add_argument("--cache", default=cache.CACHE, help="collections and models (default: %(default)s)")
+    p.add_argument("--jobs", default="1,2",
+                   help="throughput: the test split scored by `python -m inspection score --jobs N` for each N "
+                        "(comma-separated; 'none': skip; default: %(default)s)")
+    p.add_argument("--work", default="results/latency", help="the throughput runs' folder (default: %(default)s)")
     p.add_argument("--progress", action="store_true", help="progress bars")
 
 
@@ -99,4 +105,17 @@ def run(args):
                ("max", "max", ".3f")] + [(k, k, ".3f") for k in STAGES] + \
         [("other", "other", ".3f"), ("NN s/scan", "NN s/scan", ".4f")]
     print(format_table(rows, columns))
+    if args.jobs != "none":
+        jobs = [int(v) for v in args.jobs.split(",")]
+        throughput = inspect_api.scoring_seconds(model, data, args.work, jobs, progress=args.progress)
+        first = throughput["jobs"][str(jobs[0])]["scores"]
+        throughput["same_scores"] = all(np.array_equal(one["scores"], first, equal_nan=True)
+                                        for one in throughput["jobs"].values())
+        figures["throughput"] = throughput
+        print(f"throughput, {throughput['scans']} test scans of {cache.COLLECTION_DEFAULTS['n_points']:,} points "
+              f"through `score --maps none` (calibrated in {throughput['calibration_seconds']:.1f} s); the same "
+              f"scores with every N: {throughput['same_scores']}")
+        print(format_table([{"jobs": n, "seconds": one["seconds"], "scans/s": one["scans_per_second"]}
+                            for n, one in throughput["jobs"].items()],
+                           [("jobs", "--jobs", ""), ("seconds", "seconds", ".1f"), ("scans/s", "scans/s", ".2f")]))
     return figures

@@ -220,3 +220,23 @@ class _Counting:
     def query(self, x, k):
         self._log.append((len(x), k))
         return self._tree.query(x, k)
+
+
+def test_queries_in_blocks_give_the_answer_of_one_block(monkeypatch):
+    """A full-resolution scan is scored in blocks of QUERY_CHUNK points (bounded memory): the surface offsets and
+    the reference statistics are those of one query over every point, sided or not."""
+    import inspection.reference as reference
+
+    rng = np.random.default_rng(5)
+    pts, normal = _tilted_plane(3000, 5, 0.01)
+    normals = np.tile(normal, (3000, 1))
+    normals[:300] *= -1  # a few points facing the other way take the wide query
+    ref = LocalReference(pts, rng.normal(size=3000), k=8, surface_points=pts, surface_normals=normals)
+    q = _tilted_plane(700, 6, 0.02)[0]
+    qn = np.tile(normal, (700, 1)) * rng.choice([-1.0, 1.0], size=(700, 1))
+    whole = ref.surface(q, qn), ref.surface(q), ref.stats(q)
+    monkeypatch.setattr(reference, "QUERY_CHUNK", 64)
+    blocked = ref.surface(q, qn), ref.surface(q), ref.stats(q)
+    for a, b in zip(whole, blocked):
+        np.testing.assert_array_equal(a[0], b[0])
+        np.testing.assert_array_equal(a[1], b[1])
