@@ -2,6 +2,7 @@
 import numpy as np
 
 from .local_planes import smallest_eigenpairs
+from .neighbours import NearestNeighbours
 
 STRAY_NEIGHBOURS = 8  # the local plane of a point is fitted to this many nearest neighbours (the point excluded)
 STRAY_FACTOR = 3.0  # a point this many local spacings off that plane is stray
@@ -33,8 +34,6 @@ def stray_points(points, k=STRAY_NEIGHBOURS, factor=STRAY_FACTOR):
     (N,) bool array
         True for stray points. All False when N <= k (too few points to judge).
     """
-    from scipy.spatial import cKDTree
-
     if k < 3:
         raise ValueError(f"stray_points: k must be >= 3 (a plane needs 3 points), got {k}")
     if not factor > 0:
@@ -42,7 +41,7 @@ def stray_points(points, k=STRAY_NEIGHBOURS, factor=STRAY_FACTOR):
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(p) <= k:
         return np.zeros(len(p), dtype=bool)
-    tree = cKDTree(p)
+    tree = NearestNeighbours(p)
     # one query for every point's k + 1 nearest (itself among them): its second distance is the point's nearest
     # other point (0 for duplicates), the same number a query of 2 gives
     dist, neighbours = tree.query(p, k + 1)

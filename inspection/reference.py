@@ -9,6 +9,7 @@ import math
 import numpy as np
 
 from datasets.local_planes import smallest_eigenpairs
+from datasets.neighbours import NearestNeighbours
 
 REFERENCE_NEIGHBOURS = 16
 # |grad E f| is unitless (~1 on the mean surface of a well-fitted field, -> 0 far from it, where E f saturates); the
@@ -146,6 +147,7 @@ class LocalReference:
             if a is not None and (self.surface_points is None or len(a) != len(self.surface_points)):
                 raise ValueError(f"{name} must have one entry per surface point")
         self._tree = None
+        self._neighbours = None
         self._surface = None
 
     @classmethod
@@ -188,6 +190,14 @@ class LocalReference:
             self._tree = cKDTree(self.points)
         return self._tree
 
+    @property
+    def neighbours(self):
+        """The k-nearest-neighbour index of the reference points (:class:`datasets.neighbours.NearestNeighbours`;
+        built once, on first use) that :meth:`stats` queries."""
+        if self._neighbours is None:
+            self._neighbours = NearestNeighbours(self.points)
+        return self._neighbours
+
     def _surface_tree(self):
         """(KD-tree over the distinct surface points, their normals (or None), self distance): a point that several
         good scans share (rendered views of one template) counts once in the plane fits."""
@@ -196,9 +206,13 @@ class LocalReference:
         if self._surface is None:
             points = self.points if self.surface_points is None else self.surface_points
             distinct, first = np.unique(points, axis=0, return_index=True)
+            # stored in a KD-tree's leaf order, so that a point's neighbours lie together in memory: gathering them
+            # (data[idx], normals[idx]) from the order of many interleaved scans cost about as much as the query
+            first = first[cKDTree(distinct).indices]
+            distinct = points[first]
             normals = None if self.surface_normals is None else self.surface_normals[first].astype(np.float64)
             diagonal = float(np.linalg.norm(np.ptp(distinct, axis=0)))
-            self._surface = (cKDTree(distinct), normals, SELF_DISTANCE * max(diagonal, 1e-12))
+            self._surface = (NearestNeighbours(distinct), normals, SELF_DISTANCE * max(diagonal, 1e-12))
         return self._surface
 
     def surface(self, points, normals=None):
@@ -283,7 +297,7 @@ class LocalReference:
         mean, std = np.empty(len(points)), np.empty(len(points))
         for start in range(0, len(points), QUERY_CHUNK):
             block = slice(start, start + QUERY_CHUNK)
-            _, idx = self.tree.query(points[block], self.k)
+            _, idx = self.neighbours.query(points[block], self.k)
             v = self.values[idx].astype(np.float64)  # (b, k)
             mean[block], std[block] = v.mean(1), v.std(1)
         return mean, std
