@@ -8,7 +8,9 @@ load, projection, field quantities, grazing factors, stray points, reference (th
 rays, combine. Each point count of ``--points`` other than 4,000 gets its own cached collection of the same part
 and seed (the same frame; ``--scans`` test scans of it are timed under the same calibration). Beside it the
 nearest-neighbour baseline's seconds per scan (:func:`benchmarks.baselines.nn_baseline`, on the model's training
-scans' points). One warm-up scan per size is not counted. Then the throughput of ``python -m inspection score
+scans' points). One warm-up scan per size is not counted. The process's peak resident memory is printed after the
+calibration and after each size (``--points 4000,30000,300000``: whether a full-resolution scan stays within what the
+calibration needed). Then the throughput of ``python -m inspection score
 --jobs N`` over the 4,000-point test split for each ``--jobs`` N (:func:`benchmarks.inspect_api.scoring_seconds`:
 wall time of the whole command, worker start-up included, and whether every N gave the same scores).
 """
@@ -50,6 +52,16 @@ def _spread(indices, n):
     return [indices[i] for i in np.linspace(0, len(indices) - 1, n).round().astype(int)]
 
 
+def _peak_rss_mb():
+    """The process's peak resident memory so far (MB): after the calibration, then after each size's scans (a
+    size that needs more than all before it raises it)."""
+    import resource
+    import sys
+
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (1024.0 * 1024.0 if sys.platform == "darwin" else 1024.0)  # bytes on macOS, kB on Linux
+
+
 def _time_scans(insp, scans):
     """Per scan: score and timings (a warm-up scan first, not counted)."""
     inspect_api.timed_inspect(insp, scans[0])
@@ -69,11 +81,13 @@ def run(args):
     t0 = time.perf_counter()
     insp = inspect_api.fit_inspector(model, data, progress=args.progress)
     calibrate_seconds = time.perf_counter() - t0
+    figures_peak = _peak_rss_mb()
     with ScanCollection(data) as c:
         names = c.names
         train_points = np.concatenate([s.points for s in c.read_many(
             [i for i in c.select(split="train") if names[i] not in set(info["heldback_names"])])])
-    figures = {"part": args.part, "threads": args.threads, "calibrate_seconds": calibrate_seconds, "sizes": {}}
+    figures = {"part": args.part, "threads": args.threads, "calibrate_seconds": calibrate_seconds,
+               "peak_rss_mb_after_calibration": figures_peak, "sizes": {}}
     rows = []
     for n in sizes:
         if n == cache.COLLECTION_DEFAULTS["n_points"]:
@@ -95,15 +109,17 @@ def run(args):
                                     "other": float(np.mean(total) - sum(stages.values())),
                                     "nn_seconds_per_scan": nn_seconds,
                                     "scores": {s.name: v for s, (v, _, _) in zip(scans, timed)}}
+        figures["sizes"][str(n)]["peak_rss_mb"] = _peak_rss_mb()
         f = figures["sizes"][str(n)]
         rows.append({"points": f"{points:,.0f}", "scans": len(scans), "s/scan": f["seconds_per_scan"],
                      "max": f["seconds_max"], **{k: stages[k] for k in STAGES}, "other": f["other"],
-                     "NN s/scan": nn_seconds})
-    print(f"{args.part}, seed {args.seed}: calibrated in {calibrate_seconds:.1f} s; seconds per scan and per stage, "
-          f"{args.threads} torch thread(s)")
+                     "NN s/scan": nn_seconds, "peak MB": f["peak_rss_mb"]})
+    print(f"{args.part}, seed {args.seed}: calibrated in {calibrate_seconds:.1f} s (peak memory then "
+          f"{figures_peak:.0f} MB); seconds per scan and per stage, {args.threads} torch thread(s); peak MB: the "
+          f"process's peak resident memory after each size's scans")
     columns = [("points", "points", ""), ("scans", "scans", "d"), ("s/scan", "s/scan", ".3f"),
                ("max", "max", ".3f")] + [(k, k, ".3f") for k in STAGES] + \
-        [("other", "other", ".3f"), ("NN s/scan", "NN s/scan", ".4f")]
+        [("other", "other", ".3f"), ("NN s/scan", "NN s/scan", ".4f"), ("peak MB", "peak MB", ".0f")]
     print(format_table(rows, columns))
     if args.jobs != "none":
         jobs = [int(v) for v in args.jobs.split(",")]
