@@ -32,7 +32,8 @@ Cyberware 3030 sweeps linearly (orthographic along x), so the sensor origin stor
 The run: the tree imported (``datasets.importer.import_tree``, as ``python -m datasets import``), a model trained
 with the trainer's defaults (``benchmarks.cache.trained_model``), scored the README's way on an uncalibrated copy
 (``benchmarks.inspect_api.calibrate_and_score``, ``--maps all``). Printed: object AUROC per defect type and overall
-next to the nearest-neighbour baseline, the fractions of good and defective test scans flagged at the calibrated
+next to the nearest-neighbour baseline, and that of the default's two terms alone (the point score, the ray score,
+from the same run's scores.csv), the fractions of good and defective test scans flagged at the calibrated
 default, seconds per scan. ``--diagnose`` then reads the run's per-point scores (the inspection API, as ``score``
 computes them) and prints what the worst points of the good scans are (border, grazing, sparse, stray, rarely
 covered by training), with pictures in the run's ``diagnosis/``.
@@ -435,13 +436,19 @@ def score(data, model, run_dir, args):
     print(f"\nreal bunny ({len(train)} training scans for the NN baseline, {int((~bad).sum())} good and "
           f"{int(bad.sum())} defective test scans); object AUROC")
     nn_name = "nearest-neighbour top5%" + (" (ICP)" if summary.get("aligned") else "")
-    print(format_table([{"method": nn_name, **base}, {"method": "toolkit (defaults)", **ours}],
+    # the default's two terms alone (issue 29: rays must not cost the point score anything on real parts)
+    terms = {name: metrics.auroc_per_defect(scored[key], scored["label"], scored["defect"])
+             for name, key in (("point score alone", "score_points"), ("ray score alone", "score_rays"))
+             if key in scored and np.isfinite(scored[key]).all()}
+    print(format_table([{"method": nn_name, **base}, {"method": "toolkit (defaults)", **ours}]
+                       + [{"method": f"toolkit, {name}", **one} for name, one in terms.items()],
                        [("method", "", "")] + [(k, k, ".3f") for k in cols]))
     print(f"flagged at the calibrated default (alpha {summary.get('alpha')}): good {flagged['good']:.3f}, "
           f"defective {flagged['defective']:.3f}")
     print(f"seconds per scan: toolkit {summary.get('seconds_per_scan', float('nan')):.2f} (calibration and scoring "
           f"wall {t_score / len(test):.2f}); NN baseline {t_nn:.3f}; training {info['train_seconds'] or 0:.0f} s")
     return {"collection": str(data), "model": str(model), "run": str(run_dir), "toolkit": ours, "nn": base,
+            "terms": terms,
             "flagged": flagged, "seconds_per_scan": summary.get("seconds_per_scan"), "nn_seconds_per_scan": t_nn,
             "train_seconds": info["train_seconds"], "summary": inspect_api.summary_figures(summary),
             "verdicts": verdict_rows}
