@@ -10,6 +10,8 @@ import json
 import time
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 CACHE = "results/cache"
 SHARED = ROOT.parent / "shared"
@@ -96,6 +98,75 @@ def synth_collection(part, seed=0, root=CACHE, progress=False, **params):
         ScanCollection.create(folder / "tree.h5", scans, frame=frame, provenance={"benchmark": "cache", **keyed})
 
     return cached_path("collection", keyed, build, root, label=Path(str(part)).stem) / "tree.h5"
+
+
+# a product family (issue 32): training scans of variants stretched along the part's longest axis by these factors
+# (evenly spread over both ranges), test scans of one variant that no training scan showed
+FAMILY_STRETCH = ((0.8, 0.9), (1.1, 1.2))
+FAMILY_VARIANTS = 8
+
+
+def stretched(mesh, factor):
+    """A copy of ``mesh`` stretched by ``factor`` along its bounding box's longest axis, about the box's centre."""
+    out = mesh.copy()
+    lo, hi = out.bounds
+    axis = int(np.argmax(hi - lo))
+    centre = (lo[axis] + hi[axis]) / 2
+    vertices = out.vertices.copy()
+    vertices[:, axis] = centre + float(factor) * (vertices[:, axis] - centre)
+    out.vertices = vertices
+    return out
+
+
+def family_collection(part, seed=0, root=CACHE, progress=False, test_stretch=1.0, **params):
+    """A product family's scan collection, cached (returns its ``tree.h5``): ``n_train`` good training scans of
+    :data:`FAMILY_VARIANTS` variants of ``part`` stretched along its longest axis (:func:`stretched`, factors
+    evenly spread over :data:`FAMILY_STRETCH`, the scans shared out evenly), and test scans (good and defective, as
+    :func:`synth_collection`'s) of the variant stretched by ``test_stretch`` (1.0: the nominal part, inside the
+    family's range and never trained on; 1.3: just outside it). Each variant is synthesised in its own frame, its
+    scans moved to file units and the whole collection into one frame fitted to the training scans; a scan's name
+    holds its variant (``train/good/stretch0.800_001``).
+
+    Parameters
+    ----------
+    part : str
+        See :func:`part_mesh`.
+    seed : int
+    test_stretch : float
+    **params
+        ``synthesise``'s keyword arguments (defaults: :data:`COLLECTION_DEFAULTS`).
+    """
+    params = {**COLLECTION_DEFAULTS, **params}
+    keyed = {"part": part, "seed": seed, "family": [list(r) for r in FAMILY_STRETCH], "variants": FAMILY_VARIANTS,
+             "test_stretch": float(test_stretch), **params}
+
+    def build(folder):
+        from dataclasses import replace
+
+        from datasets import ScanCollection
+        from datasets.frame import Frame
+        from datasets.synth import synthesise
+
+        mesh = part_mesh(part)
+        factors = np.concatenate([np.linspace(lo, hi, FAMILY_VARIANTS // len(FAMILY_STRETCH))
+                                  for lo, hi in FAMILY_STRETCH])
+        shares = np.diff(np.linspace(0, params["n_train"], len(factors) + 1).round().astype(int))
+        groups = [(f, dict(params, n_train=int(n), n_test_good=0, n_test_defective=0))
+                  for f, n in zip(factors, shares) if n > 0]
+        groups.append((float(test_stretch), dict(params, n_train=0)))
+        scans = []
+        for k, (factor, options) in enumerate(groups):
+            variant, frame = synthesise(stretched(mesh, factor), seed=seed * 1000 + k, progress=progress, **options)
+            for s in variant:  # to file units, named after the variant
+                origin = None if s.sensor_origin is None else frame.to_file(np.reshape(s.sensor_origin, (1, 3)))[0]
+                head, tail = s.name.rsplit("/", 1)
+                scans.append(replace(s, name=f"{head}/stretch{factor:.3f}_{tail}", points=frame.to_file(s.points),
+                                     sensor_origin=origin))
+        common = Frame.fit(np.concatenate([s.points for s in scans if s.split == "train"]))
+        ScanCollection.create(folder / "tree.h5", (common.apply(s) for s in scans), frame=common,
+                              provenance={"benchmark": "cache", **keyed})
+
+    return cached_path("collection", keyed, build, root, label=f"{Path(str(part)).stem}-family") / "tree.h5"
 
 
 def trained_model(collection_path, root=CACHE, **train_options):

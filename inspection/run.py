@@ -191,8 +191,9 @@ def _inspect_scans(insp, scans, maps, maps_dir, progress, uncertain=True, jobs=1
     """Inspect every scan (registered first when the calibration aligns) and write the anomaly maps ``maps`` asks for. A scan that
     cannot be scored (a ValueError naming it) gets an ``'error'`` row and the others go on.
 
-    With ``jobs`` > 1 the scans are scored by that many worker processes (a 'spawn' context, one torch thread each),
-    each of which builds its inspector once from ``worker_spec`` = (model path, calibration, alpha). A scan's scoring is deterministic (its projection is seeded), so the rows
+    With ``jobs`` > 1 the scans are scored by that many processes: this one and ``jobs - 1`` workers (a 'spawn'
+    context, one torch thread each), each of which builds its inspector once from ``worker_spec`` = (model path,
+    calibration, alpha) (:func:`_inspect_in_workers`). A scan's scoring is deterministic (its projection is seeded), so the rows
     are those of one process, in the input order whatever the order the workers finish in.
 
     Returns a dict: ``rows`` (one per scan, the CSV columns), ``point_labels``, ``point_scores`` and ``ray_maps``
@@ -207,7 +208,7 @@ def _inspect_scans(insp, scans, maps, maps_dir, progress, uncertain=True, jobs=1
         outs = (_inspect_one(insp, scan, i, maps, maps_dir, uncertain)
                 for i, scan in enumerate(tqdm(scans, desc="inspect", unit="scan", disable=not progress)))
     else:
-        outs = _inspect_in_workers(worker_spec, scans, maps, maps_dir, progress, uncertain, jobs)
+        outs = _inspect_in_workers(worker_spec, scans, maps, maps_dir, progress, uncertain, jobs, insp)
     for one in outs:
         results["rows"].append(one["row"])
         if "seconds" not in one:  # an error row
@@ -265,7 +266,8 @@ _WORKER = {}  # a worker process's inspector, built once by _start_worker
 
 def _start_worker(spec):
     """A worker process's initializer: one thread (torch, BLAS), Ctrl-C left to the parent, the inspector built once
-    from ``spec`` = (model path, calibration, alpha)."""
+    from ``spec`` = pickle bytes of (model path, calibration, alpha)."""
+    import pickle
     import signal
 
     import torch
@@ -278,7 +280,7 @@ def _start_worker(spec):
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops the pool; no traceback per worker
     torch.set_num_threads(1)  # N processes, a core each: no thread oversubscription, in torch or in BLAS
     threadpool_limits(1)
-    path, calibration, alpha = spec
+    path, calibration, alpha = pickle.loads(spec)
     handle = load_model(path)
     _WORKER["insp"] = Inspector.from_calibration(handle.model, calibration, alpha)
 
@@ -287,25 +289,50 @@ def _worker_inspect(scan, i, maps, maps_dir, uncertain):
     return _inspect_one(_WORKER["insp"], scan, i, maps, maps_dir, uncertain)
 
 
-def _inspect_in_workers(spec, scans, maps, maps_dir, progress, uncertain, jobs):
-    """:func:`_inspect_one` of every scan in ``jobs`` processes; yields their outputs in the input order."""
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+def _inspect_in_workers(spec, scans, maps, maps_dir, progress, uncertain, jobs, insp=None):
+    """:func:`_inspect_one` of every scan in ``jobs`` processes; returns their outputs in the input order.
 
+    With the parent's own inspector ``insp``, the parent is one of the ``jobs``: it starts ``jobs - 1`` workers and
+    scores scans from the end of the list, on one torch thread, while the workers start (a worker spends seconds
+    loading torch, the model and the calibration) and take scans from the front; each scan is scored once, by
+    whoever takes it first (a scan already handed to a worker cannot be taken back). Without it, ``jobs`` workers."""
+    import multiprocessing
+    import pickle
+    from concurrent.futures import ProcessPoolExecutor
+
+    import torch
     from tqdm import tqdm
 
     outs = [None] * len(scans)
-    pool = ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"), initializer=_start_worker,
-                               initargs=(spec,))
+    workers = jobs - 1 if insp is not None else jobs
+    # the spec goes as plain pickle bytes: multiprocessing's own pickler would move the calibration's torch tensors
+    # into shared memory, under the numpy arrays of this process's inspector that view them (which then read freed
+    # memory: this process scores scans too)
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_start_worker,
+                               initargs=(pickle.dumps(spec),))
+    bar = tqdm(total=len(scans), desc=f"inspect ({jobs} processes)", unit="scan", disable=not progress)
     try:
-        futures = {}
-        for i, scan in enumerate(scans):
-            futures[pool.submit(_worker_inspect, scan, i, maps, maps_dir, uncertain)] = i
-        for fut in tqdm(as_completed(futures), total=len(futures), desc=f"inspect ({jobs} processes)", unit="scan",
-                        disable=not progress):
-            outs[futures[fut]] = fut.result()
+        futures = [pool.submit(_worker_inspect, scan, i, maps, maps_dir, uncertain) for i, scan in enumerate(scans)]
+        for fut in futures:
+            fut.add_done_callback(lambda f: None if f.cancelled() else bar.update())
+        if insp is not None:
+            threads = torch.get_num_threads()
+            torch.set_num_threads(1)  # a core of its own, as each worker has
+            try:
+                for i in reversed(range(len(scans))):
+                    if not futures[i].cancel():  # the workers have reached this scan: the rest is theirs
+                        break
+                    outs[i] = _inspect_one(insp, scans[i], i, maps, maps_dir, uncertain)
+                    bar.update()
+            finally:
+                torch.set_num_threads(threads)
+        for i, fut in enumerate(futures):
+            if outs[i] is None:
+                outs[i] = fut.result()
     except BaseException:
         pool.shutdown(wait=False, cancel_futures=True)
         raise
+    finally:
+        bar.close()
     pool.shutdown()
     return outs

@@ -274,3 +274,38 @@ def test_verdict_targets_are_checked_as_the_issue_states():
     assert out["over_one_in_16"] == ["a seed 0 (2 of 16)"]
     assert [m.split(" (")[0] for m in out["detection_misses"]] == ["b seed 0", "c seed 0"]
     assert len(TREES) >= 10
+
+
+def test_a_family_variant_is_stretched_along_the_longest_axis_only():
+    import trimesh
+
+    box = trimesh.creation.box(extents=(4.0, 1.0, 2.0))
+    box.apply_translation((1.0, 2.0, 3.0))
+    longer = cache.stretched(box, 1.15)
+    np.testing.assert_allclose(longer.extents, (4.6, 1.0, 2.0))
+    np.testing.assert_allclose(longer.bounds.mean(0), box.bounds.mean(0))  # about the box's centre
+    np.testing.assert_allclose(box.extents, (4.0, 1.0, 2.0))  # the original is untouched
+
+
+def test_a_family_collection_trains_on_variants_and_tests_an_unseen_one(tmp_path):
+    """Small sizes: every training scan is of a stretched variant from the family's ranges, the test scans of the
+    asked-for variant, all in one frame fitted to the training scans."""
+    from datasets import ScanCollection
+
+    path = cache.family_collection("builtin", seed=0, root=tmp_path, n_train=8, n_test_good=2, n_test_defective=1,
+                                   n_points=300, test_stretch=1.0)
+    with ScanCollection(path) as c:
+        scans = c.read_many(range(len(c)))
+    train = [s for s in scans if s.split == "train"]
+    test = [s for s in scans if s.split == "test"]
+    assert len(train) == 8 and len(test) == 2 + 4
+    def stretch(scan):  # the variant is in the scan's name: <split>/<label>/stretch<factor>_<number>
+        return float(scan.name.rsplit("/", 1)[1].split("_")[0][len("stretch"):])
+
+    stretches = sorted({stretch(s) for s in train})
+    assert len(stretches) == cache.FAMILY_VARIANTS
+    assert all(any(lo <= f <= hi for lo, hi in cache.FAMILY_STRETCH) for f in stretches)
+    assert {stretch(s) for s in test} == {1.0}
+    assert len({s.name for s in scans}) == len(scans)
+    pts = np.concatenate([s.points for s in train])
+    assert np.abs(pts).max() <= 0.5 + 1e-9  # the frame holds the training scans

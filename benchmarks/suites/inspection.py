@@ -18,6 +18,9 @@ Two other regimes, as options:
   (the synthetic collection's test scans), written as a Real3D-AD class folder and imported by the datasets
   importer (the templates become ``--views`` partial training views and ``--validation-views`` held-back views
   each); trained, calibrated and scored as above; object and point AUROC per defect type next to the baseline.
+- ``--family STRETCH``: a product family (:func:`benchmarks.cache.family_collection`): the training scans show
+  variants of the part stretched along its longest axis, the test scans one variant that none showed (STRETCH 1.0:
+  the nominal part, inside the family's range; 1.3: outside it); scored as above.
 """
 import json
 import time
@@ -44,6 +47,11 @@ def add_arguments(p):
     p.add_argument("--points", type=int, default=4000, help="points per scan (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="synthesis and training seed (default: %(default)s)")
     p.add_argument("--jitter", type=float, default=0.0, help="pose jitter of every scan, degrees (default: none)")
+    p.add_argument("--family", type=float, default=None, metavar="STRETCH",
+                   help="a product family (issue 32): training scans of variants of each part stretched along its "
+                        "longest axis by 0.8-0.9 and 1.1-1.2 (benchmarks.cache.family_collection), test scans of the "
+                        "variant stretched by STRETCH (1.0: the nominal part, inside the range, never trained on; "
+                        "1.3: just outside it); compare with the same part without --family (its own model)")
     inspect_api.add_align_options(p)
     rays = p.add_mutually_exclusive_group()
     rays.add_argument("--rays", dest="rays", action="store_const", const=True, default=None,
@@ -111,10 +119,16 @@ def _run_name(args):
 def _single(part, args):
     """One part at the defaults. Returns (collection path, figures, table rows)."""
     t0 = time.perf_counter()
-    data = cache.synth_collection(part, args.seed, root=args.cache, progress=args.progress, n_train=args.train,
-                                  n_test_good=args.test_good, n_test_defective=args.per_defect or 16,
-                                  n_points=args.points, jitter_deg=args.jitter,
-                                  **({"sensor_origins": False} if args.no_origins else {}))
+    sizes = dict(n_train=args.train, n_test_good=args.test_good, n_test_defective=args.per_defect or 16,
+                 n_points=args.points, jitter_deg=args.jitter)
+    if args.family is not None:
+        if args.no_origins:
+            raise SystemExit("inspection: --family and --no-origins do not go together")
+        data = cache.family_collection(part, args.seed, root=args.cache, progress=args.progress,
+                                       test_stretch=args.family, **sizes)
+    else:
+        data = cache.synth_collection(part, args.seed, root=args.cache, progress=args.progress, **sizes,
+                                      **({"sensor_origins": False} if args.no_origins else {}))
     model = cache.trained_model(data, root=args.cache, **_train_options(args))
     info = inspect_api.model_info(model)
     print(f"{part}: collection {data}, model {model} (trained in {info['train_seconds'] or float('nan'):.0f} s; "
