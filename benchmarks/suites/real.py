@@ -93,8 +93,8 @@ def run(args):
                                                     + ("_norays" if args.no_rays else "")
                                                     + {True: "_aligned", False: "_noalign", None: ""}[args.align])
     figures = score(data, model, run_dir, args)
-    if args.diagnose:
-        diagnose(data, run_dir)
+    if args.diagnose:  # the run scored last (without fold models: the folder's name says so)
+        diagnose(data, Path(figures["run"]) if args.folds != "off" else run_dir.with_name(run_dir.name + "_nofolds"))
     return figures
 
 
