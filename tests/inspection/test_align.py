@@ -263,3 +263,48 @@ def test_a_full_resolution_scan_is_registered_by_a_subset_as_well():
     aligner = Aligner(target.points, target.normals)
     back, _, _ = aligner.align(moved.points)
     assert np.median(np.linalg.norm(back - truth, axis=1)) < 0.25 * aligner.spacing
+
+
+def test_the_start_with_the_smallest_residual_goes_on(monkeypatch):
+    """Registration runs each start through the coarsest level and continues from the one whose residual is then
+    the smallest (the first of equals): with the residual of the third start made the smallest, the transform is
+    the finer levels' continuation of that start's coarse registration, to the bit; with all equal, the first's."""
+    import inspection.align as align
+
+    target = _corner("target", "train", 0, n=6000)
+    moved = _corner("placed", "test", 1, rotation_deg=4.0, n=1500).points.astype(np.float64)
+    aligner = align.Aligner(target.points, target.normals)
+    aligner.transform(moved)  # builds the tree
+    centre = moved.mean(0)
+
+    def continued(k):
+        R, t = aligner._icp(moved, centre, align._starts()[k], np.zeros(3), aligner.levels[:1], align.START_ITERATIONS)
+        R, t = aligner._icp(moved, centre, R, t, aligner.levels[1:])
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, centre + t - R @ centre
+        return T
+
+    calls = []
+
+    def ranked(points):  # the third start's coarse result scores lowest
+        calls.append(len(calls))
+        return 0.0 if len(calls) == 3 else 1.0
+
+    monkeypatch.setattr(aligner, "_residual", ranked)
+    np.testing.assert_array_equal(aligner.transform(moved), continued(2))
+    assert len(calls) == len(align._starts())
+    monkeypatch.setattr(aligner, "_residual", lambda points: 1.0)
+    np.testing.assert_array_equal(aligner.transform(moved), continued(0))
+
+
+def test_the_starts_are_the_placement_and_small_turns_about_each_axis():
+    from scipy.spatial.transform import Rotation
+
+    from inspection.align import START_DEGREES, _starts
+
+    starts = _starts()
+    np.testing.assert_array_equal(starts[0], np.eye(3))
+    angles = [np.degrees(Rotation.from_matrix(R).magnitude()) for R in starts[1:]]
+    np.testing.assert_allclose(angles, START_DEGREES)
+    axes = {tuple(np.round(Rotation.from_matrix(R).as_rotvec() / np.radians(START_DEGREES), 9)) for R in starts[1:]}
+    assert axes == {tuple(s * np.eye(3)[i]) for i in range(3) for s in (1.0, -1.0)}
