@@ -158,7 +158,7 @@ def family_collection(part, seed=0, root=CACHE, progress=False, test_stretch=1.0
         for k, (factor, options) in enumerate(groups):
             variant, frame = synthesise(stretched(mesh, factor), seed=seed * 1000 + k, progress=progress, **options)
             for s in variant:  # to file units, named after the variant
-                origin = None if s.sensor_origin is None else frame.to_file(np.reshape(s.sensor_origin, (1, 3)))[0]
+                origin = None if s.sensor_origin is None else frame.to_file(s.sensor_origin)
                 head, tail = s.name.rsplit("/", 1)
                 scans.append(replace(s, name=f"{head}/stretch{factor:.3f}_{tail}", points=frame.to_file(s.points),
                                      sensor_origin=origin))

@@ -28,7 +28,7 @@ def smallest_eigenpairs(matrices):
     Parameters
     ----------
     matrices : (m, 3, 3) array
-        Symmetric, finite; scatter or covariance matrices in any units.
+        Symmetric, finite (ValueError otherwise); scatter or covariance matrices in any units.
 
     Returns
     -------
@@ -40,6 +40,8 @@ def smallest_eigenpairs(matrices):
     a = np.asarray(matrices, dtype=np.float64)
     if a.ndim != 3 or a.shape[1:] != (3, 3):
         raise ValueError(f"smallest_eigenpairs expects (m, 3, 3) matrices, got shape {a.shape}")
+    if not np.isfinite(a).all():
+        raise ValueError("smallest_eigenpairs needs finite matrices (NaN or inf among them)")
     m = len(a)
     value, vector = np.empty(m), np.empty((m, 3))
     if m == 0:

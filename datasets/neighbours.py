@@ -19,7 +19,7 @@ class NearestNeighbours:
     Parameters
     ----------
     points : (n, 3) array
-        Finite; copied as float64 (the distances are then float64 too).
+        Finite (ValueError otherwise); copied as float64 (the distances are then float64 too).
     """
 
     def __init__(self, points):
@@ -28,6 +28,8 @@ class NearestNeighbours:
         self.data = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
         if len(self.data) == 0:
             raise ValueError("NearestNeighbours needs at least one point")
+        if not np.isfinite(self.data).all():  # pykdtree would answer with arbitrary neighbours
+            raise ValueError("NearestNeighbours needs finite points (NaN or inf among them)")
         self._tree = KDTree(self.data)
 
     def __getstate__(self):  # the tree is rebuilt from the points (pykdtree's trees do not pickle)
@@ -60,6 +62,8 @@ class NearestNeighbours:
         if not 1 <= k <= self.n:
             raise ValueError(f"k must be in [1, {self.n}] (the indexed points), got {k}")
         x = np.ascontiguousarray(np.asarray(x, dtype=np.float64).reshape(-1, 3))
+        if not np.isfinite(x).all():
+            raise ValueError("NearestNeighbours.query needs finite query points (NaN or inf among them)")
         if len(x) == 0:
             return np.zeros((0, k)), np.zeros((0, k), dtype=np.intp)
         distance, index = self._tree.query(x, k=k)

@@ -140,13 +140,10 @@ class Aligner:
     def transform(self, points, normals=None):
         """The rigid transform (4, 4) that moves ``points`` (m, 3) onto the reference (module docstring).
         ``normals`` are not needed: the residuals are along the target's normals."""
-        from scipy.spatial import cKDTree
-
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         if len(pts) == 0 or not np.isfinite(pts).all():
             raise ValueError(f"registration needs finite (m >= 1, 3) points, got {pts.shape}")
-        if self._tree is None:
-            self._tree = cKDTree(self.points)
+        self._kdtree()
         centre = pts.mean(0)
         if len(pts) > MAX_SOURCE:
             pts = pts[np.linspace(0, len(pts) - 1, MAX_SOURCE).round().astype(np.int64)]
@@ -165,14 +162,29 @@ class Aligner:
         T[:3, :3], T[:3, 3] = R, centre + t - R @ centre
         return T
 
+    def plane_distances(self, points, bound):
+        """|point-to-plane distance| of each of ``points`` (m, 3) to its nearest target point's tangent plane, for
+        the points with a target point within ``bound``: returns (which points have one (m,) bool, their distances).
+        Builds the target's k-d tree on first use."""
+        dist, j = self._kdtree().query(points, distance_upper_bound=bound)
+        ok = np.isfinite(dist)
+        return ok, np.abs(np.einsum("ij,ij->i", points[ok] - self.points[j[ok]], self.normals[j[ok]]))
+
+    def _kdtree(self):
+        """The k-d tree over the target points (built once, on first use)."""
+        from scipy.spatial import cKDTree
+
+        if self._tree is None:
+            self._tree = cKDTree(self.points)
+        return self._tree
+
     def _residual(self, moved):
         """The median point-to-plane distance of ``moved`` (m, 3) to the target, a point with no target point
         within 3 spacings counting as 3 spacings (a start that slid off the part does not win by matching few)."""
         cap = 3.0 * self.spacing
-        dist, j = self._tree.query(moved, distance_upper_bound=cap)
-        ok = np.isfinite(dist)
+        ok, distances = self.plane_distances(moved, cap)
         r = np.full(len(moved), cap)
-        r[ok] = np.minimum(np.abs(np.einsum("ij,ij->i", moved[ok] - self.points[j[ok]], self.normals[j[ok]])), cap)
+        r[ok] = np.minimum(distances, cap)
         return float(np.median(r))
 
     def _icp(self, pts, centre, R, t, levels, iterations=None):
@@ -220,19 +232,9 @@ class Aligner:
     def align_scan(self, scan):
         """``scan`` moved onto the reference: a copy of a :class:`datasets.Scan` (the transform in
         ``extra['align']``, the sensor origin moved with it), or the moved (m, 3) points of an array."""
-        from dataclasses import replace
-
         if isinstance(scan, np.ndarray) or not hasattr(scan, "points"):
             return self.align(np.asarray(scan, dtype=np.float64).reshape(-1, 3))[0]
-        p, n, T = self.align(scan.points, getattr(scan, "normals", None))
-        origin = getattr(scan, "sensor_origin", None)
-        origin = None if origin is None else (T[:3, :3] @ np.asarray(origin, dtype=np.float64) + T[:3, 3])
-        changes = dict(points=p, normals=n)
-        if hasattr(scan, "sensor_origin"):
-            changes["sensor_origin"] = origin
-        if isinstance(getattr(scan, "extra", None), dict):
-            changes["extra"] = {**scan.extra, "align": T}
-        return replace(scan, **changes)
+        return moved_by(scan, self.transform(scan.points))
 
 
 def _starts():
@@ -282,15 +284,12 @@ def pose_spread(scans, max_scans=AUTO_SCANS, seed=0):
         others = aligner.without(str(getattr(scan, "name", "") or f"scan {i}"))
         pts = np.asarray(points_and_normals(scan)[0], dtype=np.float64).reshape(-1, 3)
         T = others.transform(pts)
-        tree = others._tree  # built by transform
         residuals = []
         for p in (pts, pts @ T[:3, :3].T + T[:3, 3]):
-            dist, j = tree.query(p, distance_upper_bound=12.0 * others.spacing)
-            ok = np.isfinite(dist)
+            ok, distances = others.plane_distances(p, 12.0 * others.spacing)
             if ok.sum() < 10:
                 break
-            residuals.append(np.median(np.abs(np.einsum("ij,ij->i", p[ok] - others.points[j[ok]],
-                                                       others.normals[j[ok]]))))
+            residuals.append(np.median(distances))
         if len(residuals) == 2 and residuals[1] > 0:
             ratios.append(residuals[0] / residuals[1])
     return float(np.median(ratios)) if ratios else 1.0
@@ -308,8 +307,6 @@ def register_group(scans, rounds=GROUP_ROUNDS, seed=0):
     scans are registered onto, and the per-location reference they are compared with, are as sharp as a fixture's rather than the blur
     of every placement. Returns copies of ``scans`` (the same order; :meth:`Aligner.align_scan`'s, the transform of
     all rounds in ``extra['align']`` for a :class:`datasets.Scan`). Fewer than 3 scans: returned as they are."""
-    from dataclasses import replace
-
     from datasets.validation import points_and_normals
 
     scans = list(scans)
@@ -329,18 +326,23 @@ def register_group(scans, rounds=GROUP_ROUNDS, seed=0):
             points[i], total[i] = moved, T @ total[i]
         if np.median(motion) < GROUP_SETTLED * target.spacing:
             break
-    out = []
-    for scan, T in zip(scans, total):
-        if isinstance(scan, np.ndarray) or not hasattr(scan, "points"):
-            out.append(np.asarray(scan, dtype=np.float64).reshape(-1, 3) @ T[:3, :3].T + T[:3, 3])
-            continue
-        normals = getattr(scan, "normals", None)
-        origin = getattr(scan, "sensor_origin", None)
-        changes = dict(points=np.asarray(scan.points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3],
-                       normals=None if normals is None else np.asarray(normals, dtype=np.float64) @ T[:3, :3].T)
-        if hasattr(scan, "sensor_origin"):
-            changes["sensor_origin"] = None if origin is None else T[:3, :3] @ np.asarray(origin, np.float64) + T[:3, 3]
-        if isinstance(getattr(scan, "extra", None), dict):
-            changes["extra"] = {**scan.extra, "align": T}
-        out.append(replace(scan, **changes))
-    return out
+    return [np.asarray(scan, dtype=np.float64).reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
+            if isinstance(scan, np.ndarray) or not hasattr(scan, "points") else moved_by(scan, T)
+            for scan, T in zip(scans, total)]
+
+
+def moved_by(scan, T):
+    """A copy of a scan-like object (a :class:`datasets.Scan`) moved by the rigid transform ``T`` (4, 4): points,
+    normals and sensor origin; the transform recorded in ``extra['align']`` when the scan has an ``extra`` dict."""
+    from dataclasses import replace
+
+    R, t = T[:3, :3], T[:3, 3]
+    normals = getattr(scan, "normals", None)
+    changes = dict(points=np.asarray(scan.points, dtype=np.float64) @ R.T + t,
+                   normals=None if normals is None else np.asarray(normals, dtype=np.float64) @ R.T)
+    if hasattr(scan, "sensor_origin"):
+        origin = scan.sensor_origin
+        changes["sensor_origin"] = None if origin is None else R @ np.asarray(origin, dtype=np.float64) + t
+    if isinstance(getattr(scan, "extra", None), dict):
+        changes["extra"] = {**scan.extra, "align": T}
+    return replace(scan, **changes)

@@ -289,13 +289,13 @@ def _worker_inspect(scan, i, maps, maps_dir, uncertain):
     return _inspect_one(_WORKER["insp"], scan, i, maps, maps_dir, uncertain)
 
 
-def _inspect_in_workers(spec, scans, maps, maps_dir, progress, uncertain, jobs, insp=None):
+def _inspect_in_workers(spec, scans, maps, maps_dir, progress, uncertain, jobs, insp):
     """:func:`_inspect_one` of every scan in ``jobs`` processes; returns their outputs in the input order.
 
-    With the parent's own inspector ``insp``, the parent is one of the ``jobs``: it starts ``jobs - 1`` workers and
-    scores scans from the end of the list, on one torch thread, while the workers start (a worker spends seconds
-    loading torch, the model and the calibration) and take scans from the front; each scan is scored once, by
-    whoever takes it first (a scan already handed to a worker cannot be taken back). Without it, ``jobs`` workers."""
+    The parent, with its own inspector ``insp``, is one of the ``jobs``: it starts ``jobs - 1`` workers and scores
+    scans from the end of the list, on one thread, while the workers start (a worker spends seconds loading torch,
+    the model and the calibration) and take scans from the front; each scan is scored once, by whoever takes it
+    first (a scan already handed to a worker cannot be taken back)."""
     import multiprocessing
     import pickle
     from concurrent.futures import ProcessPoolExecutor
@@ -303,29 +303,30 @@ def _inspect_in_workers(spec, scans, maps, maps_dir, progress, uncertain, jobs, 
     import torch
     from tqdm import tqdm
 
+    from threadpoolctl import threadpool_limits  # scikit-learn's dependency
+
     outs = [None] * len(scans)
-    workers = jobs - 1 if insp is not None else jobs
     # the spec goes as plain pickle bytes: multiprocessing's own pickler would move the calibration's torch tensors
     # into shared memory, under the numpy arrays of this process's inspector that view them (which then read freed
     # memory: this process scores scans too)
-    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_start_worker,
+    pool = ProcessPoolExecutor(jobs - 1, mp_context=multiprocessing.get_context("spawn"), initializer=_start_worker,
                                initargs=(pickle.dumps(spec),))
     bar = tqdm(total=len(scans), desc=f"inspect ({jobs} processes)", unit="scan", disable=not progress)
     try:
         futures = [pool.submit(_worker_inspect, scan, i, maps, maps_dir, uncertain) for i, scan in enumerate(scans)]
         for fut in futures:
             fut.add_done_callback(lambda f: None if f.cancelled() else bar.update())
-        if insp is not None:
-            threads = torch.get_num_threads()
-            torch.set_num_threads(1)  # a core of its own, as each worker has
-            try:
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)  # a core of its own, as each worker has (torch, and BLAS below)
+        try:
+            with threadpool_limits(1):
                 for i in reversed(range(len(scans))):
                     if not futures[i].cancel():  # the workers have reached this scan: the rest is theirs
                         break
                     outs[i] = _inspect_one(insp, scans[i], i, maps, maps_dir, uncertain)
                     bar.update()
-            finally:
-                torch.set_num_threads(threads)
+        finally:
+            torch.set_num_threads(threads)
         for i, fut in enumerate(futures):
             if outs[i] is None:
                 outs[i] = fut.result()

@@ -143,14 +143,20 @@ def _point_losses(mean_net, x, normals, oriented, z, screening_weight, cache=Non
         g, grad = mean_net.value_and_gradient(x.reshape(-1, 3), zz)
     else:
         g, grad = mean_net.value_and_gradient_from({k: v.reshape(g_ * n_, *v.shape[2:]) for k, v in cache.items()}, zz)
-    g, grad = g.view(g_, n_), grad.view(g_, n_, 3)
+    return _per_point(g.view(g_, n_), grad.view(g_, n_, 3), normals, oriented, screening_weight)[0]
+
+
+def _per_point(g, grad, normals, oriented, screening_weight):
+    """The per-point projection loss lambda_S g^2 + |grad g - n|^2 from g (G, n) and grad g (G, n, 3), with sign-free
+    normals (``oriented`` False) compared as whichever of +n and -n is closer. Returns (the losses (G, n), the normal
+    each point was compared with (G, n, 3))."""
     plus = (grad - normals).square().sum(-1)
     if bool(oriented.all()):  # the usual case: the sign-free term is not needed (the same numbers, fewer ops)
-        align = plus
-    else:
-        minus = (grad + normals).square().sum(-1)
-        align = torch.where(oriented[:, None], plus, torch.minimum(plus, minus))
-    return screening_weight * g.square() + align
+        return screening_weight * g.square() + plus, normals
+    minus = (grad + normals).square().sum(-1)
+    flip = ~oriented[:, None] & (minus < plus)
+    return (screening_weight * g.square() + torch.where(flip, minus, plus),
+            torch.where(flip[..., None], -normals, normals))
 
 
 def _trimmed_mean(per_point, trim):
@@ -200,14 +206,7 @@ def _data_loss_and_code_grad(mean_net, x, normals, oriented, z, screening_weight
         z_first = (z @ siren.first_z.T)[:, None, :].expand(g_, n_, -1).reshape(g_ * n_, -1)  # (G n, W)
         value, jac, vjp = siren.jet1_with_code_vjp(x.reshape(-1, 3), z_first)
         g, grad = value.view(g_, n_), jac.view(g_, n_, 3)
-        target = normals
-        align = (grad - normals).square().sum(-1)
-        if not bool(oriented.all()):  # sign-free normals: the closer of +n and -n
-            minus = (grad + normals).square().sum(-1)
-            flip = ~oriented[:, None] & (minus < align)
-            align = torch.where(flip, minus, align)
-            target = torch.where(flip[..., None], -normals, normals)
-        per_point = screening_weight * g.square() + align  # (G, n)
+        per_point, target = _per_point(g, grad, normals, oriented, screening_weight)  # (G, n), (G, n, 3)
         if trim > 0:  # the trimmed mean's weights: 1 / keep on each row's smallest values, 0 elsewhere
             keep = max(1, int(round((1.0 - trim) * n_)))
             kept = torch.topk(per_point, keep, dim=1, largest=False).indices

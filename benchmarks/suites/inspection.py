@@ -82,6 +82,8 @@ def add_arguments(p):
 
 
 def run(args):
+    if args.family is not None and (args.templates or args.multi_part):
+        raise SystemExit("inspection: --family goes with neither --templates nor --multi-part")
     parts = args.parts.split(",")
     figures = {"parts": {}, "multi_part": None}
     if args.templates:

@@ -93,8 +93,8 @@ def run(args):
                                                     + ("_norays" if args.no_rays else "")
                                                     + {True: "_aligned", False: "_noalign", None: ""}[args.align])
     figures = score(data, model, run_dir, args)
-    if args.diagnose:  # the run scored last (without fold models: the folder's name says so)
-        diagnose(data, Path(figures["run"]) if args.folds != "off" else run_dir.with_name(run_dir.name + "_nofolds"))
+    if args.diagnose:
+        diagnose(data, Path(figures["run"]))
     return figures
 
 
@@ -447,7 +447,7 @@ def score(data, model, run_dir, args):
           f"defective {flagged['defective']:.3f}")
     print(f"seconds per scan: toolkit {summary.get('seconds_per_scan', float('nan')):.2f} (calibration and scoring "
           f"wall {t_score / len(test):.2f}); NN baseline {t_nn:.3f}; training {info['train_seconds'] or 0:.0f} s")
-    return {"collection": str(data), "model": str(model), "run": str(run_dir), "toolkit": ours, "nn": base,
+    return {"collection": str(data), "model": str(model), "run": str(one_dir), "toolkit": ours, "nn": base,
             "terms": terms,
             "flagged": flagged, "seconds_per_scan": summary.get("seconds_per_scan"), "nn_seconds_per_scan": t_nn,
             "train_seconds": info["train_seconds"], "summary": inspect_api.summary_figures(summary),

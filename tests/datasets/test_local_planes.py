@@ -63,3 +63,10 @@ def test_shapes():
     assert value.shape == (0,) and vector.shape == (0, 3)
     with pytest.raises(ValueError, match="3, 3"):
         smallest_eigenpairs(np.zeros((4, 2, 2)))
+
+
+def test_non_finite_matrices_are_one_clear_error():
+    bad = np.eye(3)[None].repeat(2, 0)
+    bad[1, 0, 0] = np.inf
+    with pytest.raises(ValueError, match="finite"):
+        smallest_eigenpairs(bad)

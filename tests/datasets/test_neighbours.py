@@ -35,3 +35,13 @@ def test_shapes_errors_and_pickling():
     again = pickle.loads(pickle.dumps(nn))
     q = rng.random((5, 3))
     np.testing.assert_array_equal(again.query(q, 4)[1], nn.query(q, 4)[1])
+
+
+def test_non_finite_points_are_one_clear_error():
+    cloud = np.random.default_rng(2).random((20, 3))
+    bad = cloud.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        NearestNeighbours(bad)
+    with pytest.raises(ValueError, match="finite"):
+        NearestNeighbours(cloud).query(bad, 2)
