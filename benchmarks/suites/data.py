@@ -16,6 +16,14 @@ Modes (``--mode``):
     in red, and a row coloured by each point's distance to the undamaged part (the defect where it really is,
     whatever the labels say); and, unless ``--no-timing``, the time to synthesise fandisk's default collection
     (``benchmarks.cache.COLLECTION_DEFAULTS``, not cached: the synthesis is what is timed).
+``views``
+    Which template points a rendered template view keeps (:func:`datasets.templates.visible_points`, what the
+    Real3D-AD importer trains and calibrates on) against what a ray caster on the true mesh sees, per part of
+    ``--parts`` and template seed of ``--seeds``: a template of ``--template-points`` points sampled on the part's
+    mesh with depth noise ``--noise`` x its diagonal along the normal, normals estimated as the importer does, 8
+    sensors at 2 diagonals; a point is truly visible when its true face looks at the sensor and the mesh's first hit
+    on the ray to it lies within 3 % of the diagonal of it. Precision and recall per view (mean and minimum), beside
+    open3d's hidden-point removal (radius 1000 template diameters, back faces removed), the rule before.
 """
 import os
 import shutil
@@ -26,7 +34,7 @@ import time
 from pathlib import Path
 
 DESCRIPTION = "scan collections: HDF5 write/read/stream/import throughput; the gallery of synthetic defects"
-MODES = ("io", "gallery")
+MODES = ("io", "gallery", "views")
 COMPRESSIONS = {"gzip": ("gzip", 1), "gzip4": ("gzip", 4), "lzf": ("lzf", None), "none": (None, None)}
 POINTS = {"io": 20_000, "gallery": 4000}
 
@@ -63,10 +71,14 @@ def add_arguments(parser):
     gallery.add_argument("--noise", type=float, default=0.002, help="depth noise of the scans")
     gallery.add_argument("--seed", type=int, default=0)
     gallery.add_argument("--no-timing", action="store_true", help="skip timing the default fandisk collection")
+    views = parser.add_argument_group("views")
+    views.add_argument("--parts", default="builtin,fandisk", help="views: comma-separated parts (default: %(default)s)")
+    views.add_argument("--seeds", default="0,1", help="views: template seeds (default: %(default)s)")
+    views.add_argument("--template-points", type=int, default=10000, help="views: points per template")
 
 
 def run(args):
-    return {"io": _io, "gallery": _gallery}[args.mode](args)
+    return {"io": _io, "gallery": _gallery, "views": _views}[args.mode](args)
 
 
 # --- io --------------------------------------------------------------------------------------------------------
@@ -274,3 +286,65 @@ def _gallery(args):
         print(f"default fandisk collection: {len(scans)} scans x {COLLECTION_DEFAULTS['n_points']} points "
               f"synthesised in {figures['fandisk_synthesis_seconds']:.1f} s")
     return figures
+
+
+# --- views -----------------------------------------------------------------------------------------------------
+
+def _views(args):
+    """Precision and recall of rendered template views against ray casting the true mesh (module docstring)."""
+    import numpy as np
+    import open3d as o3d
+    import trimesh
+
+    from benchmarks import cache
+    from benchmarks.table import format_table
+    from datasets.normals import estimate_normals
+    from datasets.templates import TemplateSurface, sensor_positions, visible_points
+
+    rows = []
+    for part in args.parts.split(","):
+        mesh = cache.part_mesh(part)
+        diag = float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
+        truth = o3d.t.geometry.RaycastingScene()
+        truth.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),
+                            o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)))
+        for seed in (int(x) for x in args.seeds.split(",")):
+            rng = np.random.default_rng([seed, 1000])
+            pts, faces = trimesh.sample.sample_surface(mesh, args.template_points, seed=int(rng.integers(2**31)))
+            pts = pts + mesh.face_normals[faces] * rng.normal(0, args.noise * diag, (len(pts), 1))
+            normals = estimate_normals(pts)
+            t0 = time.perf_counter()
+            surface = TemplateSurface(pts, normals)
+            build = time.perf_counter() - t0
+            lo, hi = pts.min(0), pts.max(0)
+            found = {"ray-cast": [], "hidden-point removal": []}
+            for origin in sensor_positions((lo + hi) / 2, float(np.linalg.norm(hi - lo)), 8, seed):
+                d = pts - origin
+                dist = np.linalg.norm(d, axis=1)
+                rays = np.hstack([np.broadcast_to(origin, d.shape), d / dist[:, None]]).astype(np.float32)
+                t_hit = truth.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+                seen = (np.einsum("ij,ij->i", mesh.face_normals[faces], origin - pts) > 0) & \
+                    (np.abs(t_hit - dist) < 0.03 * diag)
+                pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+                _, hpr = pcd.hidden_point_removal(origin, 1000 * float(np.linalg.norm(np.ptp(pts, axis=0))))
+                hpr = np.unique(np.asarray(hpr))
+                hpr = hpr[np.einsum("ij,ij->i", normals[hpr], origin - pts[hpr]) > 0]
+                for rule, idx in (("ray-cast", visible_points(pts, normals, origin, surface)),
+                                  ("hidden-point removal", hpr)):
+                    kept = np.zeros(len(pts), dtype=bool)
+                    kept[idx] = True
+                    hit = np.count_nonzero(kept & seen)
+                    found[rule].append((hit / max(kept.sum(), 1), hit / max(seen.sum(), 1), kept.sum(), seen.sum()))
+            for rule, values in found.items():
+                v = np.array(values)
+                rows.append({"part": part, "seed": seed, "rule": rule, "precision": v[:, 0].mean(),
+                             "precision_min": v[:, 0].min(), "recall": v[:, 1].mean(), "recall_min": v[:, 1].min(),
+                             "kept": v[:, 2].mean(), "visible": v[:, 3].mean(),
+                             "sigma": surface.sigma / diag if rule == "ray-cast" else float("nan"),
+                             "seconds": build if rule == "ray-cast" else float("nan")})
+    print(format_table(rows, [("part", "part", ""), ("seed", "seed", "d"), ("rule", "rule", ""),
+                              ("precision", "precision", ".3f"), ("precision_min", "min", ".3f"),
+                              ("recall", "recall", ".3f"), ("recall_min", "min", ".3f"), ("kept", "points kept", ".0f"),
+                              ("visible", "visible", ".0f"), ("sigma", "noise / diag", ".4f"),
+                              ("seconds", "surface s", ".2f")]))
+    return {"views": rows}

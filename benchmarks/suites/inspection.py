@@ -221,8 +221,11 @@ def _template_collection(part, args):
     """The imported Real3D-AD-like class folder of ``part`` (cached). Returns its ``data.h5``."""
     test = cache.synth_collection(part, args.seed, root=args.cache, n_train=0, n_test_good=args.test_good,
                                   n_test_defective=args.per_defect or 8, n_points=args.points)
+    from datasets.templates import VISIBILITY_RULE
+
     params = {"part": part, "test": str(test.parent.name), "template_points": args.template_points,
-              "seed": args.seed, "views": args.views, "validation_views": args.validation_views}
+              "seed": args.seed, "views": args.views, "validation_views": args.validation_views,
+              "visibility": VISIBILITY_RULE}
 
     def build(folder):
         from datasets import ScanCollection
