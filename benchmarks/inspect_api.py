@@ -128,6 +128,39 @@ def calibrate_and_score(model_path, data_path, out_dir, *, rays=None, point_scor
     return summary
 
 
+def parse_point_scores(text):
+    """``'joint,distance,nll:mean'`` -> [('joint', None), ('distance', None), ('nll', 'mean')]: point scores, each
+    with an aggregate after a colon (None: the default aggregate). Unknown point scores are a SystemExit."""
+    from inspection.aggregates import check_aggregate
+
+    out = []
+    for spec in (t.strip() for t in text.split(",") if t.strip()):
+        name, _, agg = spec.partition(":")
+        if name not in point_score_names():
+            raise SystemExit(f"--point-scores: unknown point score {name!r}; known: {point_score_names()}")
+        if agg:
+            check_aggregate(agg)
+        out.append((name, agg or None))
+    return out
+
+
+def point_score_runs(model_path, data_path, work_dir, specs, align=None, progress=False):
+    """The same model calibrated and scored with each point score of ``specs`` (:func:`parse_point_scores`) alone:
+    no ray score, folds off, no maps; one run folder each under ``work_dir``. Returns {spec text: figures of
+    :func:`summary_figures` plus ``oracle``}."""
+    from benchmarks import metrics
+
+    out = {}
+    for name, agg in specs:
+        text = name + (f":{agg}" if agg else "")
+        run_dir = Path(work_dir) / f"alone_{name}_{agg or 'default'}"
+        summary = calibrate_and_score(model_path, data_path, run_dir, rays=False, point_score=name, aggregate=agg,
+                                      align=align, maps="none", progress=progress, folds=False, echo=None)
+        scored = read_scores(run_dir / "results")
+        out[text] = {**summary_figures(summary), "oracle": metrics.oracle_flagged(scored["score"], scored["label"])}
+    return out
+
+
 def scoring_seconds(model_path, data_path, out_dir, jobs_list=(1, 2), progress=False):
     """Throughput of ``python -m inspection score --jobs N``: an uncalibrated copy of a model calibrated once (the
     defaults, on its training collection), then its test split scored with ``--maps none`` once per N.

@@ -44,6 +44,8 @@ class PointScore:
 POINT_SCORES = {s.name: s for s in (
     PointScore("joint", True, True, "the field's distance residual and the good scans' own surface together (default)"),
     PointScore("distance", True, True, "the first-order distance to the mean surface against good scans there"),
+    PointScore("surface", True, True, "the good scans' own surface alone, no field: the model-free term of joint "
+                                      "(a baseline)"),
     PointScore("residual", False, True, "the standardized residual |E f| / sd (needs no reference)"),
     PointScore("nll", False, False, "the paper's negative log likelihood of f = 0"),
 )}
@@ -78,6 +80,8 @@ def point_scores(field, points, kind="residual", noise=None, reference=None, nor
       scan's borders and at grazing angles, where the good scans' points still lie on the part; the good scans'
       points do not follow the scan's own field and are noisy and sparse, where the field is smooth. A point scores
       high only when its residual is large under both on average, in the same units as the other scores.
+    * ``'surface'``: z_s alone, the model-free term of ``'joint'``: what the good scans' points say without any
+      field (a baseline: whether the model adds anything, ``python -m benchmarks ablation --trees``).
 
     Parameters
     ----------
@@ -152,10 +156,12 @@ def joint_score(distance_scores, surface_scores):
 
 
 def reference_scores(reference, kind, points, value, variance, noise, grazing=None, normals=None):
-    """The per-location point score ``kind`` (``'distance'`` or ``'joint'``) of (m, 3) points whose
+    """The per-location point score ``kind`` (``'distance'``, ``'joint'`` or ``'surface'``) of (m, 3) points whose
     compared quantity (m,) and field variance (m,) are given, against ``reference`` (a :class:`inspection.reference.LocalReference`);
     ``grazing`` (m,) and the points' ``normals`` (m, 3) (for the reference surface's side) or None. Returns (m,)
     float64."""
+    if kind == "surface":
+        return reference.surface_scores(points, noise, grazing, normals)
     scores = reference.standardized(points, value, variance, noise, grazing)
     if kind == "joint":
         scores = joint_score(scores, reference.surface_scores(points, noise, grazing, normals))

@@ -258,7 +258,8 @@ def test_ablation_settings_vary_one_thing_at_a_time():
 def test_verdict_targets_are_checked_as_the_issue_states():
     """benchmarks/suites/verdicts.py: the mean realised false-alarm rate against 2 alpha, runs above 1 of 16 good
     scans, and the detection target (>= 0.9 at AUROC >= 0.99, else within 0.05 of the oracle)."""
-    from benchmarks.suites.verdicts import TREES, check_targets
+    from benchmarks.suites.verdicts import check_targets
+    from benchmarks.trees import TREES
 
     def run(tree, good, n_good=16, auroc=1.0, defective=1.0, oracle=1.0):
         return dict(tree=tree, seed=0, auroc=auroc, defective=defective, good=good / n_good, n_good=n_good,
@@ -309,3 +310,41 @@ def test_a_family_collection_trains_on_variants_and_tests_an_unseen_one(tmp_path
     assert len({s.name for s in scans}) == len(scans)
     pts = np.concatenate([s.points for s in train])
     assert np.abs(pts).max() <= 0.5 + 1e-9  # the frame holds the training scans
+
+
+def test_the_model_earns_its_keep_targets_are_checked_as_the_issue_states():
+    """benchmarks/suites/ablation.py --trees: field alone >= good points alone, the default >= both, with 8 training
+    scans >= 0.90 and >= the baseline + 0.1, point AUROC >= 0.92; each miss named."""
+    from benchmarks.suites.ablation import METHODS, tree_rows, tree_targets
+
+    def one(default, field, points, nn, point=0.95):
+        return {"toolkit_nofolds": {"auroc": {"overall": default, "bump": default}, "point_auroc": point},
+                "point_scores": {"distance": {"auroc": {"overall": field}}, "surface": {"auroc": {"overall": points}},
+                                 "nll:mean": {"auroc": {"overall": 0.7}}},
+                "nn": {"auroc": {"overall": nn}}}
+
+    def rows(tree, figures):
+        return [dict(tree=tree, seed=0, **r) for r in tree_rows(tree, figures)]
+
+    assert [r["method"] for r in tree_rows("fandisk", one(1, 1, 1, 1))] == [
+        METHODS[k] for k in ("default", "distance", "surface", "nll:mean", "nn")]
+    fine = rows("fandisk", one(0.99, 0.98, 0.97, 0.90)) + rows("cup-8train", one(0.95, 0.95, 0.90, 0.80))
+    assert tree_targets(fine)["misses"] == []
+    bad = (rows("fandisk", one(0.96, 0.95, 0.97, 0.90, point=0.90))
+           + rows("cup-8train", one(0.92, 0.92, 0.90, 0.85)))
+    misses = tree_targets(bad)["misses"]
+    assert [m.split(":")[0] for m in misses] == ["fandisk seed 0"] * 3 + ["cup-8train seed 0"]
+    assert "field alone 0.950 < good points alone 0.970" in misses[0]
+    assert "default 0.960 < max of the two 0.970" in misses[1] and "point AUROC 0.900" in misses[2]
+    assert "8 training scans default 0.920" in misses[3]
+
+
+def test_point_score_specs_parse_with_their_aggregates():
+    from benchmarks.inspect_api import parse_point_scores
+
+    assert parse_point_scores("distance, surface,nll:mean") == [("distance", None), ("surface", None),
+                                                               ("nll", "mean")]
+    with pytest.raises(SystemExit, match="unknown point score 'field'"):
+        parse_point_scores("field")
+    with pytest.raises(ValueError):
+        parse_point_scores("nll:middle")

@@ -8,21 +8,34 @@ Every score is the library's: nothing is re-implemented here. Printed per settin
 defect type, the fractions of defective and good test scans flagged at alpha, the threshold's basis and predicted
 false-alarm rate, seconds per scan.
 
+``--trees``: issue 28's table, whether the model earns its keep: each named tree of :data:`benchmarks.trees.TREES`
+(per seed of ``--seeds``, each a process of its own, ``--jobs`` at once) scored at the defaults and with each point
+score of ``--point-scores`` alone (no ray score, one calibration each): the default, the field alone
+(``distance``), the good scans' points alone (``surface``, no model), the paper's per-cloud NLL (``nll`` with the
+``mean`` aggregate) and the nearest-neighbour baseline, object AUROC overall and per defect type, and the default's
+point AUROC. Then the issue's targets per tree: field alone >= points alone; the default >= both; with 8 training
+scans the default >= 0.90 and >= the baseline + 0.1; point AUROC >= 0.92.
+
 ``--ray-gate``: the ``gated-log`` combination of the point and ray scores re-evaluated offline on a scored run with
 rays, with its gate's ceiling at log(1 + MAX_SURPRISAL / F) for F = 2, 4 (the default) and 8, and without the
 ceiling (the rule before it); the threshold refitted as the Inspector does. Run folders may be given (any
 ``calibrate_and_score`` folder calibrated with rays); without them each part is scored with rays first.
 """
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from pathlib import Path
 
 from benchmarks import cache, inspect_api, metrics
 from benchmarks.table import format_table, verdicts_table
+from benchmarks.trees import TREES, check_names, part_figures, run_tree
 
 DESCRIPTION = ("the same trained model rescored with each point score and aggregate of the inspection package "
                "(--grid: every pair); --ray-gate: the rays' combination gate with and without its ceiling")
 WORK = "results/ablation"
 AGGREGATES = "top1,top2,top5,mean,q99"
 GATE_FACTORS = (None, 2.0, 4.0, 8.0)
+# --trees: the terms of the default taken apart (issue 28): the field alone, the good points alone, the paper's NLL
+TREE_POINT_SCORES = "distance,surface,nll:mean"
+TREE_TARGETS = {"point_auroc": 0.92, "few_scans_auroc": 0.90, "few_scans_margin": 0.1}
 
 
 def add_arguments(p):
@@ -37,6 +50,11 @@ def add_arguments(p):
     p.add_argument("--ray-gate", nargs="*", type=Path, default=None, metavar="RUN",
                    help="only the rays' combination gate, re-evaluated on these scored runs (none given: each part "
                         "scored with rays at the defaults first)")
+    p.add_argument("--trees", default=None, metavar="NAMES",
+                   help="issue 28's table on these trees of the verdicts suite ('all': every one but the template "
+                        "trees; see the module docstring) instead of --parts")
+    p.add_argument("--seeds", default="0", help="--trees: comma-separated seeds (default: %(default)s)")
+    p.add_argument("--jobs", type=int, default=1, help="--trees: runs at once, each a process (default 1)")
     p.add_argument("--cache", default=cache.CACHE, help="collections and models (default: %(default)s)")
     p.add_argument("--work", default=WORK, help="scored runs (default: %(default)s)")
     p.add_argument("--progress", action="store_true", help="progress bars")
@@ -54,6 +72,8 @@ def settings(point_scores, aggregates, default_score, default_aggregate, grid=Fa
 
 
 def run(args):
+    if args.trees:
+        return _trees(args)
     if args.ray_gate is not None:
         return {"ray_gate": _ray_gates(args)}
     defaults = inspect_api.defaults()
@@ -113,3 +133,89 @@ def _ray_gate(run_dir):
                               *[(k, k, ".3f") for k in kinds], ("def", "def flagged", ".3f"),
                               ("good", "good flagged", ">")]))
     return out
+
+
+# --- --trees: whether the model earns its keep (issue 28) ---------------------------------------------------------
+def _trees(args):
+    names = [n for n in TREES if "--templates" not in TREES[n][1]] if args.trees == "all" else \
+        [t.strip() for t in args.trees.split(",") if t.strip()]
+    check_names(names, "ablation")
+    if any("--templates" in TREES[n][1] for n in names):
+        raise SystemExit("ablation: the template trees have no point scores taken apart (--point-scores does not go "
+                         "with --templates)")
+    jobs = [(name, int(seed)) for seed in args.seeds.split(",") for name in names]
+    extra = ["--point-scores", TREE_POINT_SCORES]
+    results = {}
+    with ThreadPoolExecutor(max(1, args.jobs)) as pool:  # threads that wait on one process each
+        futures = {pool.submit(run_tree, name, seed, args.cache, args.work, extra): (name, seed)
+                   for name, seed in jobs}
+        for fut in as_completed(futures):
+            name, seed = futures[fut]
+            figures, log, seconds = fut.result()
+            results[(name, seed)] = tree_rows(name, part_figures(name, figures))
+            print(f"{name}, seed {seed}: done ({seconds:.0f} s; log {log})", flush=True)
+    rows = [dict(tree=name, seed=seed, **row) for name, seed in jobs for row in results[(name, seed)]]
+    kinds = sorted({k for r in rows for k in r["auroc"] if k != "overall"})
+    print()
+    print(format_table([{**{k: v for k, v in r.items() if k != "auroc"}, "overall": r["auroc"].get("overall"),
+                         **{k: r["auroc"].get(k) for k in kinds}} for r in rows],
+                       [("tree", "tree", ""), ("seed", "seed", "d"), ("method", "method", ""),
+                        ("overall", "AUROC", ".3f"), *[(k, k, ".3f") for k in kinds],
+                        ("point_auroc", "point AUROC", ".3f")]))
+    targets = tree_targets(rows)
+    print()
+    for line in targets["lines"]:
+        print(line)
+    return {"rows": rows, "targets": {k: v for k, v in targets.items() if k != "lines"}}
+
+
+METHODS = {"default": "default", "distance": "field alone (distance)", "surface": "good points alone (surface)",
+           "nll:mean": "paper's NLL (nll, mean)", "nn": "nearest-neighbour"}
+
+
+def tree_rows(name, one):
+    """The table's rows of one tree's part figures: dicts with ``method`` (a key of METHODS), ``auroc`` (overall
+    and per defect type) and ``point_auroc`` (None where not measured)."""
+    suite, options = TREES[name]
+    if suite == "real":
+        default, nn = one["verdicts"][0], {"auroc": one["nn"]}
+    else:
+        default, nn = one["toolkit_nofolds"], one["nn"]
+    rows = [{"method": "default", "auroc": default["auroc"], "point_auroc": default.get("point_auroc")}]
+    for spec, figures in (one.get("point_scores") or {}).items():
+        rows.append({"method": spec, "auroc": figures["auroc"], "point_auroc": figures.get("point_auroc")})
+    rows.append({"method": "nn", "auroc": nn["auroc"], "point_auroc": (nn.get("point_auroc") or {}).get("overall")
+                 if isinstance(nn.get("point_auroc"), dict) else nn.get("point_auroc")})
+    for r in rows:
+        r["method"] = METHODS.get(r["method"], r["method"])
+    return rows
+
+
+def tree_targets(rows):
+    """Issue 28's targets over the table's rows (dicts: tree, seed, method (METHODS' values), auroc, point_auroc).
+    Returns ``misses`` (one line each) and ``lines`` (the printed verdict)."""
+    by_run = {}
+    for r in rows:
+        by_run.setdefault((r["tree"], r["seed"]), {})[r["method"]] = r
+    misses = []
+    for (tree, seed), m in by_run.items():
+        auc = {k: v["auroc"]["overall"] for k, v in m.items()}
+        field, points, default = (auc.get(METHODS[k]) for k in ("distance", "surface", "default"))
+        where = f"{tree} seed {seed}"
+        if field is not None and points is not None:
+            if field < points:
+                misses.append(f"{where}: field alone {field:.3f} < good points alone {points:.3f}")
+            if default < max(field, points):
+                misses.append(f"{where}: default {default:.3f} < max of the two {max(field, points):.3f}")
+        if "8train" in tree:
+            nn = auc.get(METHODS["nn"])
+            if default < TREE_TARGETS["few_scans_auroc"] or (nn is not None and
+                                                              default < nn + TREE_TARGETS["few_scans_margin"]):
+                misses.append(f"{where}: with 8 training scans default {default:.3f} (target >= "
+                              f"{TREE_TARGETS['few_scans_auroc']} and >= nearest-neighbour {nn:.3f} + "
+                              f"{TREE_TARGETS['few_scans_margin']})")
+        point = m[METHODS["default"]].get("point_auroc")
+        if point is not None and point < TREE_TARGETS["point_auroc"]:
+            misses.append(f"{where}: default point AUROC {point:.3f} < {TREE_TARGETS['point_auroc']}")
+    lines = [f"issue 28's targets over {len(by_run)} runs: {len(misses)} missed"] + [f"  {x}" for x in misses]
+    return {"misses": misses, "lines": lines}

@@ -76,6 +76,9 @@ def add_arguments(p):
                    help="calibrate without fold models (off: the default, the held-back scans' level and the training "
                         "scans cross-fitted), with 2 fold models trained into the cached model (on: train_latent.py "
                         "--calibration-folds 2), or both, one row each")
+    p.add_argument("--point-scores", default=None, metavar="LIST",
+                   help="also each of these point scores alone (NAME[:AGGREGATE],...; no ray score, one calibration "
+                        "each), a row each: the ablation suite's --trees")
     p.add_argument("--cache", default=cache.CACHE, help="collections and models (default: %(default)s)")
     p.add_argument("--work", default=WORK, help="scored runs (default: %(default)s)")
     p.add_argument("--progress", action="store_true", help="progress bars")
@@ -84,6 +87,8 @@ def add_arguments(p):
 def run(args):
     if args.family is not None and (args.templates or args.multi_part):
         raise SystemExit("inspection: --family goes with neither --templates nor --multi-part")
+    if args.point_scores and args.templates:
+        raise SystemExit("inspection: --point-scores does not go with --templates")
     parts = args.parts.split(",")
     figures = {"parts": {}, "multi_part": None}
     if args.templates:
@@ -151,6 +156,12 @@ def _single(part, args):
         one["toolkit" if folds else "toolkit_nofolds"] = toolkit
         one["run" if folds else "run_nofolds"] = str(run_dir)
         rows.append(dict(part=part, **toolkit))
+    if args.point_scores:
+        alone = inspect_api.point_score_runs(model, data, Path(args.work) / data.parent.name,
+                                             inspect_api.parse_point_scores(args.point_scores), align=args.align,
+                                             progress=args.progress)
+        one["point_scores"] = alone
+        rows += [dict(part=part, method=f"{spec} alone", **figures) for spec, figures in alone.items()]
     nn_figures = baselines.nn_figures(data, info["heldback_names"], summary["alpha"])
     one["nn"] = nn_figures
     return data, one, rows + [dict(part=part, **nn_figures)]

@@ -77,6 +77,9 @@ def add_arguments(p):
     p.add_argument("--folds", choices=("on", "off", "both"), default="off",
                    help="calibrate without fold models (off: the default), with 2 fold models trained into the cached "
                         "model (on: train_latent.py --calibration-folds 2), or both")
+    p.add_argument("--point-scores", default=None, metavar="LIST",
+                   help="also each of these point scores alone (NAME[:AGGREGATE],...; no ray score, one calibration "
+                        "each), a row each: the ablation suite's --trees")
     p.add_argument("--cache", default=cache.CACHE, help="tree, collection and model (default: %(default)s)")
     p.add_argument("--work", default=WORK, help="scored runs (default: %(default)s)")
     p.add_argument("--progress", action="store_true", help="progress bars")
@@ -440,6 +443,11 @@ def score(data, model, run_dir, args):
     terms = {name: metrics.auroc_per_defect(scored[key], scored["label"], scored["defect"])
              for name, key in (("point score alone", "score_points"), ("ray score alone", "score_rays"))
              if key in scored and np.isfinite(scored[key]).all()}
+    alone = {}
+    if args.point_scores:
+        alone = inspect_api.point_score_runs(model, data, run_dir.parent, inspect_api.parse_point_scores(
+            args.point_scores), align=args.align, progress=args.progress)
+        terms.update({f"{spec} alone (calibrated)": figures["auroc"] for spec, figures in alone.items()})
     print(format_table([{"method": nn_name, **base}, {"method": "toolkit (defaults)", **ours}]
                        + [{"method": f"toolkit, {name}", **one} for name, one in terms.items()],
                        [("method", "", "")] + [(k, k, ".3f") for k in cols]))
@@ -448,7 +456,7 @@ def score(data, model, run_dir, args):
     print(f"seconds per scan: toolkit {summary.get('seconds_per_scan', float('nan')):.2f} (calibration and scoring "
           f"wall {t_score / len(test):.2f}); NN baseline {t_nn:.3f}; training {info['train_seconds'] or 0:.0f} s")
     return {"collection": str(data), "model": str(model), "run": str(one_dir), "toolkit": ours, "nn": base,
-            "terms": terms,
+            "terms": terms, "point_scores": alone,
             "flagged": flagged, "seconds_per_scan": summary.get("seconds_per_scan"), "nn_seconds_per_scan": t_nn,
             "train_seconds": info["train_seconds"], "summary": inspect_api.summary_figures(summary),
             "verdicts": verdict_rows}

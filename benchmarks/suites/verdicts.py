@@ -1,53 +1,28 @@
 """Whether the stated false-alarm rate holds: the defaults' verdicts on many trees and seeds (issue 27).
 
 Each tree is one run of another suite at the defaults (``inspection``, ``inspection --templates`` or ``real``, with
-the options below), per seed (the tree's synthesis and its training; the real trees: ``--seed`` and
+the options of :data:`benchmarks.trees.TREES`), per seed (the tree's synthesis and its training; the real trees: ``--seed`` and
 ``--train-seed``). Printed per tree and seed: object AUROC, the fractions of defective and of good test scans
 flagged, the oracle (the defective scans a threshold just above the worst good test scan flags), the threshold's
 basis and predicted false-alarm rate. Then the issue's targets: the realised false-alarm rate averaged over every
 tree and seed at most 2 alpha and no run above 1 of 16 good scans (scaled to the run's good scans); defective
 flagged at least 0.9 where the AUROC is at least 0.99, and within 0.05 of the oracle elsewhere.
 
-Each run is ``python -m benchmarks SUITE ...`` in a process of its own (one thread; its output in ``WORK/logs/``,
-its record in ``WORK/records/``, whose figures are read back): the suites stay independent of each other.
-``--jobs N`` runs N of them at once; the figures do not depend on it.
+The trees and the runner are :mod:`benchmarks.trees` (each run a process of its own). ``--jobs N`` runs N of them
+at once; the figures do not depend on it.
 """
-import json
-import os
-import shutil
-import subprocess
-import sys
-import time
 from concurrent.futures import ThreadPoolExecutor, as_completed
-from pathlib import Path
 
 import numpy as np
 
 from benchmarks import cache
 from benchmarks.table import format_table
+from benchmarks.trees import TREES, check_names, part_figures, run_tree
 
 DESCRIPTION = ("the defaults' verdicts on many trees x seeds (issue 27): AUROC, defective and good flagged, oracle, "
                "predicted rate; whether the stated false-alarm rate holds")
 WORK = "results/verdicts"
 
-# name -> (suite, its options); the issue's trees: solid (fandisk, the bracket) and thin-walled parts (cup,
-# enclosure), 5 degrees of placement jitter with --align, 8 training scans (+2 held back, 50 good test scans), the
-# real bunny (2 degrees of per-scan pose change; half-depth defects), four complete templates (Real3D-AD layout)
-TREES = {
-    "fandisk": ("inspection", ["--parts", "fandisk"]),
-    "bracket": ("inspection", ["--parts", "builtin"]),
-    "cup": ("inspection", ["--parts", "cup"]),
-    "enclosure": ("inspection", ["--parts", "enclosure"]),
-    "bracket-jitter5-align": ("inspection", ["--parts", "builtin", "--jitter", "5", "--align"]),
-    "fandisk-8train": ("inspection", ["--parts", "fandisk", "--train", "10", "--test-good", "50",
-                                                 "--per-defect", "4"]),
-    "cup-8train": ("inspection", ["--parts", "cup", "--train", "10", "--test-good", "50",
-                                             "--per-defect", "4"]),
-    "bunny": ("real", []),
-    "bunny-half-depth": ("real", ["--size", "0.5"]),
-    "templates-bracket": ("inspection", ["--templates", "--parts", "builtin"]),
-    "templates-fandisk": ("inspection", ["--templates", "--parts", "fandisk"]),
-}
 TARGET_FAR_FACTOR = 2.0  # realised false-alarm rate over all runs at most this many alphas
 TARGET_MAX_GOOD = 1 / 16  # no run flags more than this share of its good scans
 TARGET_DETECTION = 0.9  # defective flagged where the AUROC is at least TARGET_AUROC
@@ -66,9 +41,7 @@ def add_arguments(p):
 
 def run(args):
     names = [t.strip() for t in args.trees.split(",") if t.strip()]
-    unknown = [n for n in names if n not in TREES]
-    if unknown:
-        raise SystemExit(f"verdicts: unknown tree(s) {unknown}; known: {list(TREES)}")
+    check_names(names, "verdicts")
     seeds = [int(s) for s in args.seeds.split(",")]
     jobs = [(name, seed) for seed in seeds for name in names]
     results = {}
@@ -96,25 +69,9 @@ def _report(name, seed, r):
 
 
 def _one(name, seed, cache_root, work):
-    """Run one tree at one seed: ``python -m benchmarks SUITE ...`` in a process of its own, its output to a log
-    file; returns the figures of its record (a RuntimeError naming the log when the run fails)."""
-    suite, options = TREES[name]
-    seeds = ["--seed", str(seed)] + (["--train-seed", str(seed)] if suite == "real" else [])
-    slug = f"{_slug(name)}_seed{seed}"
-    log, records = Path(work) / "logs" / f"{slug}.log", Path(work) / "records" / slug
-    log.parent.mkdir(parents=True, exist_ok=True)
-    shutil.rmtree(records, ignore_errors=True)
-    command = [sys.executable, "-m", "benchmarks", "--records", str(records), suite, *options, *seeds,
-               "--cache", str(cache_root), "--work", str(Path(work) / "runs" / suite)]
-    t0 = time.perf_counter()
-    with open(log, "w") as out:
-        done = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT,
-                              env={**os.environ, "OMP_NUM_THREADS": "1"})
-    found = sorted(records.glob(f"{suite}_*.json"))
-    if done.returncode != 0 or not found:
-        raise RuntimeError(f"verdicts: {name}, seed {seed} failed (exit status {done.returncode}); see {log}")
-    figures = json.loads(found[-1].read_text())["figures"]
-    one = _pick(suite, options, figures)
+    """Run one tree at one seed (:func:`benchmarks.trees.run_tree`); returns the default run's figures."""
+    figures, log, seconds = run_tree(name, seed, cache_root, work)
+    one = _pick(name, part_figures(name, figures))
     flagged = one["flagged"]
     n_good = int(flagged.get("n_good") or 0)
     return {"auroc": float(one["auroc"]["overall"]), "defective": float(flagged["defective"]),
@@ -122,21 +79,16 @@ def _one(name, seed, cache_root, work):
             "good_text": f"{round(flagged['good'] * n_good)} of {n_good}", "oracle": float(one["oracle"]),
             "basis": (one.get("threshold") or {}).get("basis", ""),
             "predicted": float((one.get("threshold") or {}).get("predicted_far") or np.nan),
-            "alpha": float(one.get("alpha") or np.nan), "seconds": time.perf_counter() - t0, "log": str(log)}
+            "alpha": float(one.get("alpha") or np.nan), "seconds": seconds, "log": str(log)}
 
 
-def _pick(suite, options, figures):
-    """The default run's figures (folds off) out of a suite's figures."""
+def _pick(name, one):
+    """The default run's figures (folds off) out of the tree's part figures."""
+    suite, options = TREES[name]
     if suite == "real":
-        row = figures["verdicts"][0]
+        row = one["verdicts"][0]
         return {**row, "flagged": {**row["flagged"], "n_good": row["flagged"].get("n_good")}}
-    part = options[options.index("--parts") + 1]
-    one = figures["parts"][part]
     return one["toolkit_summary_nofolds"] if "--templates" in options else one["toolkit_nofolds"]
-
-
-def _slug(name):
-    return "".join(c if c.isalnum() else "_" for c in name).strip("_")
 
 
 def check_targets(rows):

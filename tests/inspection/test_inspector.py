@@ -450,6 +450,38 @@ def test_joint_point_score_calibrates_restores_and_ranks_a_dent():
     assert insp.anomaly_scores([dented])[0] > insp.calibration_scores_.max()
 
 
+def test_surface_point_score_is_joints_model_free_term_and_ignores_the_field():
+    """'surface' is z_s alone: joint^2 = (distance^2 + surface^2) / 2 on the same scan and reference, and a field
+    that errs everywhere leaves it as it was (no field in it), while 'distance' follows the field."""
+    good = [sphere_scan(seed=s, n=800)[0] for s in range(6)]
+    held = [sphere_scan(seed=s, n=800)[0] for s in range(20, 24)]
+    insp = Inspector(SphereModel(), point_score="joint", alpha=0.2).fit(held, reference_scans=good)
+    maps = {}
+    for kind in ("joint", "distance", "surface"):
+        one = Inspector.from_calibration(SphereModel(), insp.calibration())
+        one.settings_ = replace(one.settings_, point_score=kind)
+        maps[kind] = one.anomaly_map(held[0])
+    np.testing.assert_allclose(maps["joint"] ** 2, (maps["distance"] ** 2 + maps["surface"] ** 2) / 2, rtol=1e-10)
+    np.testing.assert_allclose(maps["surface"], insp.reference_.surface_scores(held[0], 0.01), rtol=1e-12)
+    class ShrunkSphereModel(SphereModel):  # the fitted sphere, then 0.1 smaller: a field off the part everywhere
+        def project(self, points, normals=None, **options):
+            fitted = super().project(points, normals, **options).field
+
+            class Projection:
+                field = SphereField(fitted.center, fitted.radius - 0.1)
+
+            return Projection()
+
+    wrong = Inspector.from_calibration(ShrunkSphereModel(), insp.calibration())
+    for kind in ("surface", "distance"):
+        wrong.settings_ = replace(wrong.settings_, point_score=kind)
+        moved = wrong.anomaly_map(held[0])
+        if kind == "surface":
+            np.testing.assert_allclose(moved, maps["surface"], rtol=1e-12)
+        else:
+            assert np.median(moved) > 3 * np.median(maps["distance"])
+
+
 def test_the_reference_takes_its_surface_from_every_training_scan(monkeypatch):
     """The training scans among the good scans: all of them make the reference's surface, an evenly spread subset
     is projected for its values, and owners are matched by name so that cross-fitting leaves a scan's surface

@@ -1,0 +1,75 @@
+"""The benchmark trees the issues' targets are checked on, and one run of one of them in a process of its own.
+
+A tree is one run of a suite (``inspection``, ``inspection --templates`` or ``real``) with its options, per seed (the
+tree's synthesis and its training; the real trees: ``--seed`` and ``--train-seed``). The ``verdicts`` suite runs
+them at the defaults; the ``ablation`` suite with ``--trees`` runs them with the point scores taken apart.
+
+Each run is ``python -m benchmarks SUITE ...`` in a process of its own (one thread; its output in ``WORK/logs/``,
+its record in ``WORK/records/``, whose figures are read back): the suites stay independent of each other.
+"""
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+# name -> (suite, its options); the issue's trees: solid (fandisk, the bracket) and thin-walled parts (cup,
+# enclosure), 5 degrees of placement jitter with --align, 8 training scans (+2 held back, 50 good test scans), the
+# real bunny (2 degrees of per-scan pose change; half-depth defects), four complete templates (Real3D-AD layout)
+TREES = {
+    "fandisk": ("inspection", ["--parts", "fandisk"]),
+    "bracket": ("inspection", ["--parts", "builtin"]),
+    "cup": ("inspection", ["--parts", "cup"]),
+    "enclosure": ("inspection", ["--parts", "enclosure"]),
+    "bracket-jitter5-align": ("inspection", ["--parts", "builtin", "--jitter", "5", "--align"]),
+    "fandisk-8train": ("inspection", ["--parts", "fandisk", "--train", "10", "--test-good", "50",
+                                      "--per-defect", "4"]),
+    "cup-8train": ("inspection", ["--parts", "cup", "--train", "10", "--test-good", "50", "--per-defect", "4"]),
+    "bunny": ("real", []),
+    "bunny-half-depth": ("real", ["--size", "0.5"]),
+    "templates-bracket": ("inspection", ["--templates", "--parts", "builtin"]),
+    "templates-fandisk": ("inspection", ["--templates", "--parts", "fandisk"]),
+}
+
+
+def check_names(names, who):
+    """``names`` (list of str) all known trees, else SystemExit naming ``who`` (the suite) and the known ones."""
+    unknown = [n for n in names if n not in TREES]
+    if unknown:
+        raise SystemExit(f"{who}: unknown tree(s) {unknown}; known: {list(TREES)}")
+
+
+def run_tree(name, seed, cache_root, work, extra=()):
+    """Run tree ``name`` at ``seed`` (``extra``: more options for its suite) in a process of its own, its output to a
+    log file. Returns (its record's figures, log path, seconds); a RuntimeError naming the log when the run fails."""
+    suite, options = TREES[name]
+    seeds = ["--seed", str(seed)] + (["--train-seed", str(seed)] if suite == "real" else [])
+    slug = f"{slug_of(name)}_seed{seed}"
+    log, records = Path(work) / "logs" / f"{slug}.log", Path(work) / "records" / slug
+    log.parent.mkdir(parents=True, exist_ok=True)
+    shutil.rmtree(records, ignore_errors=True)
+    command = [sys.executable, "-m", "benchmarks", "--records", str(records), suite, *options, *seeds, *extra,
+               "--cache", str(cache_root), "--work", str(Path(work) / "runs" / suite)]
+    t0 = time.perf_counter()
+    with open(log, "w") as out:
+        done = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT,
+                              env={**os.environ, "OMP_NUM_THREADS": "1"})
+    found = sorted(records.glob(f"{suite}_*.json"))
+    if done.returncode != 0 or not found:
+        raise RuntimeError(f"{name}, seed {seed} failed (exit status {done.returncode}); see {log}")
+    return json.loads(found[-1].read_text())["figures"], log, time.perf_counter() - t0
+
+
+def part_figures(name, figures):
+    """The figures of the tree's one part out of its suite's figures: the ``real`` suite's whole figures, else
+    ``figures['parts'][part]``."""
+    suite, options = TREES[name]
+    if suite == "real":
+        return figures
+    return figures["parts"][options[options.index("--parts") + 1]]
+
+
+def slug_of(name):
+    return "".join(c if c.isalnum() else "_" for c in name).strip("_")
