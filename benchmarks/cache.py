@@ -103,6 +103,9 @@ def synth_collection(part, seed=0, root=CACHE, progress=False, **params):
 # a product family (issue 32): training scans of variants stretched along the part's longest axis by these factors
 # (evenly spread over both ranges), test scans of one variant that no training scan showed
 FAMILY_STRETCH = ((0.8, 0.9), (1.1, 1.2))
+# a second kind of variation (issue 32): the part bent along its longest axis by this many degrees end to end
+FAMILY_BEND = ((-12.0, -6.0), (6.0, 12.0))
+FAMILY_RANGES = {"stretch": FAMILY_STRETCH, "bend": FAMILY_BEND}
 FAMILY_VARIANTS = 8
 
 
@@ -118,14 +121,47 @@ def stretched(mesh, factor):
     return out
 
 
-def family_collection(part, seed=0, root=CACHE, progress=False, test_stretch=1.0, **params):
+def bent(mesh, degrees):
+    """A copy of ``mesh`` bent along its bounding box's longest axis, in the plane of that axis and the shortest one,
+    by ``degrees`` end to end (negative: the other way): the box's mid-plane across the longest axis stays in place,
+    each slice across it turns about an axis at radius length / angle, so lengths along the mid-surface are kept
+    (a pure bend). The mesh is first subdivided to edges of at most 1/64 of its length, so that long flat faces bend
+    too (subdivision leaves the surface where it is). 0 is the mesh itself."""
+    import trimesh
+
+    angle = np.radians(float(degrees))
+    if angle == 0:
+        return mesh.copy()
+    lo, hi = mesh.bounds
+    extent = hi - lo
+    along, across = int(np.argmax(extent)), int(np.argmin(extent))
+    vertices, faces = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge=extent[along] / 64)
+    out = trimesh.Trimesh(vertices, faces, process=False)
+    centre = (lo + hi) / 2
+    radius = extent[along] / angle  # signed: the centre of curvature on the side of the sign
+    u = out.vertices[:, along] - centre[along]
+    v = out.vertices[:, across] - centre[across]
+    phi = u / radius
+    vertices = out.vertices.copy()
+    vertices[:, along] = centre[along] + (radius - v) * np.sin(phi)
+    vertices[:, across] = centre[across] + radius - (radius - v) * np.cos(phi)
+    out.vertices = vertices
+    return out
+
+
+VARIATIONS = {"stretch": stretched, "bend": bent}
+
+
+def family_collection(part, seed=0, root=CACHE, progress=False, test_stretch=1.0, kind="stretch", **params):
     """A product family's scan collection, cached (returns its ``tree.h5``): ``n_train`` good training scans of
-    :data:`FAMILY_VARIANTS` variants of ``part`` stretched along its longest axis (:func:`stretched`, factors
-    evenly spread over :data:`FAMILY_STRETCH`, the scans shared out evenly), and test scans (good and defective, as
-    :func:`synth_collection`'s) of the variant stretched by ``test_stretch`` (1.0: the nominal part, inside the
-    family's range and never trained on; 1.3: just outside it). Each variant is synthesised in its own frame, its
-    scans moved to file units and the whole collection into one frame fitted to the training scans; a scan's name
-    holds its variant (``train/good/stretch0.800_001``).
+    :data:`FAMILY_VARIANTS` variants of ``part`` (factors evenly spread over the ranges of
+    ``FAMILY_RANGES[kind]``, the scans shared out evenly) and test scans (good and defective, as
+    :func:`synth_collection`'s) of the variant ``test_stretch``. ``kind`` 'stretch': stretched along the longest
+    axis by that factor (:func:`stretched`; 1.0: the nominal part, inside the family's range and never trained on;
+    1.3: just outside it); 'bend': bent by that many degrees (:func:`bent`; 0: the nominal part, inside; 18:
+    outside). Each variant is synthesised in its own frame, its scans moved to file units and the whole collection
+    into one frame fitted to the training scans; a scan's name holds its variant (``train/good/stretch0.800_001``,
+    ``train/good/bend-12.000_001``).
 
     Parameters
     ----------
@@ -133,12 +169,19 @@ def family_collection(part, seed=0, root=CACHE, progress=False, test_stretch=1.0
         See :func:`part_mesh`.
     seed : int
     test_stretch : float
+        The test variant's factor (stretch) or angle in degrees (bend).
+    kind : {'stretch', 'bend'}
     **params
         ``synthesise``'s keyword arguments (defaults: :data:`COLLECTION_DEFAULTS`).
     """
+    if kind not in VARIATIONS:
+        raise ValueError(f"family kind must be one of {sorted(VARIATIONS)}, got {kind!r}")
     params = {**COLLECTION_DEFAULTS, **params}
-    keyed = {"part": part, "seed": seed, "family": [list(r) for r in FAMILY_STRETCH], "variants": FAMILY_VARIANTS,
+    ranges = FAMILY_RANGES[kind]
+    keyed = {"part": part, "seed": seed, "family": [list(r) for r in ranges], "variants": FAMILY_VARIANTS,
              "test_stretch": float(test_stretch), **params}
+    if kind != "stretch":  # the stretch families' cache keys stay as they were
+        keyed["kind"] = kind
 
     def build(folder):
         from dataclasses import replace
@@ -148,25 +191,26 @@ def family_collection(part, seed=0, root=CACHE, progress=False, test_stretch=1.0
         from datasets.synth import synthesise
 
         mesh = part_mesh(part)
-        factors = np.concatenate([np.linspace(lo, hi, FAMILY_VARIANTS // len(FAMILY_STRETCH))
-                                  for lo, hi in FAMILY_STRETCH])
+        factors = np.concatenate([np.linspace(lo, hi, FAMILY_VARIANTS // len(ranges)) for lo, hi in ranges])
         shares = np.diff(np.linspace(0, params["n_train"], len(factors) + 1).round().astype(int))
         groups = [(f, dict(params, n_train=int(n), n_test_good=0, n_test_defective=0))
                   for f, n in zip(factors, shares) if n > 0]
         groups.append((float(test_stretch), dict(params, n_train=0)))
         scans = []
         for k, (factor, options) in enumerate(groups):
-            variant, frame = synthesise(stretched(mesh, factor), seed=seed * 1000 + k, progress=progress, **options)
+            variant, frame = synthesise(VARIATIONS[kind](mesh, factor), seed=seed * 1000 + k, progress=progress,
+                                        **options)
             for s in variant:  # to file units, named after the variant
                 origin = None if s.sensor_origin is None else frame.to_file(s.sensor_origin)
                 head, tail = s.name.rsplit("/", 1)
-                scans.append(replace(s, name=f"{head}/stretch{factor:.3f}_{tail}", points=frame.to_file(s.points),
+                scans.append(replace(s, name=f"{head}/{kind}{factor:.3f}_{tail}", points=frame.to_file(s.points),
                                      sensor_origin=origin))
         common = Frame.fit(np.concatenate([s.points for s in scans if s.split == "train"]))
         ScanCollection.create(folder / "tree.h5", (common.apply(s) for s in scans), frame=common,
                               provenance={"benchmark": "cache", **keyed})
 
-    return cached_path("collection", keyed, build, root, label=f"{Path(str(part)).stem}-family") / "tree.h5"
+    label = f"{Path(str(part)).stem}-family" + ("" if kind == "stretch" else f"-{kind}")
+    return cached_path("collection", keyed, build, root, label=label) / "tree.h5"
 
 
 def trained_model(collection_path, root=CACHE, **train_options):

@@ -348,3 +348,29 @@ def test_point_score_specs_parse_with_their_aggregates():
         parse_point_scores("field")
     with pytest.raises(ValueError):
         parse_point_scores("nll:middle")
+
+
+def test_a_family_variant_is_bent_as_a_pure_bend():
+    """cache.bent: the end faces turn by the angle towards each other, area and volume stay (a pure bend of a box
+    symmetric about its mid-surface), the ends move off the axis by R (1 - cos(theta / 2)) with R = length / theta,
+    the other way is the mirror image, and 0 degrees is the part itself."""
+    import trimesh
+
+    box = trimesh.creation.box(extents=(4.0, 1.0, 0.5))  # longest x, shortest z: bent in the x-z plane
+    theta = np.radians(10.0)
+    b = cache.bent(box, 10.0)
+    assert len(b.vertices) > len(box.vertices)  # subdivided, so that the long faces bend
+    end_faces = np.abs(b.face_normals[:, 0]) > 0.9
+    ends = b.face_normals[end_faces]
+    left, right = ends[ends[:, 0] < 0].mean(0), ends[ends[:, 0] > 0].mean(0)
+    assert np.degrees(np.pi - np.arccos(np.dot(left, right))) == pytest.approx(10.0, abs=1e-6)
+    assert b.area == pytest.approx(box.area, rel=1e-5) and b.volume == pytest.approx(box.volume, rel=1e-5)
+    end_vertices = np.unique(b.faces[end_faces])  # symmetric about the mid-surface: their mean z is its end's
+    assert abs(b.vertices[end_vertices, 2].mean()) == pytest.approx(4.0 / theta * (1 - np.cos(theta / 2)), rel=1e-3)
+    other = cache.bent(box, -10.0)  # the box is symmetric about z = 0: the mirror image
+    np.testing.assert_allclose(other.bounds[:, :2], b.bounds[:, :2], atol=1e-12)
+    np.testing.assert_allclose(other.bounds[::-1, 2], -b.bounds[:, 2], atol=1e-12)
+    assert other.area == pytest.approx(b.area, rel=1e-9)
+    np.testing.assert_allclose(cache.bent(box, 0.0).vertices, box.vertices)
+    with pytest.raises(ValueError, match="family kind"):
+        cache.family_collection("builtin", kind="twist")

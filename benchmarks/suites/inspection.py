@@ -18,9 +18,11 @@ Two other regimes, as options:
   (the synthetic collection's test scans), written as a Real3D-AD class folder and imported by the datasets
   importer (the templates become ``--views`` partial training views and ``--validation-views`` held-back views
   each); trained, calibrated and scored as above; object and point AUROC per defect type next to the baseline.
-- ``--family STRETCH``: a product family (:func:`benchmarks.cache.family_collection`): the training scans show
-  variants of the part stretched along its longest axis, the test scans one variant that none showed (STRETCH 1.0:
-  the nominal part, inside the family's range; 1.3: outside it); scored as above.
+- ``--family VALUE``: a product family (:func:`benchmarks.cache.family_collection`): the training scans show
+  variants of the part, the test scans one variant that none showed; ``--family-kind stretch`` (the default):
+  stretched along its longest axis (VALUE 1.0: the nominal part, inside the family's range of 0.8-0.9 and 1.1-1.2;
+  1.3: outside it); ``bend``: bent along it (VALUE in degrees; 0: the nominal part, inside the range of 6-12 degrees
+  either way; 18: outside it); scored as above.
 """
 import json
 import time
@@ -47,7 +49,10 @@ def add_arguments(p):
     p.add_argument("--points", type=int, default=4000, help="points per scan (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="synthesis and training seed (default: %(default)s)")
     p.add_argument("--jitter", type=float, default=0.0, help="pose jitter of every scan, degrees (default: none)")
-    p.add_argument("--family", type=float, default=None, metavar="STRETCH",
+    p.add_argument("--family-kind", choices=("stretch", "bend"), default="stretch",
+                   help="--family: how the variants differ (default: %(default)s; bend: VALUE in degrees, the family "
+                        "bent by 6-12 degrees either way, 0 the nominal part inside, 18 outside)")
+    p.add_argument("--family", type=float, default=None, metavar="VALUE",
                    help="a product family (issue 32): training scans of variants of each part stretched along its "
                         "longest axis by 0.8-0.9 and 1.1-1.2 (benchmarks.cache.family_collection), test scans of the "
                         "variant stretched by STRETCH (1.0: the nominal part, inside the range, never trained on; "
@@ -132,7 +137,7 @@ def _single(part, args):
         if args.no_origins:
             raise SystemExit("inspection: --family and --no-origins do not go together")
         data = cache.family_collection(part, args.seed, root=args.cache, progress=args.progress,
-                                       test_stretch=args.family, **sizes)
+                                       test_stretch=args.family, kind=args.family_kind, **sizes)
     else:
         data = cache.synth_collection(part, args.seed, root=args.cache, progress=args.progress, **sizes,
                                       **({"sensor_origins": False} if args.no_origins else {}))
