@@ -9,6 +9,7 @@ its record in ``WORK/records/``, whose figures are read back): the suites stay i
 """
 import json
 import os
+from concurrent.futures import ThreadPoolExecutor, as_completed
 import shutil
 import subprocess
 import sys
@@ -60,6 +61,20 @@ def run_tree(name, seed, cache_root, work, extra=()):
     if done.returncode != 0 or not found:
         raise RuntimeError(f"{name}, seed {seed} failed (exit status {done.returncode}); see {log}")
     return json.loads(found[-1].read_text())["figures"], log, time.perf_counter() - t0
+
+
+def run_trees(runs, cache_root, work, at_once=1, extra=(), done=None):
+    """:func:`run_tree` for each (name, seed) of ``runs``, ``at_once`` processes at a time. ``done(name, seed,
+    result)`` is called as each finishes, result being :func:`run_tree`'s (figures, log, seconds). Returns
+    {(name, seed): result}."""
+    results = {}
+    with ThreadPoolExecutor(max(1, at_once)) as pool:  # threads that wait on one process each
+        futures = {pool.submit(run_tree, name, seed, cache_root, work, extra): (name, seed) for name, seed in runs}
+        for fut in as_completed(futures):
+            results[futures[fut]] = fut.result()
+            if done is not None:
+                done(*futures[fut], results[futures[fut]])
+    return results
 
 
 def part_figures(name, figures):

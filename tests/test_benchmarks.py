@@ -374,3 +374,20 @@ def test_a_family_variant_is_bent_as_a_pure_bend():
     np.testing.assert_allclose(cache.bent(box, 0.0).vertices, box.vertices)
     with pytest.raises(ValueError, match="family kind"):
         cache.family_collection("builtin", kind="twist")
+
+
+def test_trees_run_each_tree_and_report_each_as_it_finishes(monkeypatch):
+    """benchmarks/trees.py: run_trees runs every (tree, seed) through run_tree and calls back once each."""
+    from benchmarks import trees
+
+    calls = []
+    monkeypatch.setattr(trees, "run_tree", lambda name, seed, cache_root, work, extra=(): (
+        {"name": name, "extra": list(extra)}, f"{work}/{name}.log", float(seed)))
+    out = trees.run_trees([("fandisk", 0), ("bunny", 1)], "c", "w", at_once=2, extra=["--x"],
+                          done=lambda name, seed, result: calls.append((name, seed, result[0]["extra"])))
+    assert sorted(calls) == [("bunny", 1, ["--x"]), ("fandisk", 0, ["--x"])]
+    assert out[("bunny", 1)] == ({"name": "bunny", "extra": ["--x"]}, "w/bunny.log", 1.0)
+    assert trees.part_figures("bunny", {"verdicts": []}) == {"verdicts": []}
+    assert trees.part_figures("fandisk", {"parts": {"fandisk": 1}}) == 1
+    with pytest.raises(SystemExit, match="unknown tree"):
+        trees.check_names(["fandisk", "teapot"], "verdicts")

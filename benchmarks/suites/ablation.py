@@ -21,12 +21,11 @@ rays, with its gate's ceiling at log(1 + MAX_SURPRISAL / F) for F = 2, 4 (the de
 ceiling (the rule before it); the threshold refitted as the Inspector does. Run folders may be given (any
 ``calibrate_and_score`` folder calibrated with rays); without them each part is scored with rays first.
 """
-from concurrent.futures import ThreadPoolExecutor, as_completed
 from pathlib import Path
 
 from benchmarks import cache, inspect_api, metrics
 from benchmarks.table import format_table, verdicts_table
-from benchmarks.trees import TREES, check_names, part_figures, run_tree
+from benchmarks.trees import TREES, check_names, part_figures, run_trees
 
 DESCRIPTION = ("the same trained model rescored with each point score and aggregate of the inspection package "
                "(--grid: every pair); --ray-gate: the rays' combination gate with and without its ceiling")
@@ -146,14 +145,13 @@ def _trees(args):
     jobs = [(name, int(seed)) for seed in args.seeds.split(",") for name in names]
     extra = ["--point-scores", TREE_POINT_SCORES]
     results = {}
-    with ThreadPoolExecutor(max(1, args.jobs)) as pool:  # threads that wait on one process each
-        futures = {pool.submit(run_tree, name, seed, args.cache, args.work, extra): (name, seed)
-                   for name, seed in jobs}
-        for fut in as_completed(futures):
-            name, seed = futures[fut]
-            figures, log, seconds = fut.result()
-            results[(name, seed)] = tree_rows(name, part_figures(name, figures))
-            print(f"{name}, seed {seed}: done ({seconds:.0f} s; log {log})", flush=True)
+
+    def done(name, seed, result):
+        figures, log, seconds = result
+        results[(name, seed)] = tree_rows(name, part_figures(name, figures))
+        print(f"{name}, seed {seed}: done ({seconds:.0f} s; log {log})", flush=True)
+
+    run_trees(jobs, args.cache, args.work, args.jobs, extra, done)
     rows = [dict(tree=name, seed=seed, **row) for name, seed in jobs for row in results[(name, seed)]]
     kinds = sorted({k for r in rows for k in r["auroc"] if k != "overall"})
     print()

@@ -11,13 +11,11 @@ flagged at least 0.9 where the AUROC is at least 0.99, and within 0.05 of the or
 The trees and the runner are :mod:`benchmarks.trees` (each run a process of its own). ``--jobs N`` runs N of them
 at once; the figures do not depend on it.
 """
-from concurrent.futures import ThreadPoolExecutor, as_completed
-
 import numpy as np
 
 from benchmarks import cache
 from benchmarks.table import format_table
-from benchmarks.trees import TREES, check_names, part_figures, run_tree
+from benchmarks.trees import TREES, check_names, part_figures, run_trees
 
 DESCRIPTION = ("the defaults' verdicts on many trees x seeds (issue 27): AUROC, defective and good flagged, oracle, "
                "predicted rate; whether the stated false-alarm rate holds")
@@ -45,11 +43,12 @@ def run(args):
     seeds = [int(s) for s in args.seeds.split(",")]
     jobs = [(name, seed) for seed in seeds for name in names]
     results = {}
-    with ThreadPoolExecutor(max(1, args.jobs)) as pool:  # threads that wait on one process each
-        futures = {pool.submit(_one, name, seed, args.cache, args.work): (name, seed) for name, seed in jobs}
-        for fut in as_completed(futures):
-            results[futures[fut]] = fut.result()
-            _report(*futures[fut], results[futures[fut]])
+
+    def done(name, seed, result):
+        results[(name, seed)] = _figures(name, *result)
+        _report(name, seed, results[(name, seed)])
+
+    run_trees(jobs, args.cache, args.work, args.jobs, done=done)
     rows = [dict(tree=name, seed=seed, **results[(name, seed)]) for name, seed in jobs]
     print()
     print(format_table(rows, [("tree", "tree", ""), ("seed", "seed", "d"), ("auroc", "AUROC", ".3f"),
@@ -68,9 +67,8 @@ def _report(name, seed, r):
           f"{r['good_text']}, oracle {r['oracle']:.3f} ({r['seconds']:.0f} s; log {r['log']})", flush=True)
 
 
-def _one(name, seed, cache_root, work):
-    """Run one tree at one seed (:func:`benchmarks.trees.run_tree`); returns the default run's figures."""
-    figures, log, seconds = run_tree(name, seed, cache_root, work)
+def _figures(name, figures, log, seconds):
+    """The default run's figures of one tree's run (:func:`benchmarks.trees.run_tree`'s result)."""
     one = _pick(name, part_figures(name, figures))
     flagged = one["flagged"]
     n_good = int(flagged.get("n_good") or 0)
