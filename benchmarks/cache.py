@@ -152,7 +152,17 @@ def bent(mesh, degrees):
 VARIATIONS = {"stretch": stretched, "bend": bent}
 
 
-def family_collection(part, seed=0, root=CACHE, progress=False, test_stretch=1.0, kind="stretch", **params):
+def family_ranges(kind, scale=1.0):
+    """The variants' ranges of a family of ``kind``, their spread about the nominal part times ``scale``: the
+    factors' distance from 1 (stretch) or the angles (bend)."""
+    if scale == 1:
+        return FAMILY_RANGES[kind]
+    nominal = 1.0 if kind == "stretch" else 0.0
+    return tuple(tuple(nominal + scale * (x - nominal) for x in r) for r in FAMILY_RANGES[kind])
+
+
+def family_collection(part, seed=0, root=CACHE, progress=False, test_stretch=1.0, kind="stretch", scale=1.0,
+                      **params):
     """A product family's scan collection, cached (returns its ``tree.h5``): ``n_train`` good training scans of
     :data:`FAMILY_VARIANTS` variants of ``part`` (factors evenly spread over the ranges of
     ``FAMILY_RANGES[kind]``, the scans shared out evenly) and test scans (good and defective, as
@@ -171,13 +181,17 @@ def family_collection(part, seed=0, root=CACHE, progress=False, test_stretch=1.0
     test_stretch : float
         The test variant's factor (stretch) or angle in degrees (bend).
     kind : {'stretch', 'bend'}
+    scale : float > 0
+        The variants' spread about the nominal part (:func:`family_ranges`; 1: ``FAMILY_RANGES[kind]``).
     **params
         ``synthesise``'s keyword arguments (defaults: :data:`COLLECTION_DEFAULTS`).
     """
     if kind not in VARIATIONS:
         raise ValueError(f"family kind must be one of {sorted(VARIATIONS)}, got {kind!r}")
+    if not float(scale) > 0:
+        raise ValueError(f"family scale must be > 0, got {scale!r}")
     params = {**COLLECTION_DEFAULTS, **params}
-    ranges = FAMILY_RANGES[kind]
+    ranges = family_ranges(kind, float(scale))
     keyed = {"part": part, "seed": seed, "family": [list(r) for r in ranges], "variants": FAMILY_VARIANTS,
              "test_stretch": float(test_stretch), **params}
     if kind != "stretch":  # the stretch families' cache keys stay as they were

@@ -374,6 +374,9 @@ def test_a_family_variant_is_bent_as_a_pure_bend():
     np.testing.assert_allclose(cache.bent(box, 0.0).vertices, box.vertices)
     with pytest.raises(ValueError, match="family kind"):
         cache.family_collection("builtin", kind="twist")
+    assert cache.family_ranges("bend", 4.0) == ((-48.0, -24.0), (24.0, 48.0))
+    np.testing.assert_allclose(cache.family_ranges("stretch", 2.0), ((0.6, 0.8), (1.2, 1.4)))
+    assert cache.family_ranges("stretch") is cache.FAMILY_STRETCH
 
 
 def test_trees_run_each_tree_and_report_each_as_it_finishes(monkeypatch):

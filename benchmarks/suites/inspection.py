@@ -52,6 +52,9 @@ def add_arguments(p):
     p.add_argument("--family-kind", choices=("stretch", "bend"), default="stretch",
                    help="--family: how the variants differ (default: %(default)s; bend: VALUE in degrees, the family "
                         "bent by 6-12 degrees either way, 0 the nominal part inside, 18 outside)")
+    p.add_argument("--family-scale", type=float, default=1.0,
+                   help="--family: the variants' spread about the nominal part times this (default 1; bend 4: "
+                        "24-48 degrees either way)")
     p.add_argument("--family", type=float, default=None, metavar="VALUE",
                    help="a product family (issue 32): training scans of variants of each part stretched along its "
                         "longest axis by 0.8-0.9 and 1.1-1.2 (benchmarks.cache.family_collection), test scans of the "
@@ -137,7 +140,8 @@ def _single(part, args):
         if args.no_origins:
             raise SystemExit("inspection: --family and --no-origins do not go together")
         data = cache.family_collection(part, args.seed, root=args.cache, progress=args.progress,
-                                       test_stretch=args.family, kind=args.family_kind, **sizes)
+                                       test_stretch=args.family, kind=args.family_kind,
+                                       scale=args.family_scale, **sizes)
     else:
         data = cache.synth_collection(part, args.seed, root=args.cache, progress=args.progress, **sizes,
                                       **({"sensor_origins": False} if args.no_origins else {}))
