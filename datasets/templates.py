@@ -9,10 +9,10 @@ be held back.
 Which points a sensor returns is decided by casting a ray from the sensor to each template point through a surface
 reconstructed from the template (:class:`TemplateSurface`, screened Poisson): a point is returned when the ray meets
 the surface no earlier than the template's own noise allows, and its normal faces the sensor. Hidden-point removal
-(Katz, Tal and Basri 2007), the rule before, kept 72-74 % of what a ray caster on the true mesh sees (bracket and
-fandisk templates, 8 views each), losing grazing and concave surface that real test scans show; held-back views
-rendered that way scored lower than good test scans, and their threshold flagged good ones
-(docs/results.md#four-complete-templates).
+(Katz, Tal and Basri 2007), the rule before, lost much of the grazing and concave surface that real test scans
+show; held-back views rendered that way scored lower than good test scans, and their threshold flagged good ones
+(figures: docs/results.md#four-complete-templates; ``python -m benchmarks data --mode views`` compares the two
+rules with a ray caster on the true mesh).
 """
 import numpy as np
 
