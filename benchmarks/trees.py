@@ -9,11 +9,11 @@ its record in ``WORK/records/``, whose figures are read back): the suites stay i
 """
 import json
 import os
-from concurrent.futures import ThreadPoolExecutor, as_completed
 import shutil
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from pathlib import Path
 
 # name -> (suite, its options); the issue's trees: solid (fandisk, the bracket) and thin-walled parts (cup,

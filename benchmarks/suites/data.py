@@ -317,6 +317,8 @@ def _views(args):
             surface = TemplateSurface(pts, normals)
             build = time.perf_counter() - t0
             lo, hi = pts.min(0), pts.max(0)
+            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+            flip_radius = 1000 * float(np.linalg.norm(hi - lo))
             found = {"ray-cast": [], "hidden-point removal": []}
             for origin in sensor_positions((lo + hi) / 2, float(np.linalg.norm(hi - lo)), 8, seed):
                 d = pts - origin
@@ -325,8 +327,7 @@ def _views(args):
                 t_hit = truth.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
                 seen = (np.einsum("ij,ij->i", mesh.face_normals[faces], origin - pts) > 0) & \
                     (np.abs(t_hit - dist) < 0.03 * diag)
-                pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-                _, hpr = pcd.hidden_point_removal(origin, 1000 * float(np.linalg.norm(np.ptp(pts, axis=0))))
+                _, hpr = cloud.hidden_point_removal(origin, flip_radius)
                 hpr = np.unique(np.asarray(hpr))
                 hpr = hpr[np.einsum("ij,ij->i", normals[hpr], origin - pts[hpr]) > 0]
                 for rule, idx in (("ray-cast", visible_points(pts, normals, origin, surface)),

@@ -56,10 +56,10 @@ def add_arguments(p):
                    help="--family: the variants' spread about the nominal part times this (default 1; bend 4: "
                         "24-48 degrees either way)")
     p.add_argument("--family", type=float, default=None, metavar="VALUE",
-                   help="a product family (issue 32): training scans of variants of each part stretched along its "
-                        "longest axis by 0.8-0.9 and 1.1-1.2 (benchmarks.cache.family_collection), test scans of the "
-                        "variant stretched by STRETCH (1.0: the nominal part, inside the range, never trained on; "
-                        "1.3: just outside it); compare with the same part without --family (its own model)")
+                   help="a product family (issue 32): training scans of variants of each part (--family-kind; "
+                        "benchmarks.cache.family_collection), test scans of the variant VALUE (stretch: 1.0 the "
+                        "nominal part, inside the range of 0.8-0.9 and 1.1-1.2, never trained on; 1.3 just outside "
+                        "it); compare with the same part without --family (its own model)")
     inspect_api.add_align_options(p)
     rays = p.add_mutually_exclusive_group()
     rays.add_argument("--rays", dest="rays", action="store_const", const=True, default=None,

@@ -1,8 +1,8 @@
 """Whether the stated false-alarm rate holds: the defaults' verdicts on many trees and seeds (issue 27).
 
 Each tree is one run of another suite at the defaults (``inspection``, ``inspection --templates`` or ``real``, with
-the options of :data:`benchmarks.trees.TREES`), per seed (the tree's synthesis and its training; the real trees: ``--seed`` and
-``--train-seed``). Printed per tree and seed: object AUROC, the fractions of defective and of good test scans
+the options of :data:`benchmarks.trees.TREES`), per seed (the tree's synthesis and its training; the real trees:
+``--seed`` and ``--train-seed``). Printed per tree and seed: object AUROC, the fractions of defective and of good test scans
 flagged, the oracle (the defective scans a threshold just above the worst good test scan flags), the threshold's
 basis and predicted false-alarm rate. Then the issue's targets: the realised false-alarm rate averaged over every
 tree and seed at most 2 alpha and no run above 1 of 16 good scans (scaled to the run's good scans); defective
