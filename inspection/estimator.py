@@ -322,6 +322,7 @@ class Inspector(BaseEstimator):
             with stage(timings, "rays"):
                 result.rays = ray_evidence(evidence.field, evidence.points, evidence.origin,
                                            surface=None if reference is None else reference.tree,
+                                           surface_normals=None if reference is None else reference.oriented_surface(),
                                            grazing=evidence.grazing, **settings.ray_options)
             result.components["rays"] = result.rays.score
         return result
@@ -630,6 +631,12 @@ class Inspector(BaseEstimator):
             self.aligner_ = Aligner.from_dict(extra["align"])
         rays = extra.get("rays")
         self.combination_ = None
+        if self.settings_.rays and "skim_cos" not in (self.settings_.ray_options or {}):
+            from .ray_evidence import SKIM_COS_BEFORE
+
+            # calibrated before rays skimming past the good surface were left out: scored as it was calibrated
+            self.settings_ = replace(self.settings_, ray_options={**self.settings_.ray_options,
+                                                                  "skim_cos": SKIM_COS_BEFORE})
         if rays is not None:
             from .combine import Combination
 

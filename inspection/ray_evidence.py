@@ -52,7 +52,9 @@ from .aggregates import aggregate as aggregate_values, check_aggregate
 log = logging.getLogger(__name__)
 
 RAY_DEFAULTS = {"n_rays": 384, "n_empty": 128, "gap": 2.0, "aggregate": "top1", "seed": 0, "clearance": None,
-                "own_depth": "auto", "band": 0.5, "min_cos": 0.2}
+                "own_depth": "auto", "band": 0.5, "min_cos": 0.2, "skim_cos": 0.4}
+# a calibration stored before ``skim_cos`` existed computed its ray scores without it: read as this
+SKIM_COS_BEFORE = 0.0
 
 
 @dataclass
@@ -83,6 +85,8 @@ class RayEvidence:
     empty_directions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     empty_values: np.ndarray = field(default_factory=lambda: np.zeros(0))
     empty_surprisal: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    ray_block: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    empty_block: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 def check_ray_options(options):
@@ -111,9 +115,10 @@ def check_ray_options(options):
         raise ValueError(f"ray option band must be > 0 (kernel lengthscales; band=None, the rule before it, is "
                          f"retired), got {opts['band']!r}")
     opts["band"] = band
-    if not 0 <= float(opts["min_cos"]) < 1:
-        raise ValueError(f"ray option min_cos must be in [0, 1), got {opts['min_cos']!r}")
-    opts["min_cos"] = float(opts["min_cos"])
+    for key in ("min_cos", "skim_cos"):
+        if not 0 <= float(opts[key]) < 1:
+            raise ValueError(f"ray option {key} must be in [0, 1), got {opts[key]!r}")
+        opts[key] = float(opts[key])
     if opts["own_depth"] not in (None, "auto"):
         if not float(opts["own_depth"]) > 0:
             raise ValueError(f"ray option own_depth must be None, 'auto' or > 0 (world units), got "
@@ -127,7 +132,7 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
                  gap=RAY_DEFAULTS["gap"], aggregate=RAY_DEFAULTS["aggregate"], seed=RAY_DEFAULTS["seed"],
                  clearance=RAY_DEFAULTS["clearance"], own_depth=RAY_DEFAULTS["own_depth"],
                  band=RAY_DEFAULTS["band"], surface=None, min_cos=RAY_DEFAULTS["min_cos"], grazing=None,
-                 **check_options):
+                 surface_normals=None, skim_cos=RAY_DEFAULTS["skim_cos"], **check_options):
     """The ray score of one scan under its projected field.
 
     Parameters
@@ -168,6 +173,14 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
         that grazes a surface runs along it, inside the band of good surfaces and beyond ``own_depth`` of its
         point, where the field's blurred surface puts material (on the inspection benchmark's enclosure a good scan
         seen level with the top sheet scored 400 nats); a ray through a hole crosses the wall. None: every ray.
+    surface_normals : (index, (n2, 3) array), optional
+        Good scans' points with their unit outward normals
+        (:meth:`inspection.reference.LocalReference.oriented_surface`), the scan's frame; with ``surface``.
+    skim_cos : float in [0, 1)
+        With ``surface_normals``: a ray sample on the outer side of the nearest good point's tangent plane, the ray
+        making |cos| < ``skim_cos`` with that point's normal, is not tested: the ray skims past the good surface
+        there, through the field's blurred rim, where nothing can be missing
+        (:class:`autodecoder.scanning.free_space.SurfaceBand`; 0: every sample in the band is tested).
     **check_options
         Passed to :func:`autodecoder.scanning.free_space.blocked_probability` (``outside_sigma``, ``step``, ...).
 
@@ -195,17 +208,18 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
 
         if field.lengthscale is None:
             raise ValueError("ray_evidence: band is in kernel lengthscales, and the field does not say its own")
-        surface_band = SurfaceBand(surface, band * field.lengthscale)
+        surface_band = SurfaceBand(surface, band * field.lengthscale, normals=surface_normals, min_cos=skim_cos)
     if own_depth == "auto" and surface_band is None:
         own_depth = None
     # one tree over the scan's points for both kinds of rays
     check_options = dict(check_options, observed=cKDTree(points), clearance=clearance, seed=seed, band=surface_band)
     check = blocked_probability(field, origin, points[index], own_depth=own_depth, **check_options)
     values, surprisal = check.p_blocked, -check.log_free
+    ray_block = _block_points(origin, points[index] - origin, check)
     # every point takes the value of the nearest tested ray: the points seen through a hole lie together
     nearest = cKDTree(points[index]).query(points, k=1)[1]
     point_map = values[nearest].astype(np.float64)
-    e_dirs, e_values, e_surprisal = np.zeros((0, 3)), np.zeros(0), np.zeros(0)
+    e_dirs, e_values, e_surprisal, e_block = np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros((0, 3))
     if n_empty > 0:
         dirs, h_uv, uv, pitch = image_holes(points, origin, gap)
         if len(dirs):
@@ -216,6 +230,7 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
             options = {k: v for k, v in check_options.items() if k != "outside_sigma"}
             empty = missing_return_probability(field, origin, e_dirs, t_far=t_far, **options)
             e_values, e_surprisal = empty.p_blocked, -empty.log_free
+            e_block = _block_points(origin, e_dirs, empty)
             # the rim of a hole shows what its missing returns say
             for k, near in enumerate(cKDTree(uv).query_ball_point(h_uv, (gap + 1.5) * pitch)):
                 if near:
@@ -225,4 +240,12 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
     # it is sure of; their surprisals can (P = 0.99: 4.6 nats; a wall 5 sd deep: ~15)
     score = aggregate_values(np.concatenate([surprisal, e_surprisal]), aggregate)
     return RayEvidence(score=score, point_map=point_map, ray_index=index, ray_values=values, ray_surprisal=surprisal,
-                       empty_directions=e_dirs, empty_values=e_values, empty_surprisal=e_surprisal)
+                       empty_directions=e_dirs, empty_values=e_values, empty_surprisal=e_surprisal,
+                       ray_block=ray_block, empty_block=e_block)
+
+
+def _block_points(origin, directions, check):
+    """(B, 3): ``origin`` + t_block x the unit ``directions`` of a :class:`FreeSpaceCheck` (NaN where untested)."""
+    d = np.asarray(directions, dtype=np.float64)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    return origin + check.t_block[:, None] * d

@@ -215,6 +215,14 @@ class LocalReference:
             self._surface = (NearestNeighbours(distinct), normals, SELF_DISTANCE * max(diagonal, 1e-12))
         return self._surface
 
+    def oriented_surface(self):
+        """(index, normals): a :class:`datasets.neighbours.NearestNeighbours` over the distinct surface points and
+        their unit outward normals (n2, 3), row for row (what the ray score's band needs to tell where a ray skims
+        past the good surface, :class:`autodecoder.scanning.free_space.SurfaceBand`); None when the good scans have
+        no normals."""
+        index, normals, _ = self._surface_tree()
+        return None if normals is None else (index, normals)
+
     def surface(self, points, normals=None):
         """Offsets of points from the good scans' surface, without any field.
 

@@ -43,6 +43,13 @@ Which samples of a ray are tested
   "material" (a ray through a wall 5 sd deep costs ~15 nats). What the sensor can show missing is a wall that good
   parts have: a ray through a hole in a sheet crosses the sheet where good scans returned points. Material the
   field extrapolated where no good scan ever saw a surface is the field's business, not evidence of a defect.
+* **Not where the ray skims past a good surface** (the band's ``normals`` and ``min_cos``): a sample on the outer
+  side of the nearest good surface point, whose normal makes |cos| < ``min_cos`` with the ray, is left out. A ray
+  that passes a silhouette edge runs along the surface there, outside it, through the field's blurred (and, where
+  the scan saw no point, extrapolated) rim, and a good scan's rays were accused there by hundreds of nats (fandisk:
+  docs/results.md, issue 29). A ray through a hole in a wall crosses the wall, and one through missing material runs
+  inside where good parts have material; one that runs along a surface's outer side has nothing to see missing
+  there.
 
 How the probability is computed
 -------------------------------
@@ -356,8 +363,8 @@ def _check_segments(field, origin, d, t_near, t_stop, step, q_out, tree, opts):
     if opts.band is not None:
         # only where good parts have a surface: elsewhere the field's material is its own extrapolation
         rows, cols = np.nonzero(keep)
-        outside_band = ~opts.band.contains(x[rows, cols])
-        keep[rows[outside_band], cols[outside_band]] = False
+        untested = ~opts.band.tested(x[rows, cols], d[rows])
+        keep[rows[untested], cols[untested]] = False
     q = np.where(keep, q, 0.0)
     log_p_out = np.where(keep, log_p_out, 0.0)
     rows = np.flatnonzero(has_out)
@@ -389,7 +396,8 @@ def _check_segments(field, origin, d, t_near, t_stop, step, q_out, tree, opts):
 
 class SurfaceBand:
     """Where good parts have a surface: the points within ``radius`` of good scans' points (see the module
-    docstring, "Where good parts have a surface").
+    docstring, "Where good parts have a surface"), less the samples where a ray skims past that surface on its outer
+    side ("Not where the ray skims past a good surface").
 
     Parameters
     ----------
@@ -398,9 +406,16 @@ class SurfaceBand:
         is (the caller may already hold one over these points: no second build for every scan inspected).
     radius : float
         World units (> 0).
+    normals : (index, (n2, 3) array), optional
+        Good scans' points with unit outward normals: an index with ``query(x, k) -> (distance, rows)`` over n2
+        points (:class:`datasets.neighbours.NearestNeighbours`, or a cKDTree) and their normals, row for row. None:
+        every sample in the band is tested.
+    min_cos : float in [0, 1)
+        With ``normals``: a sample outside the nearest good point's tangent plane, on a ray making |cos| <
+        ``min_cos`` with its normal, is not tested (0: none is left out for it).
     """
 
-    def __init__(self, points, radius):
+    def __init__(self, points, radius, normals=None, min_cos=0.0):
         from scipy.spatial import cKDTree
 
         if not float(radius) > 0:
@@ -412,8 +427,42 @@ class SurfaceBand:
         else:
             self.points = check_points(points, "surface points")
             self._tree = cKDTree(self.points)
+        if not 0 <= float(min_cos) < 1:
+            raise ValueError(f"SurfaceBand min_cos must be in [0, 1), got {min_cos!r}")
+        self.min_cos = float(min_cos)
+        self._normals = None
+        if normals is not None:
+            index, unit = normals
+            unit = np.asarray(unit, dtype=np.float64).reshape(-1, 3)
+            size = index.n if hasattr(index, "n") else len(index.data)
+            if len(unit) != size or not np.isfinite(unit).all():
+                raise ValueError(f"SurfaceBand normals: one finite normal per indexed point ({size}), got "
+                                 f"{len(unit)}")
+            self._normals = (index, unit)
 
     def contains(self, x):
         """(k, 3) points -> (k,) bool: within ``radius`` of a good scan's point."""
         x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
         return np.isfinite(self._tree.query(x, k=1, distance_upper_bound=self.radius)[0])
+
+    def skims(self, x, directions):
+        """(k, 3) samples and the (k, 3) unit directions of their rays -> (k,) bool: the sample lies on the outer
+        side of the nearest good point's tangent plane and its ray runs along that plane (|cos| < ``min_cos``). All
+        False without normals or with ``min_cos`` 0."""
+        x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
+        if self._normals is None or self.min_cos <= 0 or len(x) == 0:
+            return np.zeros(len(x), dtype=bool)
+        index, unit = self._normals
+        rows = np.asarray(index.query(x, k=1)[1]).reshape(-1)
+        n = unit[rows]
+        outside = np.einsum("kj,kj->k", x - np.asarray(index.data)[rows], n) > 0
+        along = np.abs(np.einsum("kj,kj->k", np.asarray(directions, dtype=np.float64).reshape(-1, 3), n))
+        return outside & (along < self.min_cos)
+
+    def tested(self, x, directions):
+        """(k,) bool: the samples a ray tests, :meth:`contains` and not :meth:`skims`."""
+        inside = self.contains(x)
+        if inside.any():
+            inside[inside] = ~self.skims(np.asarray(x, dtype=np.float64).reshape(-1, 3)[inside],
+                                         np.asarray(directions, dtype=np.float64).reshape(-1, 3)[inside])
+        return inside

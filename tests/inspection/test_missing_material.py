@@ -214,6 +214,9 @@ def test_ray_options_validated():
         check_ray_options({"gap": 0.5})
     with pytest.raises(ValueError, match="aggregate"):
         check_ray_options({"aggregate": "worst"})
+    for bad in (1.0, -0.1):
+        with pytest.raises(ValueError, match="skim_cos"):
+            check_ray_options({"skim_cos": bad})
 
 
 # ---------------------------------------------------------------------------------------------- combination
@@ -278,6 +281,12 @@ def test_inspector_with_rays_flags_the_hole_and_round_trips():
     assert again.settings_.rays and again.settings_.ray_options["n_rays"] == 256
     np.testing.assert_allclose(again.anomaly_scores(tests), insp.anomaly_scores(tests))
     assert again.threshold_ == insp.threshold_
+    assert again.settings_.ray_options["skim_cos"] == check_ray_options(None)["skim_cos"] > 0
+    # a calibration stored before skim_cos existed is scored as it was calibrated: every sample in the band tested
+    record = cal.as_dict()
+    del record["extra"]["config"]["ray_options"]["skim_cos"]
+    older = Inspector.from_calibration(WallModel(), Calibration.from_dict(record), alpha=0.2)
+    assert older.settings_.ray_options["skim_cos"] == 0.0
 
 
 def test_inspector_rays_errors():
@@ -445,6 +454,97 @@ def test_band_leaves_out_a_one_sided_fields_cavity_but_not_a_hole_in_the_sheet()
     ev_hole = ray_evidence(field, through_hole, sensor, n_empty=0, surface=good_surface, band=1.0)
     ev_open_no_band = ray_evidence(field, through_opening, sensor, n_empty=0, own_depth=0.06)  # no good surface
     assert ev_open.score < 1e-6 < 1.0 < ev_hole.score and ev_open_no_band.score > 1.0
+
+
+class SphereField(Field):
+    """A solid ball of radius ``radius`` about the origin: mean |x| - radius, sd ``sd`` everywhere (a blurred rim);
+    box [-1, 1]^3."""
+
+    def __init__(self, radius=0.3, sd=0.004, ell=0.05):
+        self.radius, self.sd, self.ell = radius, sd, ell
+        self.noise = 0.0
+        self.lengthscale = 0.02
+        self.bounds = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+
+    def torch_mean(self, x):
+        return x.norm(dim=1) - self.radius
+
+    def torch_covariance(self, a, b):
+        return self.sd**2 * torch.exp(-((a - b) ** 2).sum(1) / (2 * self.ell**2))
+
+    def torch_variance(self, x):
+        return torch.full((len(x),), self.sd**2, dtype=x.dtype)
+
+
+def _sphere_surface(radius=0.3, n=20000):
+    """Good scans' points on the ball's surface (Fibonacci lattice) and their unit outward normals."""
+    k = np.arange(n) + 0.5
+    z, phi = 1 - 2 * k / n, math.pi * (1 + 5**0.5) * k
+    unit = np.c_[np.sqrt(1 - z**2) * np.cos(phi), np.sqrt(1 - z**2) * np.sin(phi), z]
+    return radius * unit, unit
+
+
+def test_surface_band_skims_against_brute_force():
+    """:meth:`SurfaceBand.skims` against the nearest point found by brute force: outside its tangent plane and a
+    ray at |cos| < min_cos with its normal; nothing without normals or at min_cos 0."""
+    from autodecoder.scanning.free_space import SurfaceBand
+    from datasets.neighbours import NearestNeighbours
+
+    rng = np.random.default_rng(5)
+    pts, normals = _sphere_surface(n=2000)
+    x = rng.uniform(-0.4, 0.4, (800, 3))
+    d = rng.normal(size=(800, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    band = SurfaceBand(pts, 0.1, normals=(NearestNeighbours(pts), normals), min_cos=0.3)
+    nearest = np.sqrt(((x[:, None] - pts[None]) ** 2).sum(-1)).argmin(1)
+    n = normals[nearest]
+    brute = (((x - pts[nearest]) * n).sum(1) > 0) & (np.abs((d * n).sum(1)) < 0.3)
+    np.testing.assert_array_equal(band.skims(x, d), brute)
+    assert 0 < brute.sum() < len(x)
+    np.testing.assert_array_equal(band.tested(x, d), band.contains(x) & ~brute)
+    for plain in (SurfaceBand(pts, 0.1), SurfaceBand(pts, 0.1, normals=(NearestNeighbours(pts), normals))):
+        assert not plain.skims(x, d).any()
+    with pytest.raises(ValueError, match="min_cos"):
+        SurfaceBand(pts, 0.1, normals=(NearestNeighbours(pts), normals), min_cos=1.0)
+    with pytest.raises(ValueError, match="one finite normal per indexed point"):
+        SurfaceBand(pts, 0.1, normals=(NearestNeighbours(pts), normals[:-1]), min_cos=0.2)
+
+
+def test_a_ray_skimming_past_a_good_surface_is_not_accused_but_one_through_its_material_is():
+    """A ray that passes the ball 0.001 outside its rim runs along the good surface through the field's blurred rim:
+    without the good surface's normals it is blocked with at least the closest sample's marginal (closed form,
+    Phi(-0.00104 / sd): a sample lies within half a step of the tangent point); with them the samples it skims past are not tested,
+    and only those where it has left the tangent plane by |cos| >= 0.2 are, no nearer than 0.0072 to the rim
+    (closed form: d(s) = sqrt(0.301^2 + s^2) - 0.3 at cos = s / sqrt(0.301^2 + s^2) = 0.2), so the ray is blocked
+    with little more than the sum of those samples' marginals. A ray to a point behind the ball through its middle (material a good
+    part has) stays blocked."""
+    from autodecoder.scanning.free_space import SurfaceBand
+    from datasets.neighbours import NearestNeighbours
+
+    field = SphereField()
+    pts, normals = _sphere_surface()
+    sensor = np.array([-2.0, 0.0, 0.0])
+    # the ray from the sensor to (0.9, y, 0) passes the centre at 2 y / sqrt(2.9^2 + y^2) = 0.301: 0.001 outside
+    skimming = np.array([[0.9, 2.9 * 0.301 / math.sqrt(4.0 - 0.301**2), 0.0]])
+    behind = np.array([[0.9, 0.0, 0.0]])  # through the ball's middle (a point seen where the ball should hide it)
+    targets = np.r_[skimming, behind]
+    phi = lambda v: 0.5 * math.erfc(v / math.sqrt(2))  # noqa: E731  P(N(0, 1) > v)
+    plain = blocked_probability(field, sensor, targets, observed=targets, band=SurfaceBand(pts, 0.02))
+    oriented = blocked_probability(field, sensor, targets, observed=targets,
+                                   band=SurfaceBand(pts, 0.02, normals=(NearestNeighbours(pts), normals),
+                                                    min_cos=0.2))
+    # samples every <= 0.01 (half the lengthscale): one within 0.005 of the tangent point, 0.00104 outside the rim
+    assert plain.max_marginal[0] >= phi(0.00104 / field.sd)
+    # the lattice's normals are off by up to ~0.0125 rad (its spacing 0.0075 over the radius): |cos| 0.1875 lies
+    # 0.0064 outside the rim
+    assert oriented.max_marginal[0] <= phi(0.0064 / field.sd) + 1e-9
+    assert oriented.p_blocked[0] < 0.15 < 0.35 < plain.p_blocked[0]
+    assert oriented.p_blocked[1] > 0.999 and plain.p_blocked[1] > 0.999
+    # ray_evidence with the good surface's normals (its own options: band 1 lengthscale, skim_cos)
+    oriented_surface = (NearestNeighbours(pts), normals)
+    scores = [ray_evidence(field, skimming, sensor, n_empty=0, surface=pts, band=1.0, own_depth=0.06,
+                           surface_normals=oriented_surface, skim_cos=skim).score for skim in (0.0, 0.2)]
+    assert scores[1] < -math.log(1 - 0.15) < -math.log(1 - 0.35) < scores[0]
 
 
 def test_log_gated_combination_by_hand():
