@@ -28,8 +28,11 @@ point's own surface lies at most that far before it; material farther back is te
 samples within ``band`` kernel lengthscales of the good (training) scans' points are tested
 (:class:`autodecoder.scanning.free_space.SurfaceBand`). A ray through a hole crosses the sheet where good scans
 returned points; a good ray through an opening crosses only material the field extrapolated where no good part has
-a surface. (The rule before the band, a reference of where good scans' rays enter expected material, left good scans
-with up to hundreds of nats on the benchmarks' parts and is retired: docs/results_archive.md.) Without good scans'
+a surface. Within the band, a ray that skims past a good surface on its outer side (``skim_cos``) is not tested
+there: it runs through the field's blurred rim, where nothing can be missing, and a good scan's rays past an edge
+its view did not see scored hundreds of nats that way. (The rule before the band, a reference of where good scans'
+rays enter expected material, left good scans with up to hundreds of nats on the benchmarks' parts and is retired:
+docs/results_archive.md.) Without good scans'
 points (a point score with no per-location reference), ``own_depth='auto'`` tests no deep material.
 
 The scan's ray score aggregates the surprisals -log P(free) = -log(1 - P) of both kinds of ray together, in nats

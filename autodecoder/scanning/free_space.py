@@ -435,10 +435,11 @@ class SurfaceBand:
             index, unit = normals
             unit = np.asarray(unit, dtype=np.float64).reshape(-1, 3)
             size = index.n if hasattr(index, "n") else len(index.data)
-            if len(unit) != size or not np.isfinite(unit).all():
-                raise ValueError(f"SurfaceBand normals: one finite normal per indexed point ({size}), got "
+            length = np.linalg.norm(unit, axis=1)
+            if len(unit) != size or not np.isfinite(unit).all() or not (length > 0).all():
+                raise ValueError(f"SurfaceBand normals: one finite, non-zero normal per indexed point ({size}), got "
                                  f"{len(unit)}")
-            self._normals = (index, unit)
+            self._normals = (index, unit / length[:, None])
 
     def contains(self, x):
         """(k, 3) points -> (k,) bool: within ``radius`` of a good scan's point."""

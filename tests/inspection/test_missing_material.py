@@ -506,7 +506,7 @@ def test_surface_band_skims_against_brute_force():
         assert not plain.skims(x, d).any()
     with pytest.raises(ValueError, match="min_cos"):
         SurfaceBand(pts, 0.1, normals=(NearestNeighbours(pts), normals), min_cos=1.0)
-    with pytest.raises(ValueError, match="one finite normal per indexed point"):
+    with pytest.raises(ValueError, match="one finite, non-zero normal per indexed point"):
         SurfaceBand(pts, 0.1, normals=(NearestNeighbours(pts), normals[:-1]), min_cos=0.2)
 
 
@@ -548,33 +548,74 @@ def test_a_ray_skimming_past_a_good_surface_is_not_accused_but_one_through_its_m
 
 
 def test_log_gated_combination_by_hand():
-    from inspection.combine import LOG_GATE_MARGIN, LOG_GATE_QUANTILE, LOG_GATE_WEIGHT as w
+    from autodecoder.scanning.free_space import MAX_SURPRISAL
+    from inspection.combine import (LOG_GATE_CEILING_FACTOR, LOG_GATE_MARGIN, LOG_GATE_QUANTILE,
+                                    LOG_GATE_TOP_MARGIN, LOG_GATE_WEIGHT as w)
 
     rays = np.array([0.0, 0.01, 0.02, 0.3, 1.5, 0.0, 0.05, 280.0, 0.1, 2.0])  # one heavy-tailed good scan
     points = np.linspace(1.0, 2.0, len(rays))
     cal = {"points": points, "rays": rays}
-    comb = Combination(cal, rule="gated-log")
+    comb = Combination(cal, rule="gated-log", ceiling=MAX_SURPRISAL)  # as the inspection builds it
+
+    def gate(lr):
+        """The gate of log ray scores ``lr``, by hand: the quantile's, at least just beyond the largest of them
+        (up to the ceiling's bound), never above the bound."""
+        m, sd = lr.mean(), lr.std(ddof=1)
+        bound = (np.log1p(MAX_SURPRISAL / LOG_GATE_CEILING_FACTOR) - m) / sd
+        quantile = np.quantile((lr - m) / sd, LOG_GATE_QUANTILE) + LOG_GATE_MARGIN
+        return min(max(quantile, min((lr.max() - m) / sd + LOG_GATE_TOP_MARGIN, bound)), bound)
+
     lr = np.log1p(rays)
     m_r, sd_r = lr.mean(), lr.std(ddof=1)
-    tau = np.quantile((lr - m_r) / sd_r, LOG_GATE_QUANTILE) + LOG_GATE_MARGIN
+    tau = gate(lr)
+    assert comb.gate[1] == pytest.approx(tau)
     m_p, sd_p = points.mean(), points.std(ddof=1)
     new = {"points": np.array([1.5, 1.5, 1.5]), "rays": np.array([0.0, 3.0, 200.0])}
     z_r = (np.log1p(new["rays"]) - m_r) / sd_r
     np.testing.assert_allclose(comb.score(new), 1.5 + sd_p * w * np.maximum(z_r - tau, 0.0))
-    # a scan whose rays go beyond the good scans' bulk counts, although one good scan went farther still
-    assert comb.score(new)[2] > 1.5 and comb.score(new)[0] == pytest.approx(1.5)
-    # leave-one-out, scan 7 (the outlier) against the other nine by hand
+    # a scan whose rays go beyond what a scan can be sure to show counts, although one good scan went farther still
+    # (the ceiling's bound, 173 nats, caps the gate); one below the good scans' largest does not
+    assert comb.score(new)[2] > 1.5 and comb.score(new)[:2] == pytest.approx([1.5, 1.5])
+    # without a ceiling the gate lies beyond the largest good scan's score
+    free = Combination(cal, rule="gated-log")
+    assert free.gate[1] >= (lr.max() - m_r) / sd_r + LOG_GATE_TOP_MARGIN - 1e-12
+    assert free.score({"points": np.array([1.5]), "rays": np.array([280.0])})[0] == pytest.approx(1.5)
+    # leave-one-out, scan 7 (the outlier) against the other nine by hand: beyond all of them, and counted
     k = np.arange(len(rays)) != 7
     m9, sd9 = lr[k].mean(), lr[k].std(ddof=1)
-    tau9 = np.quantile((lr[k] - m9) / sd9, LOG_GATE_QUANTILE) + LOG_GATE_MARGIN
+    tau9 = gate(lr[k])
     p9 = points[k]
     expected = p9.mean() + p9.std(ddof=1) * ((points[7] - p9.mean()) / p9.std(ddof=1)
                                             + w * max(0.0, (lr[7] - m9) / sd9 - tau9))
-    assert comb.calibration_scores()[7] == pytest.approx(expected)
+    assert comb.calibration_scores()[7] == pytest.approx(expected) and expected > points[7]
     again = Combination.from_dict(comb.as_dict())
     assert again.rule == "gated-log" and again.score(new).tolist() == comb.score(new).tolist()
     with pytest.raises(ValueError, match=">= 0"):
         Combination({"points": points, "rays": rays - 1.0}, rule="gated-log")
+
+
+def test_the_gate_lies_beyond_every_good_calibration_scan():
+    """Good scans' ray scores mostly 0 and a few single rays of tens of nats (the thin cup once rays that skim
+    past the good surface are left out): the quantile gate falls to the floor (40 nats), below two good scans; the
+    gate lies LOG_GATE_TOP_MARGIN standard deviations beyond the largest of them instead (here capped at the
+    ceiling's bound), so a new good scan like them is not accused, while missing material's hundreds of nats still
+    count."""
+    from autodecoder.scanning.free_space import MAX_SURPRISAL
+    from inspection.combine import (LOG_GATE_CEILING_FACTOR, LOG_GATE_MARGIN, LOG_GATE_QUANTILE, LOG_GATE_TOP_MARGIN,
+                                    RAY_GATE_FLOOR)
+
+    rays = np.array([0.0] * 29 + [9.3, 74.9, 112.7])
+    points = np.linspace(2.0, 2.6, len(rays))
+    comb = Combination({"points": points, "rays": rays}, rule="gated-log", ceiling=MAX_SURPRISAL,
+                       floor=RAY_GATE_FLOOR)
+    lr = np.log1p(rays)
+    m, sd = lr.mean(), lr.std(ddof=1)
+    quantile = np.quantile((lr - m) / sd, LOG_GATE_QUANTILE) + LOG_GATE_MARGIN
+    assert np.expm1(m + sd * quantile) < RAY_GATE_FLOOR < 112.7  # the quantile's gate: at the floor
+    beyond = np.expm1(lr.max() + LOG_GATE_TOP_MARGIN * sd)  # 273 nats: above the ceiling's bound, 173
+    assert np.expm1(m + sd * comb.gate[1]) == pytest.approx(min(beyond, MAX_SURPRISAL / LOG_GATE_CEILING_FACTOR))
+    scores = comb.score({"points": np.full(3, 2.3), "rays": np.array([49.2, 112.0, 535.0])})
+    assert scores[:2] == pytest.approx([2.3, 2.3]) and scores[2] > 2.3 + 10
 
 
 def test_log_gate_stays_below_the_ceiling():
