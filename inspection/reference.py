@@ -215,6 +215,12 @@ class LocalReference:
             self._surface = (NearestNeighbours(distinct), normals, SELF_DISTANCE * max(diagonal, 1e-12))
         return self._surface
 
+    def surface_distance(self, points):
+        """(m,) distance of each of (m, 3) points to the nearest distinct surface point (the good scans' own
+        surface, :meth:`surface`), in the points' units."""
+        index, _, _ = self._surface_tree()
+        return index.query(np.asarray(points, dtype=np.float64).reshape(-1, 3), 1)[0][:, 0]
+
     def oriented_surface(self):
         """(index, normals): a :class:`datasets.neighbours.NearestNeighbours` over the distinct surface points and
         their unit outward normals (n2, 3), row for row (what the ray score's band needs to tell where a ray skims

@@ -155,14 +155,19 @@ def joint_score(distance_scores, surface_scores):
     return np.sqrt((a**2 + b**2) / 2)
 
 
-def reference_scores(reference, kind, points, value, variance, noise, grazing=None, normals=None):
+def reference_scores(reference, kind, points, value, variance, noise, grazing=None, normals=None, uncovered=None):
     """The per-location point score ``kind`` (``'distance'``, ``'joint'`` or ``'surface'``) of (m, 3) points whose
     compared quantity (m,) and field variance (m,) are given, against ``reference`` (a :class:`inspection.reference.LocalReference`);
-    ``grazing`` (m,) and the points' ``normals`` (m, 3) (for the reference surface's side) or None. Returns (m,)
-    float64."""
+    ``grazing`` (m,) and the points' ``normals`` (m, 3) (for the reference surface's side) or None. ``uncovered``
+    (m,) bool or None: points where the reference has no good surface to compare with (a training scan left out of
+    it, :func:`inspection.estimator._uncovered`); there ``'joint'`` takes the field's term for the good points' term.
+    Returns (m,) float64."""
     if kind == "surface":
         return reference.surface_scores(points, noise, grazing, normals)
     scores = reference.standardized(points, value, variance, noise, grazing)
     if kind == "joint":
-        scores = joint_score(scores, reference.surface_scores(points, noise, grazing, normals))
+        surface = reference.surface_scores(points, noise, grazing, normals)
+        if uncovered is not None:
+            surface = np.where(uncovered, scores, surface)
+        scores = joint_score(scores, surface)
     return scores

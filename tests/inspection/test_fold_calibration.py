@@ -92,3 +92,45 @@ def test_a_fold_scored_scan_is_compared_with_a_reference_without_its_points(fold
         others = {tuple(p) for s in goods if s.name in model.train_names and s.name != e.name
                   for p in np.asarray(s.points, dtype=np.float32)}
         assert {tuple(p) for p in reference.surface_points} <= others  # every other training scan's
+
+
+def test_a_left_out_training_scan_marks_only_the_surface_no_other_scan_saw():
+    """inspection.estimator._uncovered against brute force: held-back scans on a square set the reach (the 99 %
+    quantile of their points' distance to every training scan's points); a training scan that alone saw a flap
+    beyond the square, left out, marks exactly its points farther than that from the other scans' points; there the
+    joint score is the field's term alone (sqrt((z_d^2 + z_d^2) / 2) = z_d), elsewhere it is as before."""
+    from types import SimpleNamespace
+
+    from inspection.estimator import _uncovered
+    from inspection.reference import LocalReference
+    from inspection.scores import reference_scores
+
+    rng = np.random.default_rng(2)
+    g = np.arange(0.0, 1.0 + 1e-9, 0.05)
+    square = np.c_[np.stack(np.meshgrid(g, g), -1).reshape(-1, 2), np.zeros(len(g) ** 2)]
+    flap = square[square[:, 0] <= 0.5] + [1.05, 0.0, 0.0]  # x in [1.05, 1.55]: seen by scan 0 alone ...
+    flap[:, 2] = 0.5 * (flap[:, 0] - 1.0)  # ... bent up out of the square's plane
+    scans = [np.r_[square[::2], flap], square[1::2], square + [0.0, 0.0, 0.001]]
+    points = np.concatenate(scans)
+    owners = np.concatenate([np.full(len(p), i) for i, p in enumerate(scans)])
+    reference = LocalReference(points, np.zeros(len(points)), owners=owners, surface_points=points,
+                               surface_owners=owners)
+    held = [SimpleNamespace(points=square + rng.normal(0, 0.01, square.shape), stray=None) for _ in range(3)]
+    crossed = [SimpleNamespace(points=p, stray=None) for p in scans]
+    masks = _uncovered(held, reference, crossed, [reference.without(j) for j in range(3)])
+    held_d = np.sqrt(((np.concatenate([h.points for h in held])[:, None] - points[None]) ** 2).sum(-1)).min(1)
+    reach = np.quantile(held_d, 0.99)
+    for j, (p, mask) in enumerate(zip(scans, masks)):
+        others = points[owners != j]
+        brute = np.sqrt(((p[:, None] - others[None]) ** 2).sum(-1)).min(1) > reach
+        np.testing.assert_array_equal(mask, brute)
+    assert masks[0].sum() >= len(flap) - 21 and not masks[1].any() and not masks[2].any()
+    left_out = reference.without(0)
+    p = scans[0]
+    value, variance = rng.normal(0, 0.02, len(p)), np.full(len(p), 1e-4)
+    plain = reference_scores(left_out, "joint", p, value, variance, 0.01)
+    masked = reference_scores(left_out, "joint", p, value, variance, 0.01, uncovered=masks[0])
+    field_term = left_out.standardized(p, value, variance, 0.01)
+    np.testing.assert_allclose(masked[masks[0]], field_term[masks[0]])
+    np.testing.assert_allclose(masked[~masks[0]], plain[~masks[0]])
+    assert (plain[masks[0]] > masked[masks[0]]).mean() > 0.9  # the flap read as far off the other scans' surface
