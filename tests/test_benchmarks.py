@@ -2,6 +2,7 @@
 scikit-learn and hand-counted pairs, the baseline's table row, the SPSR grid's order, the suites' discovery and
 help. No benchmark is run here."""
 import json
+import math
 import subprocess
 import sys
 from datetime import datetime
@@ -275,6 +276,13 @@ def test_verdict_targets_are_checked_as_the_issue_states():
     assert out["over_one_in_16"] == ["a seed 0 (2 of 16)"]
     assert [m.split(" (")[0] for m in out["detection_misses"]] == ["b seed 0", "c seed 0"]
     assert len(TREES) >= 10
+    # what a threshold whose rate is exactly alpha gives, by hand: P(>= 2 of 16) = 1 - 0.98^16 - 16 0.02 0.98^15,
+    # and with 50 good scans (the target 1 of 16: more than 3.125 flagged) P(>= 4 of 50)
+    p16 = 1 - 0.98**16 - 16 * 0.02 * 0.98**15
+    p50 = 1 - sum(math.comb(50, k) * 0.02**k * 0.98 ** (50 - k) for k in range(4))
+    out = check_targets([run("a", 0), run("b", 0), run("c", 0, n_good=50)])
+    assert out["expected_over"] == pytest.approx(2 * p16 + p50)
+    assert out["p_none_over"] == pytest.approx((1 - p16) ** 2 * (1 - p50))
 
 
 def test_a_family_variant_is_stretched_along_the_longest_axis_only():
