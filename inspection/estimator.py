@@ -31,8 +31,9 @@ __all__ = ["Inspector", "NotFittedError", "ScanResult", "field_for", "DEFAULT_AG
 # points of the good scans' own surface kept in a reference (LocalReference.surface), at most: every training scan of
 # a 64-view template collection (~180,000 points) or of 32 synthetic scans of 4,000 points fits
 SURFACE_MAX_POINTS = 240000
-# a training scan scored against the reference without its own points leaves out its points farther from the other
-# good scans' surface than this quantile of the held-back scans' points are from all of them (Inspector.fit)
+# a training scan scored against the reference without its own points takes the field's term for the good points'
+# term at its points farther from the other good scans' surface than this quantile of the held-back scans' points
+# are from all of them (_uncovered)
 COVERAGE_QUANTILE = 0.99
 
 
