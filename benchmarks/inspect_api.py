@@ -334,7 +334,8 @@ def ray_gate(run_dir, factors, alpha=None):
         # the rule bounds the gate at log(1 + ceiling / LOG_GATE_CEILING_FACTOR): this ceiling puts it at
         # log(1 + MAX_SURPRISAL / factor)
         ceiling = None if factor is None else MAX_SURPRISAL * LOG_GATE_CEILING_FACTOR / factor
-        comb = Combination(comps, names=("points", "rays"), ceiling=ceiling)
+        comb = Combination(comps, names=("points", "rays"), ceiling=ceiling, floor=stored.floor,
+                           top_margin=stored.top_margin)  # all else as calibrated
         scores = comb.score({"points": rows["score_points"], "rays": rows["score_rays"]})
         threshold = fit_threshold(comb.calibration_scores(), alpha, calibration.roles)
         out.append({"factor": factor, "gate": float(np.expm1(comb.mean[1] + comb.sd[1] * comb.gate[1])),

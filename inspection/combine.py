@@ -102,16 +102,22 @@ class Combination:
     floor : float, optional
         The smallest value of the components after the first that can count (a ray score's: ``RAY_GATE_FLOOR``):
         the gate stays above it (module docstring). None: no bound.
+    top_margin : float >= 0 or None
+        The gate is at least this many standard deviations beyond the largest calibration value (up to the
+        ceiling's bound; module docstring). None: no such bound (a combination stored before it existed).
     """
 
-    def __init__(self, components, names=None, rule=RULE, ceiling=None, floor=None):
+    def __init__(self, components, names=None, rule=RULE, ceiling=None, floor=None, top_margin=LOG_GATE_TOP_MARGIN):
         if rule != RULE:
             raise ValueError(f"rule must be {RULE!r} (the rules 'gated' and 'max' are retired), got {rule!r}")
         if ceiling is not None and not (np.isfinite(ceiling) and ceiling > 0):
             raise ValueError(f"ceiling must be a positive finite number or None, got {ceiling!r}")
         if floor is not None and not (np.isfinite(floor) and floor >= 0):
             raise ValueError(f"floor must be a finite number >= 0 or None, got {floor!r}")
+        if top_margin is not None and not (np.isfinite(top_margin) and top_margin >= 0):
+            raise ValueError(f"top_margin must be a finite number >= 0 or None, got {top_margin!r}")
         self.floor = None if floor is None else float(floor)
+        self.top_margin = None if top_margin is None else float(top_margin)
         self.rule = rule
         self.ceiling = None if ceiling is None else float(ceiling)
         self.names, self.matrix = _as_matrix(components, names)
@@ -133,13 +139,10 @@ class Combination:
     def _gate(self, scaled, mean, sd):
         z = (scaled - mean) / sd
         gate = np.quantile(z, LOG_GATE_QUANTILE, axis=0) + LOG_GATE_MARGIN
-        # beyond what every good calibration scan showed, up to the ceiling's bound (module docstring)
-        top = z.max(axis=0) + LOG_GATE_TOP_MARGIN
-        bound = None
-        if self.ceiling is not None:
-            bound = (np.log1p(self.ceiling / LOG_GATE_CEILING_FACTOR) - mean) / sd
-            top = np.minimum(top, bound)
-        gate[1:] = np.maximum(gate[1:], top[1:])
+        bound = None if self.ceiling is None else (np.log1p(self.ceiling / LOG_GATE_CEILING_FACTOR) - mean) / sd
+        if self.top_margin is not None:  # beyond what every good calibration scan showed, up to the ceiling's bound
+            top = z.max(axis=0) + self.top_margin
+            gate[1:] = np.maximum(gate[1:], (top if bound is None else np.minimum(top, bound))[1:])
         if self.floor is not None:  # never below the evidence that can count (module docstring)
             gate[1:] = np.maximum(gate[1:], ((np.log1p(self.floor) - mean) / sd)[1:])
         if bound is not None:  # never above what a scan can reach (module docstring)
@@ -171,20 +174,23 @@ class Combination:
 
     def as_dict(self):
         """Plain Python values: the calibration component scores (the statistics follow from them), the rule, the
-        ceiling and the floor (when set)."""
+        ceiling, the floor and the top margin (when set)."""
         out = {name: [float(v) for v in self.matrix[:, j]] for j, name in enumerate(self.names)}
         out["rule"] = self.rule
         if self.ceiling is not None:
             out["ceiling"] = self.ceiling
         if self.floor is not None:
             out["floor"] = self.floor
+        if self.top_margin is not None:
+            out["top_margin"] = self.top_margin
         return out
 
     @classmethod
     def from_dict(cls, d):
         """The combination :meth:`as_dict` stored (a record without a rule was made with the retired ``'gated'``:
-        a ValueError asking to calibrate again)."""
+        a ValueError asking to calibrate again; one without a top margin gates as it was calibrated, without it)."""
         d = dict(d)
         rule, ceiling, floor = d.pop("rule", "gated"), d.pop("ceiling", None), d.pop("floor", None)
+        top_margin = d.pop("top_margin", None)
         return cls({k: np.asarray(v, dtype=np.float64) for k, v in d.items()}, rule=rule, ceiling=ceiling,
-                   floor=floor)
+                   floor=floor, top_margin=top_margin)

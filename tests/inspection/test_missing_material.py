@@ -590,6 +590,15 @@ def test_log_gated_combination_by_hand():
     assert comb.calibration_scores()[7] == pytest.approx(expected) and expected > points[7]
     again = Combination.from_dict(comb.as_dict())
     assert again.rule == "gated-log" and again.score(new).tolist() == comb.score(new).tolist()
+    # a combination stored before the top margin existed gates as it was calibrated: the quantile alone
+    older = comb.as_dict()
+    del older["top_margin"]
+    before = Combination.from_dict(older)
+    assert before.top_margin is None and before.gate[1] == pytest.approx(min(
+        np.quantile((lr - m_r) / sd_r, LOG_GATE_QUANTILE) + LOG_GATE_MARGIN,
+        (np.log1p(MAX_SURPRISAL / LOG_GATE_CEILING_FACTOR) - m_r) / sd_r))
+    with pytest.raises(ValueError, match="top_margin"):
+        Combination(cal, rule="gated-log", top_margin=-1.0)
     with pytest.raises(ValueError, match=">= 0"):
         Combination({"points": points, "rays": rays - 1.0}, rule="gated-log")
 
