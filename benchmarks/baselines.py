@@ -36,6 +36,25 @@ def nn_baseline(train_points, scans, top=TOP_PERCENT):
     return out
 
 
+def nn_point_maps(scans, distances):
+    """The baseline's anomaly maps, made as the toolkit makes its own (:func:`benchmarks.inspect_api.patch_map`):
+    each point's root mean square distance over its patch of nearest scan points, so that point AUROCs compare
+    the two scores and not the maps' smoothing.
+
+    Parameters
+    ----------
+    scans : sequence of objects with ``points`` (m_i, 3)
+    distances : sequence of (m_i,) arrays (:func:`nn_baseline`'s per-point distances)
+
+    Returns
+    -------
+    list of (m_i,) arrays
+    """
+    from benchmarks import inspect_api
+
+    return [inspect_api.patch_map(s.points, d) for s, d in zip(scans, distances)]
+
+
 def nn_verdicts(collection, heldback_names, alpha):
     """The baseline on a collection's test scans, with a threshold fitted like the toolkit's: on the held-back good
     scans and the training scans cross-fitted (each against the other training scans' points), at ``alpha``.
@@ -51,7 +70,7 @@ def nn_verdicts(collection, heldback_names, alpha):
     Returns
     -------
     dict
-        ``scores``, ``point_scores`` (per test scan), ``labels``, ``defects``, ``point_labels``, ``threshold``
+        ``scores``, ``point_maps`` (per test scan, :func:`nn_point_maps`), ``labels``, ``defects``, ``point_labels``, ``threshold``
         (an ``inspection.threshold.Threshold``), ``seconds_per_scan`` (scoring the test scans).
     """
     from datasets import ScanCollection
@@ -72,7 +91,7 @@ def nn_verdicts(collection, heldback_names, alpha):
                for i, s in enumerate(train)]
     threshold = fit_threshold(np.r_[cal_scores, crossed], alpha,
                               ["held-back"] * len(cal_scores) + ["cross-fitted"] * len(crossed))
-    return {"scores": np.array([v for v, _ in scored]), "point_scores": [d for _, d in scored],
+    return {"scores": np.array([v for v, _ in scored]), "point_maps": nn_point_maps(test, [d for _, d in scored]),
             "labels": np.array([s.label for s in test]), "defects": np.array([s.defect for s in test]),
             "point_labels": [s.point_labels for s in test], "threshold": threshold, "seconds_per_scan": seconds}
 
@@ -97,7 +116,7 @@ def nn_figures(collection, heldback_names, alpha, method="nearest-neighbour top5
     nn = nn_verdicts(collection, heldback_names, alpha)
     t = nn["threshold"]
     return {"method": method, "auroc": metrics.auroc_per_defect(nn["scores"], nn["labels"], nn["defects"]),
-            "point_auroc": metrics.point_auroc(nn["point_labels"], nn["point_scores"]),
+            "point_auroc": metrics.point_auroc(nn["point_labels"], nn["point_maps"]),
             "flagged": metrics.flagged(nn["scores"], nn["labels"], t.value),
             "threshold": {"value": t.value, "basis": t.basis, "predicted_far": t.predicted_far,
                           "far_interval": list(t.far_interval)},

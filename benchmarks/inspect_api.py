@@ -240,7 +240,7 @@ def summary_figures(summary):
             "alpha": summary.get("alpha")}
 
 
-def point_maps(model_path, data_path, split="test", fields=False):
+def point_maps(model_path, data_path, split="test", fields=False, neighbours=()):
     """Per-point scores of a collection's scans under a calibrated model (``inspection.Inspector`` with the model's
     stored calibration, as ``score`` computes them).
 
@@ -248,10 +248,14 @@ def point_maps(model_path, data_path, split="test", fields=False):
     -------
     scans : list of datasets.Scan
     results : list of dict
-        Per scan: ``score`` (float), ``point_scores`` ((m_i,) array) and, with ``fields``, ``field`` (the projected
-        stochastic field).
+        Per scan: ``score`` (float), ``point_scores`` ((m_i,) array: the points' own scores), ``map`` ((m_i,)
+        array: the anomaly map's values, :func:`inspection.maps.map_values`), with ``neighbours`` (a sequence of
+        patch sizes) ``maps`` ({patch size: (m_i,) array}, the same map at each) and, with ``fields``, ``field``
+        (the projected stochastic field).
     """
     from datasets import ScanCollection
+
+    from inspection.maps import map_values
 
     insp = _inspector(model_path)
     with ScanCollection(data_path) as c:
@@ -259,9 +263,30 @@ def point_maps(model_path, data_path, split="test", fields=False):
     results = []
     for s in scans:
         r = insp.inspect(s)
-        results.append({"score": float(r.score), "point_scores": np.asarray(r.point_scores),
-                        **({"field": r.field} if fields else {})})
+        settings = insp.for_scan(s).settings_
+        one = {"score": float(r.score), "point_scores": np.asarray(r.point_scores),
+               "map": map_values(settings, s, r)[0]}
+        if neighbours:
+            one["maps"] = {k: map_values(settings, s, r, k)[0] for k in neighbours}
+        if fields:
+            one["field"] = r.field
+        results.append(one)
     return scans, results
+
+
+def patch_map(points, values):
+    """``values`` (m,) of a scan's ``points`` as the toolkit's anomaly maps show its residuals: each point's root mean
+    square over its patch of nearest points (:func:`inspection.maps.patch_residuals`, the maps' patch size)."""
+    from inspection.maps import patch_residuals
+
+    return patch_residuals(points, values)
+
+
+def map_neighbours():
+    """The anomaly maps' default patch size, in points (``inspection.maps.MAP_NEIGHBOURS``)."""
+    from inspection.maps import MAP_NEIGHBOURS
+
+    return MAP_NEIGHBOURS
 
 
 def calibration_settings(model_path):

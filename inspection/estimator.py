@@ -77,7 +77,8 @@ class ScanResult:
     scores that make ``score``: ``{"points": ...}`` (the aggregate of the point
     scores), plus ``"rays"`` (the ray score) when rays are used; then ``rays`` is the
     :class:`~inspection.ray_evidence.RayEvidence` (its ``point_map`` is the per-point ray map) and ``score`` the
-    combination (:mod:`inspection.combine`).
+    combination (:mod:`inspection.combine`). ``stray`` (m,) bool marks the scan's stray returns, left out of the
+    score's aggregate and of the anomaly map's patches (None: none looked for).
     """
 
     score: float
@@ -86,6 +87,7 @@ class ScanResult:
     components: dict = None
     rays: object = None
     transform: np.ndarray = None
+    stray: np.ndarray = None
 
 
 def _progress(items, verbose, desc):
@@ -320,7 +322,7 @@ class Inspector(BaseEstimator):
             # score aggregates the others; the map keeps every point's score
             kept = values if evidence.stray is None or evidence.stray.all() else values[~evidence.stray]
             score = aggregate_scores(kept, settings.aggregate)
-        result = ScanResult(score, values, evidence.field, components={"points": score})
+        result = ScanResult(score, values, evidence.field, components={"points": score}, stray=evidence.stray)
         if settings.rays:
             from .ray_evidence import ray_evidence
 
@@ -346,8 +348,13 @@ class Inspector(BaseEstimator):
         return np.array([self.inspect(s, i).score for i, s in enumerate(scans)], dtype=np.float64)
 
     def anomaly_map(self, scan):
-        """Per-point scores (m,) of one scan (higher = more anomalous). Works unfitted."""
-        return self.inspect_components(scan).point_scores
+        """The scan's anomaly map (m,): each point's patch residual, in standard deviations (higher = more anomalous;
+        :mod:`inspection.maps`), what the PLY maps and the report show. The points' own scores are
+        ``inspect_components(scan).point_scores``. Works unfitted."""
+        from .maps import map_values
+
+        one = self.for_scan(scan)
+        return map_values(one._settings(), scan, one.inspect_components(scan))[0]
 
     def ray_map(self, scan):
         """Per-point ray scores (m,) in [0, 1] of one scan (with rays; see :mod:`inspection.ray_evidence`)."""

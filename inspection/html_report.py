@@ -77,21 +77,6 @@ def scan_view(name, points, values, ray_values=None, n_points=VIEW_POINTS, seed=
             "ray_values": None if rays is None else rays[keep]}
 
 
-def map_view(settings, scan, res, n_points=VIEW_POINTS, seed=0):
-    """:func:`scan_view` of an inspected scan: the values of its PLY maps (:func:`inspection.results.map_values`).
-
-    Parameters
-    ----------
-    settings : the inspector's ``settings_``
-    scan : datasets Scan
-    res : the scan's inspection result (``Inspector.inspect``)
-    """
-    from .results import map_values
-
-    values, rays = map_values(settings, scan, res)
-    return scan_view(scan.name, scan.points, values, rays, n_points, seed)
-
-
 def write_html_report(path, rows, summary, scan_views=(), title="Inspection report"):
     """Write the run's page to ``path`` (atomically); returns the path.
 

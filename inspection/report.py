@@ -55,7 +55,8 @@ def summarize(rows, threshold, alpha, point_labels=None, point_scores=None, extr
         (default: the verdict is ``'defective'``): the detection metrics are the threshold's.
     threshold, alpha : float
     point_labels, point_scores : list of (m_i,) arrays, optional
-        Per-point ground truth and scores of the scans that have ground truth (pooled for the point-level AUROC).
+        Per-point ground truth and per-point values (the anomaly maps', :func:`inspection.maps.map_values`) of the
+        scans that have ground truth, pooled for the point-level AUROC.
     extra : dict, optional
         Merged into the summary (model, aggregate, ...).
 

@@ -28,22 +28,12 @@ def prepare_out(out, overwrite=False):
     return out
 
 
-def map_values(settings, scan, res):
-    """What a scan's anomaly map shows: its point scores when they are standardized residuals, else the standardized
-    residual (m,); and its ray map (m,) with rays, else None."""
-    from .scores import POINT_SCORES, point_scores
-
-    resid = res.point_scores if POINT_SCORES[settings.point_score].in_deviations else \
-        point_scores(res.field, scan.points, "residual", settings.noise)
-    return resid, res.rays.point_map if settings.rays else None
-
-
-def write_scan_maps(settings, scan, res, maps_dir):
-    """One scan's anomaly map and, with rays, its ray map (:func:`map_values`), as coloured PLY files."""
+def write_scan_maps(scan, values, rays, maps_dir):
+    """One scan's anomaly map (``values``, (m,) patch residuals) and, with rays, its ray map (``rays``, (m,) or
+    None), as coloured PLY files; both from :func:`inspection.maps.map_values`."""
     from .maps import RAY_MAP_RANGE, safe_name, write_map
 
-    resid, rays = map_values(settings, scan, res)
-    write_map(maps_dir / f"{safe_name(scan.name)}.ply", scan.points, scan.normals, resid)
+    write_map(maps_dir / f"{safe_name(scan.name)}.ply", scan.points, scan.normals, values)
     if rays is not None:
         write_map(maps_dir / "rays" / f"{safe_name(scan.name)}.ply", scan.points, scan.normals, rays,
                   vrange=RAY_MAP_RANGE)
@@ -70,7 +60,7 @@ def summarize_run(handle, insp, data, split, align, results):
     if parted:  # thresholds per part: summary['parts']; scores compare within a part only
         extra["parts"] = insp.summary()
     summary = summarize(results["rows"], None if parted else insp.threshold_, insp.alpha, results["point_labels"],
-                        results["point_scores"], extra)
+                        results["point_maps"], extra)
     if results["ray_maps"]:
         from sklearn.metrics import roc_auc_score
 

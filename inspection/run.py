@@ -196,13 +196,14 @@ def _inspect_scans(insp, scans, maps, maps_dir, progress, uncertain=True, jobs=1
     calibration, alpha) (:func:`_inspect_in_workers`). A scan's scoring is deterministic (its projection is seeded), so the rows
     are those of one process, in the input order whatever the order the workers finish in.
 
-    Returns a dict: ``rows`` (one per scan, the CSV columns), ``point_labels``, ``point_scores`` and ``ray_maps``
+    Returns a dict: ``rows`` (one per scan, the CSV columns), ``point_labels``, ``point_maps`` (the anomaly maps'
+    values, :func:`inspection.maps.map_values`) and ``ray_maps``
     (per scan with ground-truth point labels), ``seconds`` (per scored scan), ``maps`` (maps written) and ``views``
     (their 3D views for report.html)."""
     from tqdm import tqdm
 
-    results = {"rows": [], "point_labels": [], "point_scores": [], "ray_maps": [], "seconds": [], "maps": 0,
-               "views": []}  # views: report.html's 3D views (inspection.html_report.map_view), one per map
+    results = {"rows": [], "point_labels": [], "point_maps": [], "ray_maps": [], "seconds": [], "maps": 0,
+               "views": []}  # views: report.html's 3D views (inspection.html_report.scan_view), one per map
     jobs = min(int(jobs), len(scans))
     if jobs <= 1:
         outs = (_inspect_one(insp, scan, i, maps, maps_dir, uncertain)
@@ -216,7 +217,7 @@ def _inspect_scans(insp, scans, maps, maps_dir, progress, uncertain=True, jobs=1
         results["seconds"].append(one["seconds"])
         if "point_labels" in one:
             results["point_labels"].append(one["point_labels"])
-            results["point_scores"].append(one["point_scores"])
+            results["point_maps"].append(one["point_map"])
             if one["ray_map"] is not None:
                 results["ray_maps"].append(one["ray_map"])
         if "view" in one:
@@ -232,9 +233,10 @@ def _first_line(exc):
 
 def _inspect_one(insp, scan, i, maps, maps_dir, uncertain=True):
     """Inspect one scan (the ``i``-th of the run: names a scan without a name, seeds its map's subsample) and write
-    its map when ``maps`` asks for one. Returns a dict: ``row``; for a scored scan also ``seconds``, ``point_labels``, ``point_scores`` and
-    ``ray_map`` (scans with ground-truth point labels) and ``view`` (with a map)."""
-    from .html_report import map_view
+    its map when ``maps`` asks for one. Returns a dict: ``row``; for a scored scan also ``seconds``, ``point_labels``,
+    ``point_map`` and ``ray_map`` (scans with ground-truth point labels) and ``view`` (with a map)."""
+    from .html_report import scan_view
+    from .maps import map_values
 
     t0 = time.perf_counter()
     try:
@@ -252,12 +254,14 @@ def _inspect_one(insp, scan, i, maps, maps_dir, uncertain=True):
     if rays:
         row.update(score_points=res.components["points"], score_rays=res.components["rays"])
     out["row"] = row
-    if scan.point_labels is not None:
-        out.update(point_labels=scan.point_labels, point_scores=res.point_scores,
-                   ray_map=res.rays.point_map if rays else None)
-    if maps == "all" or (maps == "flagged" and verdict != "good"):
-        write_scan_maps(one.settings_, scan, res, maps_dir)
-        out["view"] = map_view(one.settings_, scan, res, seed=i)  # report.html's 3D view
+    mapped = maps == "all" or (maps == "flagged" and verdict != "good")
+    if scan.point_labels is not None or mapped:
+        values, ray_values = map_values(one.settings_, scan, res)
+    if scan.point_labels is not None:  # the point metrics are those of the map a user sees
+        out.update(point_labels=scan.point_labels, point_map=values, ray_map=ray_values)
+    if mapped:
+        write_scan_maps(scan, values, ray_values, maps_dir)
+        out["view"] = scan_view(scan.name, scan.points, values, ray_values, seed=i)  # report.html's 3D view
     return out
 
 

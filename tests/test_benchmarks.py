@@ -138,6 +138,23 @@ def test_point_auroc_pools_the_points_and_reads_no_labels_as_good():
 
 
 # ------------------------------------------------------------------------------------------------------ baseline
+def test_the_baselines_maps_are_made_as_the_toolkits():
+    """The baseline's point map is the toolkit's patch residual of its per-point distances."""
+    from types import SimpleNamespace
+
+    from benchmarks import baselines
+    from inspection.maps import patch_residuals
+
+    rng = np.random.default_rng(3)
+    scans = [SimpleNamespace(points=rng.random((200, 3))) for _ in range(2)]
+    train = rng.random((500, 3))
+    scored = baselines.nn_baseline(train, scans)
+    maps = baselines.nn_point_maps(scans, [d for _, d in scored])
+    for s, (_, d), m in zip(scans, scored, maps):
+        np.testing.assert_allclose(m, patch_residuals(s.points, d), rtol=1e-12)
+        assert not np.allclose(m, d)
+
+
 def test_nn_figures_is_the_verdicts_table_row_of_nn_verdicts(monkeypatch):
     from types import SimpleNamespace
 
@@ -147,7 +164,7 @@ def test_nn_figures_is_the_verdicts_table_row_of_nn_verdicts(monkeypatch):
                 "labels": np.array(["good", "good", "good", "defective", "defective"]),
                 "defects": np.array(["", "", "", "dent", "bump"]),
                 "point_labels": [None, None, None, np.array([0, 1]), np.array([1, 0])],
-                "point_scores": [np.array([0.1, 0.2])] * 3 + [np.array([0.3, 0.9]), np.array([0.8, 0.05])],
+                "point_maps": [np.array([0.1, 0.2])] * 3 + [np.array([0.3, 0.9]), np.array([0.8, 0.05])],
                 "threshold": SimpleNamespace(value=0.5, basis="held-back", predicted_far=0.01,
                                              far_interval=(0.005, 0.02)),
                 "seconds_per_scan": 0.25}
@@ -155,7 +172,7 @@ def test_nn_figures_is_the_verdicts_table_row_of_nn_verdicts(monkeypatch):
     row = baselines.nn_figures("collection", [], 0.01)
     assert list(row) == ["method", "auroc", "point_auroc", "flagged", "threshold", "seconds_per_scan"]
     assert row["auroc"] == metrics.auroc_per_defect(verdicts["scores"], verdicts["labels"], verdicts["defects"])
-    assert row["point_auroc"] == metrics.point_auroc(verdicts["point_labels"], verdicts["point_scores"])
+    assert row["point_auroc"] == metrics.point_auroc(verdicts["point_labels"], verdicts["point_maps"])
     assert row["flagged"] == metrics.flagged(verdicts["scores"], verdicts["labels"], 0.5)
     assert row["threshold"] == {"value": 0.5, "basis": "held-back", "predicted_far": 0.01,
                                 "far_interval": [0.005, 0.02]}
@@ -402,3 +419,15 @@ def test_trees_run_each_tree_and_report_each_as_it_finishes(monkeypatch):
     assert trees.part_figures("fandisk", {"parts": {"fandisk": 1}}) == 1
     with pytest.raises(SystemExit, match="unknown tree"):
         trees.check_names(["fandisk", "teapot"], "verdicts")
+
+
+def test_maps_suite_finds_the_scored_runs_only(tmp_path):
+    from benchmarks.suites.maps import run_folders
+
+    for name, scored in (("a/run1", True), ("b/run2", False), ("c/run3", True)):
+        (tmp_path / name / "results").mkdir(parents=True)
+        (tmp_path / name / "model.pt").write_bytes(b"")
+        if scored:
+            (tmp_path / name / "results" / "summary.json").write_text("{}")
+    assert run_folders(tmp_path) == [tmp_path / "a/run1", tmp_path / "c/run3"]
+    assert run_folders(tmp_path, match="run3") == [tmp_path / "c/run3"]

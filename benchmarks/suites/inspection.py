@@ -334,8 +334,8 @@ def _templates(part, args):
     labels, defects = [s.label for s in scans], [s.defect for s in scans]
     point_labels = [s.point_labels for s in scans]
     result = {}
-    for name, scan_scores, maps in (("toolkit", [r["score"] for r in scored], [r["point_scores"] for r in scored]),
-                                    ("nn", [v for v, _ in nn], [d for _, d in nn])):
+    for name, scan_scores, maps in (("toolkit", [r["score"] for r in scored], [r["map"] for r in scored]),
+                                    ("nn", [v for v, _ in nn], baselines.nn_point_maps(scans, [d for _, d in nn]))):
         result[name] = {"auroc": metrics.auroc_per_defect(scan_scores, labels, defects),
                         "point_auroc": metrics.point_auroc_per_defect(point_labels, maps, labels, defects)}
     print(f"\n== {part}: {len(train)} training views, {n_validation} validation views from 4 templates of "

@@ -82,6 +82,23 @@ def test_calibrate_then_score(workdir, tmp_path, capsys):
     ply = out / "maps" / "test__dent__000.ply"
     pts, normals = read_cloud(ply)
     assert pts.shape == (300, 3) and normals is not None
+    # what the map and the point AUROC show is the Inspector's anomaly map (each point's patch residual)
+    import open3d as o3d
+    from sklearn.metrics import roc_auc_score
+
+    from inspection import Inspector, load_model
+    from inspection.maps import colours
+
+    handle = load_model(model)
+    insp = Inspector.from_calibration(handle.model, handle.calibration)
+    with ScanCollection(workdir / "tree.h5") as c:
+        tests = c.read_many(c.select(split="test"))
+    amaps = {s.name: insp.anomaly_map(s) for s in tests}
+    written = np.asarray(o3d.io.read_point_cloud(str(ply)).colors)
+    np.testing.assert_array_equal(np.round(written * 255).astype(np.uint8), colours(amaps["test/dent/000"]))
+    labelled = [s for s in tests if s.point_labels is not None]
+    assert m["point_auroc"] == pytest.approx(roc_auc_score(np.concatenate([s.point_labels for s in labelled]),
+                                                           np.concatenate([amaps[s.name] for s in labelled])))
     assert "flagged" in capsys.readouterr().out
     # scoring again into the same results folder replaces its files
     assert main(["score", "--model", str(model), "--data", str(workdir / "tree.h5"), "--out", str(out),

@@ -420,7 +420,8 @@ def test_a_scan_without_sensor_origin_grazes_from_the_view_its_normals_face():
     insp = Inspector(SphereModel(), point_score="distance", alpha=0.05, rays=False).fit(held, reference_scans=good)
     blind = replace(scan, sensor_origin=None)
     stand_in = replace(scan, sensor_origin=view_origin_from_normals(scan.points, scan.normals))
-    np.testing.assert_allclose(insp.anomaly_map(blind), insp.anomaly_map(stand_in), rtol=1e-6)
+    np.testing.assert_allclose(insp.inspect_components(blind).point_scores,
+                               insp.inspect_components(stand_in).point_scores, rtol=1e-6)
     known, score = insp.inspect(scan).score, insp.inspect(blind).score
     insp.reference_.grazing_scale = 0.0  # what a scan without sensor scored before: no grazing term
     before = insp.inspect(blind).score
@@ -444,8 +445,8 @@ def test_joint_point_score_calibrates_restores_and_ranks_a_dent():
     distance = Inspector.from_calibration(SphereModel(), insp.calibration())
     distance.settings_ = replace(distance.settings_, point_score="distance")
     scan = held[0]
-    np.testing.assert_allclose(insp.anomaly_map(scan), joint_score(
-        distance.anomaly_map(scan), insp.reference_.surface_scores(scan, 0.01)), rtol=1e-12)
+    np.testing.assert_allclose(insp.inspect_components(scan).point_scores, joint_score(
+        distance.inspect_components(scan).point_scores, insp.reference_.surface_scores(scan, 0.01)), rtol=1e-12)
     dented = sphere_scan(seed=40, n=800, dent=0.05)[0]
     assert insp.anomaly_scores([dented])[0] > insp.calibration_scores_.max()
 
@@ -460,7 +461,7 @@ def test_surface_point_score_is_joints_model_free_term_and_ignores_the_field():
     for kind in ("joint", "distance", "surface"):
         one = Inspector.from_calibration(SphereModel(), insp.calibration())
         one.settings_ = replace(one.settings_, point_score=kind)
-        maps[kind] = one.anomaly_map(held[0])
+        maps[kind] = one.inspect_components(held[0]).point_scores
     np.testing.assert_allclose(maps["joint"] ** 2, (maps["distance"] ** 2 + maps["surface"] ** 2) / 2, rtol=1e-10)
     np.testing.assert_allclose(maps["surface"], insp.reference_.surface_scores(held[0], 0.01), rtol=1e-12)
     class ShrunkSphereModel(SphereModel):  # the fitted sphere, then 0.1 smaller: a field off the part everywhere
@@ -475,7 +476,7 @@ def test_surface_point_score_is_joints_model_free_term_and_ignores_the_field():
     wrong = Inspector.from_calibration(ShrunkSphereModel(), insp.calibration())
     for kind in ("surface", "distance"):
         wrong.settings_ = replace(wrong.settings_, point_score=kind)
-        moved = wrong.anomaly_map(held[0])
+        moved = wrong.inspect_components(held[0]).point_scores
         if kind == "surface":
             np.testing.assert_allclose(moved, maps["surface"], rtol=1e-12)
         else:
