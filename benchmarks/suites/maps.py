@@ -27,6 +27,9 @@ def add_arguments(p):
     p.add_argument("--neighbours", default="1,8,16,24,32,48,64",
                    help="comma-separated points per patch (default: %(default)s)")
     p.add_argument("--match", default="", help="only runs whose path contains this text (default: all)")
+    p.add_argument("--root", default=".",
+                   help="the folder the runs were made from: a relative collection path in a run's summary is read "
+                        "from here (default: the current folder)")
 
 
 def run_folders(work, match=""):
@@ -43,7 +46,7 @@ def run(args):
         raise SystemExit(f"no run folder with model.pt and results/summary.json under {args.work}")
     rows, per_type = [], []
     for folder in folders:
-        data = json.loads((folder / "results" / "summary.json").read_text())["data"]
+        data = Path(args.root) / json.loads((folder / "results" / "summary.json").read_text())["data"]
         scans, results = inspect_api.point_maps(folder / "model.pt", data, neighbours=sizes)
         labels = [s.point_labels for s in scans]
         defect_points = [int(np.sum(s.point_labels)) for s in scans if s.label != metrics.GOOD and
