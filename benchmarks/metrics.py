@@ -110,6 +110,25 @@ def point_auroc_per_defect(point_labels, point_scores, labels, defects):
 
 
 
+def exact_alpha_flagged(scores, labels, alpha):
+    """The fraction of defective scans flagged by the threshold a calibration that knew the good test scans' own
+    distribution would set: the 1 - ``alpha`` quantile of the log-normal fitted to the good test scans' scores (the
+    toolkit's tail model, ``inspection.threshold``). What a threshold whose false-alarm rate is exactly ``alpha``
+    detects, so a detection target is a test of the calibration only where this meets it. NaN where fewer than 3
+    good scores are finite and positive, or no defective score is finite."""
+    from scipy.stats import norm
+
+    scores, labels = np.asarray(scores, dtype=np.float64), np.asarray(labels)
+    ok = np.isfinite(scores)
+    bad = _defective(labels) & ok
+    good = scores[~_defective(labels) & ok]
+    if not bad.any() or len(good) < 3 or not np.all(good > 0):
+        return float("nan")
+    logs = np.log(good)
+    threshold = float(np.exp(logs.mean() + norm.ppf(1.0 - float(alpha)) * logs.std(ddof=1)))
+    return float((scores[bad] > threshold).mean())
+
+
 def oracle_flagged(scores, labels):
     """The fraction of defective scans a threshold just above the worst good scan would flag (what the best threshold
     that flags no good scan finds; 'the oracle column' the verdicts are judged against). NaN scores are left out."""

@@ -292,6 +292,13 @@ def test_verdict_targets_are_checked_as_the_issue_states():
     assert not out["far_ok"]  # 2 / 48 = 0.042 > 0.04
     assert out["over_one_in_16"] == ["a seed 0 (2 of 16)"]
     assert [m.split(" (")[0] for m in out["detection_misses"]] == ["b seed 0", "c seed 0"]
+    assert not out["beyond_alpha"]
+    # a miss where the good test scans' own 1 - alpha quantile misses too is counted apart, per the row's target
+    apart = [dict(run("b", 0, defective=0.85), exact_alpha=0.88), dict(run("d", 0, defective=0.85), exact_alpha=0.95),
+             dict(run("c", 0, auroc=0.95, defective=0.70, oracle=0.80), exact_alpha=0.74)]
+    out = check_targets(apart)
+    assert [m.split(" (")[0] for m in out["detection_misses"]] == ["d seed 0"]
+    assert [m.split(" (")[0] for m in out["beyond_alpha"]] == ["b seed 0", "c seed 0"]
     assert len(TREES) >= 10
     # what a threshold whose rate is exactly alpha gives, by hand: P(>= 2 of 16) = 1 - 0.98^16 - 16 0.02 0.98^15,
     # and with 50 good scans (the target 1 of 16: more than 3.125 flagged) P(>= 4 of 50)
@@ -300,6 +307,16 @@ def test_verdict_targets_are_checked_as_the_issue_states():
     out = check_targets([run("a", 0), run("b", 0), run("c", 0, n_good=50)])
     assert out["expected_over"] == pytest.approx(2 * p16 + p50)
     assert out["p_none_over"] == pytest.approx((1 - p16) ** 2 * (1 - p50))
+
+
+def test_exact_alpha_detection_is_the_good_scans_own_log_normal_quantile():
+    """By hand: good scores e^{0, 0.2, 0.4, 0.6}: log mean 0.3, sd 0.2582; at alpha 0.05 the threshold is
+    e^{0.3 + 1.6449 0.2582} = e^{0.7247} = 2.064."""
+    labels = ["good"] * 4 + ["defective"] * 4
+    scores = list(np.exp([0.0, 0.2, 0.4, 0.6])) + [2.0, 2.06, 2.07, 5.0]
+    assert metrics.exact_alpha_flagged(scores, labels, 0.05) == pytest.approx(0.5)
+    assert metrics.exact_alpha_flagged(scores, labels, 0.3) == pytest.approx(1.0)  # e^{0.3 + 0.5244 0.2582} = 1.55
+    assert np.isnan(metrics.exact_alpha_flagged([1.0, 2.0, 3.0], ["good", "good", "defective"], 0.05))
 
 
 def test_a_family_variant_is_stretched_along_the_longest_axis_only():

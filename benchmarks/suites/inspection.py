@@ -161,7 +161,7 @@ def _single(part, args):
         toolkit["method"] = (f"toolkit {toolkit['point_score']}/{toolkit['aggregate']}" + (" +rays" if toolkit["rays"]
                              else "") + (f" {args.representation}" if args.representation else "")
                              + ("" if folds else ", no folds"))
-        toolkit.update(_oracle(run_dir), calibration_gap=_calibration_gap(run_dir))
+        toolkit.update(_oracle(run_dir, toolkit["alpha"]), calibration_gap=_calibration_gap(run_dir))
         one["toolkit" if folds else "toolkit_nofolds"] = toolkit
         one["run" if folds else "run_nofolds"] = str(run_dir)
         rows.append(dict(part=part, **toolkit))
@@ -187,10 +187,13 @@ def _fold_seconds(model):
     return json.loads(path.read_text())["seconds"] if path.exists() else None
 
 
-def _oracle(run_dir):
-    """``oracle``: the defective test scans flagged by a threshold just above the worst good test scan."""
+def _oracle(run_dir, alpha):
+    """``oracle``: the defective test scans flagged by a threshold just above the worst good test scan;
+    ``exact_alpha``: those flagged by a threshold at the good test scans' own fitted 1 - ``alpha`` quantile
+    (:func:`benchmarks.metrics.exact_alpha_flagged`)."""
     scored = inspect_api.read_scores(Path(run_dir) / "results")
-    return {"oracle": metrics.oracle_flagged(scored["score"], scored["label"])}
+    return {"oracle": metrics.oracle_flagged(scored["score"], scored["label"]),
+            "exact_alpha": metrics.exact_alpha_flagged(scored["score"], scored["label"], alpha)}
 
 
 # ---------------------------------------------------------------------------------------------------- multi-part
@@ -321,7 +324,7 @@ def _templates(part, args):
         summary = inspect_api.calibrate_and_score(model, data, run_dir, rays=args.rays, maps="none", folds=folds,
                                                   progress=args.progress, echo=lambda line: print(f"  {part}: {line}"))
         toolkit = inspect_api.summary_figures(summary)
-        toolkit.update(_oracle(run_dir), calibration_gap=_calibration_gap(run_dir))
+        toolkit.update(_oracle(run_dir, toolkit["alpha"]), calibration_gap=_calibration_gap(run_dir))
         toolkit["method"] = f"toolkit {toolkit['point_score']}/{toolkit['aggregate']}" + ("" if folds else ", no folds")
         out["toolkit_summary" if folds else "toolkit_summary_nofolds"] = toolkit
         rows.append(dict(part=part, **toolkit))

@@ -419,6 +419,8 @@ def score(data, model, run_dir, args):
         figures = inspect_api.summary_figures(summary)
         verdict_rows.append(dict(part="bunny", **figures, oracle=metrics.oracle_flagged(scored["score"],
                                                                                         scored["label"]),
+                                 exact_alpha=metrics.exact_alpha_flagged(scored["score"], scored["label"],
+                                                                         figures["alpha"]),
                                  method="toolkit" + ("" if folds else ", no folds")))
     print(verdicts_table(verdict_rows))
     info = inspect_api.model_info(model)
