@@ -448,3 +448,4 @@ def test_maps_suite_finds_the_scored_runs_only(tmp_path):
             (tmp_path / name / "results" / "summary.json").write_text("{}")
     assert run_folders(tmp_path) == [tmp_path / "a/run1", tmp_path / "c/run3"]
     assert run_folders(tmp_path, match="run3") == [tmp_path / "c/run3"]
+    assert run_folders(tmp_path, match="run3,a/") == [tmp_path / "a/run1", tmp_path / "c/run3"]

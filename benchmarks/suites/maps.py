@@ -26,16 +26,19 @@ def add_arguments(p):
                         "results/summary.json is measured")
     p.add_argument("--neighbours", default="1,8,16,24,32,48,64",
                    help="comma-separated points per patch (default: %(default)s)")
-    p.add_argument("--match", default="", help="only runs whose path contains this text (default: all)")
+    p.add_argument("--match", default="",
+                   help="comma-separated texts: only runs whose path contains one of them (default: all)")
     p.add_argument("--root", default=".",
                    help="the folder the runs were made from: a relative collection path in a run's summary is read "
                         "from here (default: the current folder)")
 
 
 def run_folders(work, match=""):
-    """The run folders below ``work`` with a calibrated model and a scoring summary, sorted."""
+    """The run folders below ``work`` with a calibrated model and a scoring summary whose path contains one of the
+    comma-separated texts of ``match`` (all when empty), sorted."""
+    texts = [t for t in match.split(",") if t] or [""]
     return sorted(p.parent for p in Path(work).rglob("model.pt")
-                  if (p.parent / "results" / "summary.json").is_file() and match in str(p.parent))
+                  if (p.parent / "results" / "summary.json").is_file() and any(t in str(p.parent) for t in texts))
 
 
 def run(args):
