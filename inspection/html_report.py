@@ -21,7 +21,7 @@ import numpy as np
 from .maps import MAP_CMAP, MAP_LABEL, MAP_RANGE, RAY_MAP_LABEL, RAY_MAP_RANGE
 
 VIEW_POINTS = 3000  # points shown per scan in the 3D view
-EMPHASIS = 3.0  # standardized residual above which a point is drawn larger (3 standard deviations)
+EMPHASIS = 3.0  # patch residual above which a point is drawn larger (3 standard deviations)
 RAY_EMPHASIS = 0.5  # ray map: P(blocked) above which a point is drawn larger
 VERDICT_COLOURS = {"good": "#2e7d32", "defective": "#c62828", "uncertain": "#ef6c00", "error": "#6d4c41"}
 LABEL_COLOURS = {"good": "#2e7d32", "defective": "#c62828", "unknown": "#757575"}
@@ -40,7 +40,7 @@ def scan_view(name, points, values, ray_values=None, n_points=VIEW_POINTS, seed=
     points : (m, 3) array
         The scan's points, in the scan's frame.
     values : (m,) array
-        Per-point standardized residuals (the PLY map's values, scale ``MAP_RANGE``).
+        Per-point patch residuals (the PLY map's values, :func:`inspection.maps.map_values`; scale ``MAP_RANGE``).
     ray_values : (m,) array, optional
         Per-point ray map (scale ``RAY_MAP_RANGE``).
     n_points : int
@@ -518,7 +518,7 @@ _SCRIPT = """
     document.getElementById("scan-info").textContent = v.k.toLocaleString() + " of " + v.n.toLocaleString() +
       " points shown, " + v.hot + " above " + %(emphasis)s + " sd";
     var rays = !!v.r, xyz = f32(v.xyz);
-    var traces = cloud(xyz, f32(v.v), D.scale.emphasis, D.scale.range, "std. residual", "scene", rays ? 0.47 : 0.92);
+    var traces = cloud(xyz, f32(v.v), D.scale.emphasis, D.scale.range, "patch residual (sd)", "scene", rays ? 0.47 : 0.92);
     if (rays) traces = traces.concat(cloud(xyz, f32(v.r), D.scale.ray_emphasis, D.scale.ray_range, "P(blocked)",
                                            "scene2", 0.97));
     var layout = viewLayout(rays);
