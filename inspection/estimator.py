@@ -772,11 +772,27 @@ def _uncovered(held, reference, crossed, crossed_references, quantile=COVERAGE_Q
     says how far a new good scan's do. Points of a left-out scan beyond that lie in a hole the leaving out opened,
     not one good scans have: there its joint score takes the field's term (which saw the scan) for the good points'
     term. Its field term and every other point count as before (leaving the points out instead also dropped the
-    grazing border a new scan has, and calibrated too low)."""
+    grazing border a new scan has, and calibrated too low).
+
+    The same holds, nearer than the reach, for a face of a thin wall that only the left-out scan saw (with the
+    points' normals: :meth:`inspection.reference.LocalReference.surface`'s support): without it the good points'
+    plane there comes from the wall's other face, a wall's thickness away, and reads as a defect; where the whole
+    reference has that face (the scan's own points) and the reference without the scan has not, the points are
+    marked as well."""
     distances = [reference.surface_distance(g.points[~g.stray] if g.stray is not None and not g.stray.all()
                                             else g.points) for g in held]
     reach = float(np.quantile(np.concatenate(distances), quantile)) if distances else np.inf
-    return [ref_j.surface_distance(g.points) > reach for g, ref_j in zip(crossed, crossed_references)]
+    out = []
+    for g, ref_j in zip(crossed, crossed_references):
+        far = ref_j.surface_distance(g.points) > reach
+        if getattr(g, "normals", None) is not None:
+            # the side of a thin wall that only this scan saw: without it the good points' plane comes from the
+            # wall's other face, a wall's thickness away (as far as a defect), where the whole reference has it
+            opened = ~ref_j.surface(g.points, g.normals, with_support=True)[2] & \
+                reference.surface(g.points, g.normals, with_support=True)[2]
+            far |= opened
+        out.append(far)
+    return out
 
 
 def _good_scans(good_scans, model):

@@ -229,7 +229,7 @@ class LocalReference:
         index, normals, _ = self._surface_tree()
         return None if normals is None else (index, normals)
 
-    def surface(self, points, normals=None):
+    def surface(self, points, normals=None, with_support=False):
         """Offsets of points from the good scans' surface, without any field.
 
         For each point p, the plane through its ``k`` nearest distinct surface points (``surface_points``, else the
@@ -248,25 +248,33 @@ class LocalReference:
         normals : (m, 3) array, optional
             The points' outward normals (any length; only their sign against the surface normals is used).
 
+        with_support : bool
+            Also return ``supported``.
+
         Returns
         -------
         offset : (m,) float64
             n . (p - c), world units, the sign arbitrary.
         spread : (m,) float64
             The neighbours' variance along n, squared world units (>= 0).
+        supported : (m,) bool, with ``with_support``
+            False where the point's side had fewer than 3 good points among the candidates (the plane then came
+            from both faces): no good scan saw that side of the surface there. All True without normals.
         """
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         if normals is not None:
             normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
         offset, spread = np.empty(len(points)), np.empty(len(points))
+        supported = np.ones(len(points), dtype=bool)
         for start in range(0, len(points), QUERY_CHUNK):  # blocks keep a full-resolution scan's memory bounded
             block = slice(start, start + QUERY_CHUNK)
-            offset[block], spread[block] = self._surface_block(points[block],
-                                                               None if normals is None else normals[block])
-        return offset, spread
+            offset[block], spread[block], supported[block] = self._surface_block(
+                points[block], None if normals is None else normals[block])
+        return (offset, spread, supported) if with_support else (offset, spread)
 
     def _surface_block(self, points, normals):
-        """:meth:`surface` of one block of (b, 3) points (float64) and their normals (b, 3) or None."""
+        """:meth:`surface` of one block of (b, 3) points (float64) and their normals (b, 3) or None: offset, spread,
+        supported (b,) each."""
         tree, surface_normals, self_distance = self._surface_tree()
         k = min(self.k, tree.n - 1)
         if k < 3:
@@ -274,6 +282,7 @@ class LocalReference:
         sided = normals is not None and surface_normals is not None
         wide = min(SURFACE_CANDIDATES * k + 1, tree.n) if sided else k + 1
         offset, spread = np.empty(len(points)), np.empty(len(points))
+        supported = np.ones(len(points), dtype=bool)
         todo = np.arange(len(points))
         # the k + 1 nearest first: where k of them are valid and on the point's side (most points, away from thin
         # walls), they are the first k such of the wide query too, which only the other points then need
@@ -292,9 +301,10 @@ class LocalReference:
                                                         (valid & same)[rows], k)
                     todo = todo[~rows]
                     continue
+                supported[todo] = agree >= 3
                 valid &= same | ~(agree >= 3)[:, None]
             offset[todo], spread[todo] = _plane(points[todo], tree.data[idx], valid, k)
-        return offset, spread
+        return offset, spread, supported
 
     def surface_scores(self, points, noise, grazing=None, normals=None):
         """|offset| / sqrt(spread + noise^2 (1 + grazing_scale * g)) with offset, spread of :meth:`surface` (with the

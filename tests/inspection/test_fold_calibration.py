@@ -134,3 +134,36 @@ def test_a_left_out_training_scan_marks_only_the_surface_no_other_scan_saw():
     np.testing.assert_allclose(masked[masks[0]], field_term[masks[0]])
     np.testing.assert_allclose(masked[~masks[0]], plain[~masks[0]])
     assert (plain[masks[0]] > masked[masks[0]]).mean() > 0.9  # the flap read as far off the other scans' surface
+
+
+def test_a_left_out_scan_that_alone_saw_one_face_of_a_thin_wall_takes_the_field_term_there():
+    """A wall 0.02 thick: scan 0 alone saw its top face, scans 1 and 2 its bottom face. Left out, scan 0's points
+    have only the bottom face's points near them, normals opposite, a wall's thickness away (nearer than the
+    held-back scans' reach, so the distance rule alone keeps them): the good points' plane would come from the other
+    face, so they are marked; scans 1 and 2, left out, still have the other's points on their side and are not.
+    Without normals the rule cannot tell the faces apart and marks nothing."""
+    from types import SimpleNamespace
+
+    from inspection.estimator import _uncovered
+    from inspection.reference import LocalReference
+
+    rng = np.random.default_rng(4)
+    g = np.arange(0.0, 1.0 + 1e-9, 0.04)
+    plane = np.c_[np.stack(np.meshgrid(g, g), -1).reshape(-1, 2), np.zeros(len(g) ** 2)]
+    top, bottom = plane + [0.0, 0.0, 0.01], plane - [0.0, 0.0, 0.01]
+    up = np.tile([0.0, 0.0, 1.0], (len(plane), 1))
+    scans = [(top, up), (bottom[::2], -up[::2]), (bottom[1::2], -up[1::2])]
+    points = np.concatenate([p for p, _ in scans])
+    normals = np.concatenate([n for _, n in scans])
+    owners = np.concatenate([np.full(len(p), i) for i, (p, _) in enumerate(scans)])
+    reference = LocalReference(points, np.zeros(len(points)), owners=owners, surface_points=points,
+                               surface_owners=owners, surface_normals=normals)
+    # held-back scans of the bottom face, noisy enough that the reach (99 % of their distances) exceeds the wall
+    held = [SimpleNamespace(points=bottom + rng.normal(0, 0.03, bottom.shape), stray=None) for _ in range(2)]
+    reach = np.quantile(np.concatenate([reference.surface_distance(h.points) for h in held]), 0.99)
+    assert reach > 0.03
+    crossed = [SimpleNamespace(points=p, normals=n, stray=None) for p, n in scans]
+    masks = _uncovered(held, reference, crossed, [reference.without(j) for j in range(3)])
+    assert masks[0].all() and not masks[1].any() and not masks[2].any()
+    blind = [SimpleNamespace(points=p, normals=None, stray=None) for p, _ in scans]
+    assert not any(m.any() for m in _uncovered(held, reference, blind, [reference.without(j) for j in range(3)]))

@@ -162,6 +162,12 @@ def test_surface_with_normals_fits_the_plane_on_the_scored_points_side_of_a_thin
     np.testing.assert_allclose(np.abs(ref.surface(q, -up)[0]), gap, atol=1e-6)
     restored = LocalReference.from_dict(ref.as_dict())
     np.testing.assert_array_equal(restored.surface(q, up)[0], offset)
+    # support: both faces were seen; with the top face alone a point of the bottom's side has none of its own
+    assert ref.surface(q, up, with_support=True)[2].all() and ref.surface(q, -up, with_support=True)[2].all()
+    only_top = LocalReference(top, np.zeros(1000), k=8, surface_points=top, surface_normals=normals[:1000])
+    assert only_top.surface(q, up, with_support=True)[2].all()
+    assert not only_top.surface(q, -up, with_support=True)[2].any()
+    assert only_top.surface(q, with_support=True)[2].all()  # without the point's normal: no side to judge
     with pytest.raises(ValueError, match="surface_normals"):
         LocalReference(top, np.zeros(1000), k=8, surface_normals=normals[:1000])
 
