@@ -31,8 +31,8 @@ import numpy as np
 
 MAP_CMAP = "turbo"
 MAP_RANGE = (0.0, 5.0)
-MAP_LABEL = "patch residual (rms over 32 neighbouring points), in standard deviations (clipped at 5)"
 MAP_NEIGHBOURS = 32  # points per patch of the anomaly map (see the module's docstring)
+MAP_LABEL = f"patch residual (rms over {MAP_NEIGHBOURS} neighbouring points), in standard deviations (clipped at 5)"
 RAY_MAP_RANGE = (0.0, 1.0)
 RAY_MAP_LABEL = "P(material on the sensor's ray where it saw free space)"
 
