@@ -788,9 +788,11 @@ def _uncovered(held, reference, crossed, crossed_references, quantile=COVERAGE_Q
         if getattr(g, "normals", None) is not None:
             # the side of a thin wall that only this scan saw: without it the good points' plane comes from the
             # wall's other face, a wall's thickness away (as far as a defect), where the whole reference has it
-            opened = ~ref_j.surface(g.points, g.normals, with_support=True)[2] & \
-                reference.surface(g.points, g.normals, with_support=True)[2]
-            far |= opened
+            near = np.flatnonzero(~far)
+            unsupported = near[~ref_j.surface(g.points[near], g.normals[near], with_support=True)[2]]
+            if len(unsupported):  # (few points: the whole reference is asked about those alone)
+                far[unsupported] = reference.surface(g.points[unsupported], g.normals[unsupported],
+                                                     with_support=True)[2]
         out.append(far)
     return out
 
