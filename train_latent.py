@@ -80,6 +80,10 @@ def build_parser():
                         "step is many small tensor operations, which one thread runs faster than two on a 2-core "
                         "CPU (docs/results.md#latent-training-in-two-minutes-issue-19); use more cores with "
                         "torchrun processes (default: the trainer's TRAINING_THREADS, one)")
+    p.add_argument("--family", choices=("auto", "on", "off"), default="auto",
+                   help="bring the training scans to one size first (a product family whose members differ in "
+                        "length or width; every scan inspected later is registered the same way): 'auto' when "
+                        "their extents spread (default: %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     return p
 
@@ -108,7 +112,8 @@ def options_from_args(args):
     options = dict(split=args.split, calibration_fraction=args.calibration_fraction, resume=args.resume,
                    overwrite=args.overwrite, device=args.device, quiet=args.quiet, latent_dim=args.latent_dim,
                    width=args.width, depth=args.depth, epochs=args.epochs, lr=args.lr, batch=args.batch,
-                   seed=args.seed, checkpoint_every=args.checkpoint_every)
+                   seed=args.seed, checkpoint_every=args.checkpoint_every,
+                   family={"auto": "auto", "on": True, "off": False}[args.family])
     if args.code_lr is not None:
         options["code_lr"] = args.code_lr
     if args.calibration_folds is not None:

@@ -244,16 +244,44 @@ def trained_model(collection_path, root=CACHE, **train_options):
     options.pop("quiet", None)
 
     folds = options.pop("calibration_folds", None)
+    family = options.pop("family", "auto")
+    if family == "auto":
+        family = family_decision(collection_path, fingerprint, options["seed"], root)
+    if family:  # keyed only for a family: the models cached before families were sized stay valid for the rest
+        options["family"] = FAMILY_KEY
 
     def build(folder):
         from inspection.training import train_model
 
-        train_model(collection_path, folder / "model.pt", quiet=True, calibration_folds=0, **options)
+        train_model(collection_path, folder / "model.pt", quiet=True, calibration_folds=0,
+                    **{**options, "family": bool(family)})
 
     label = collection_path.parent.name.rsplit("_", 1)[0]
     model = cached_path("model", {"collection": fingerprint, **options}, build, root, label=label) / "model.pt"
     _ensure_folds(model, collection_path, folds)
     return model
+
+
+FAMILY_KEY = "scaled-5"  # the rule by which a family's scans are brought to one size (autodecoder.latent.family)
+
+
+def family_decision(collection_path, fingerprint, seed=0, root=CACHE):
+    """Whether the trainer's ``family='auto'`` brings this collection's training scans to one size
+    (:func:`autodecoder.latent.family.fit_family` on the scans it trains on), cached per collection and seed (the
+    decision registers 16 scans onto each other: half a minute)."""
+    def build(folder):
+        from autodecoder.latent.collection_split import CollectionScans, split_training_scans
+        from autodecoder.latent.family import fit_family
+        from datasets import ScanCollection
+
+        with ScanCollection(collection_path) as c:
+            train, _ = split_training_scans(c, "train", 0.2, seed)
+            frame, spread = fit_family(CollectionScans(c, train), "auto", seed=seed)
+        (folder / "decision.json").write_text(json.dumps({"family": frame is not None, "spread": spread}) + "\n")
+
+    folder = cached_path("family", {"collection": fingerprint, "seed": seed, "rule": FAMILY_KEY}, build, root,
+                         label=Path(collection_path).parent.name.rsplit("_", 1)[0])
+    return bool(json.loads((folder / "decision.json").read_text())["family"])
 
 
 def _ensure_folds(model, collection_path, k=None):

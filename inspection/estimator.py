@@ -277,6 +277,10 @@ class Inspector(BaseEstimator):
             raise NotFittedError(f"point_score {settings.point_score!r} needs the per-location reference: call "
                                  "fit(good_scans) with the model's training scans among them first")
         transform = None
+        if getattr(self.model, "family", None) is not None:
+            with stage(timings, "align"):
+                scan = self._sized(scan)
+                transform = _transform_of(scan)
         if settings.align is True:
             with stage(timings, "align"):
                 scan, transform = self._aligned(scan)
@@ -284,6 +288,24 @@ class Inspector(BaseEstimator):
                              getattr(self, "reference_", None), settings, timings)
         result.transform = transform
         return result
+
+    def _sized(self, scan):
+        """``scan`` registered onto the model's family size (:meth:`autodecoder.latent.model.LatentModel.normalise`;
+        a training scan onto the others); as it is for a model of one size."""
+        normalise = getattr(self.model, "normalise", None)
+        return scan if normalise is None or getattr(self.model, "family", None) is None else normalise(scan)
+
+    def _sized_selection(self, selection):
+        """Every scan of ``selection`` through :meth:`_sized` (each scan once, the same copy wherever it is used)."""
+        if getattr(self.model, "family", None) is None:
+            return selection
+        moved = {}
+        for s in [*selection.calibration, *selection.reference, *selection.surface]:
+            if id(s) not in moved:
+                moved[id(s)] = self._sized(s)
+        return replace(selection, calibration=[moved[id(s)] for s in selection.calibration],
+                       reference=[moved[id(s)] for s in selection.reference],
+                       surface=[moved[id(s)] for s in selection.surface])
 
     def _aligned(self, scan):
         """``scan`` registered by ``aligner_``. Returns (the moved scan, the transform (4, 4))."""
@@ -437,6 +459,7 @@ class Inspector(BaseEstimator):
                                  f"origin (e.g. {missing[0]!r}); the ray score needs where the sensor was (scanner "
                                  f"files: a <stem>.json sidecar {{\"sensor_origin\": [x, y, z]}}); calibrate "
                                  f"without rays")
+        selection = self._sized_selection(selection)
         settings, selection = self._fit_alignment(settings, selection)
         reference = selection.reference
         self.settings_ = settings
@@ -812,3 +835,9 @@ def _good_scans(good_scans, model):
         return coll.read_many(coll.select(label="good")), training, origins
     scans = list(good_scans)
     return scans, True, all(getattr(s, "sensor_origin", None) is not None for s in scans)
+
+
+def _transform_of(scan):
+    """The (4, 4) transform a registration recorded in a scan's ``extra['align']``, or None."""
+    extra = getattr(scan, "extra", None)
+    return extra.get("align") if isinstance(extra, dict) else None

@@ -57,6 +57,7 @@ def gather_checkpoint(state, scope):
         "train_part_ids": list(scope.part_ids),
         "calibration_names": list(scope.calibration_names),
         "frame": dict(scope.frame),
+        **({} if scope.family is None else {"family": dict(scope.family)}),
         "noise": float(noise),
         "fingerprint": scope.fingerprint,
         "epoch": int(state.epoch),

@@ -94,8 +94,10 @@ def fold_options(config):
     return LatentOptions.from_dict(options)
 
 
-def _train_one(collection_path, names, options, threads):
-    """One fold model trained on the scans ``names`` of the collection; returns its checkpoint (:func:`model_state`)."""
+def _train_one(collection_path, names, options, threads, family=None):
+    """One fold model trained on the scans ``names`` of the collection; returns its checkpoint (:func:`model_state`).
+    ``family``: the main model's family frame (its checkpoint's ``'family'``), which the fold model's scans are
+    brought to as the main model's were, so that a scan it scores is registered the way the main model's are."""
     from datasets.collection import ScanCollection
 
     from autodecoder.latent.collection_split import CollectionScans
@@ -108,12 +110,16 @@ def _train_one(collection_path, names, options, threads):
         if missing:
             raise ValueError(f"{collection_path}: no scan named {missing[0]!r} (the model's training scan)")
         scans = CollectionScans(collection, [index[n] for n in names])
+        if family is not None:
+            from autodecoder.latent.family import FamilyFrame, NormalisedScans
+
+            scans = NormalisedScans(scans, FamilyFrame.from_dict(family))
         model = train_latent(scans, None, options, frame=collection.frame, fingerprint=collection.fingerprint(),
-                             quiet=True)
+                             quiet=True, family=family)
     return model_state(model)
 
 
-def _train_in_processes(collection_path, plans, options, threads, jobs, progress):
+def _train_in_processes(collection_path, plans, options, threads, jobs, progress, family=None):
     """Each plan (training scan names) trained by ``python -m autodecoder.latent.folds`` in its own process, at most
     ``jobs`` at a time (a fresh interpreter: nothing of the caller's script is re-run, as multiprocessing's spawn
     would). Returns the checkpoints in plan order."""
@@ -128,11 +134,18 @@ def _train_in_processes(collection_path, plans, options, threads, jobs, progress
     env = {**os.environ, "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE")}
     states, running, pending = [None] * len(plans), {}, list(range(len(plans)))
     with tempfile.TemporaryDirectory(prefix="nsspr-folds-") as tmp:
+        family_path = None
+        if family is not None:
+            import torch
+
+            family_path = os.path.join(tmp, "family.pt")
+            torch.save(family, family_path)
+
         def start(j):
             spec = os.path.join(tmp, f"fold{j}.json")
             with open(spec, "w") as f:
                 json.dump({"collection": os.fspath(collection_path), "names": plans[j], "options": asdict(options),
-                           "threads": threads, "out": os.path.join(tmp, f"fold{j}.pt")}, f)
+                           "threads": threads, "out": os.path.join(tmp, f"fold{j}.pt"), "family": family_path}, f)
             log = open(os.path.join(tmp, f"fold{j}.log"), "w+")
             return subprocess.Popen([sys.executable, "-m", "autodecoder.latent.folds", spec], stdout=log,
                                     stderr=subprocess.STDOUT, env=env), log
@@ -206,11 +219,12 @@ def train_folds(checkpoint, collection_path, k=SUGGESTED_FOLDS, jobs=None, threa
     if jobs == 1:
         states = []
         for j, names in enumerate(plans):
-            states.append(_train_one(collection_path, names, options, threads))
+            states.append(_train_one(collection_path, names, options, threads, checkpoint.get("family")))
             if progress:
                 progress(f"fold {j + 1} of {len(folds)} trained")
     else:
-        states = _train_in_processes(collection_path, plans, options, threads, jobs, progress)
+        states = _train_in_processes(collection_path, plans, options, threads, jobs, progress,
+                                     checkpoint.get("family"))
     return [{"scored_names": list(scored), "checkpoint": state, "rule": FOLD_RULE}
             for scored, state in zip(folds, states)]
 
@@ -241,7 +255,13 @@ def _worker_main(spec_path):
 
     with open(spec_path) as f:
         spec = json.load(f)
-    state = _train_one(spec["collection"], spec["names"], LatentOptions.from_dict(spec["options"]), spec["threads"])
+    family = spec.get("family")
+    if family is not None:
+        from autodecoder.field.checkpoint_io import load_torch_file
+
+        family = load_torch_file(family)
+    state = _train_one(spec["collection"], spec["names"], LatentOptions.from_dict(spec["options"]), spec["threads"],
+                       family)
     atomic_torch_save(state, spec["out"])
 
 

@@ -100,6 +100,7 @@ class RunScope:
     distributed: bool
     device: torch.device
     local_points: list
+    family: object = None  # the FamilyFrame's dict when the scans were brought to one size (family.py)
 
 
 def scan_names(scans, names):
@@ -114,7 +115,8 @@ def scan_names(scans, names):
     return names
 
 
-def start_run(scans, names, options, *, resume=None, frame=None, fingerprint="", calibration_names=(), device="cpu"):
+def start_run(scans, names, options, *, resume=None, frame=None, fingerprint="", calibration_names=(), device="cpu",
+              family=None):
     """Everything a run trains with, on this process: its state (fresh and seeded, or restored from ``resume``),
     the nets as this process steps them, the target pools of its scans and the run's scope.
 
@@ -129,7 +131,7 @@ def start_run(scans, names, options, *, resume=None, frame=None, fingerprint="",
     resume : dict, optional
         A checkpoint to continue; its configuration wins over ``options`` except ``epochs`` and
         ``checkpoint_every``.
-    frame, fingerprint, calibration_names
+    frame, fingerprint, calibration_names, family
         Provenance the checkpoint records (see :func:`autodecoder.latent.train.train_latent`).
     device : str or torch.device
 
@@ -168,7 +170,8 @@ def start_run(scans, names, options, *, resume=None, frame=None, fingerprint="",
     del local_scans
     scope = RunScope(names=names, local=local, part_ids=part_ids, calibration_names=[str(c) for c in calibration_names],
                       frame=frame_dict(frame), fingerprint=str(fingerprint), rank=rank, world=world,
-                      distributed=distributed, device=device, local_points=local_points)
+                      distributed=distributed, device=device, local_points=local_points,
+                      family=None if family is None else dict(family))
     return state, module, pools, scope, options
 
 

@@ -121,6 +121,7 @@ class LatentModel:
         self.epoch = int(state.get("epoch", 0))
         self.info = dict(state.get("info", {}))
         self._folds = None
+        self._family = None
 
     @property
     def calibration_folds(self):
@@ -129,6 +130,23 @@ class LatentModel:
         if self._folds is None:
             self._folds = read_folds(self.state, self.source)
         return self._folds
+
+    @property
+    def family(self):
+        """The :class:`autodecoder.latent.family.FamilyFrame` the training scans were brought to one size with
+        (a product family), or None. Its model explains scans at that size: register a new scan with
+        :meth:`normalise` before projecting it (the inspection does)."""
+        if self._family is None and self.state.get("family") is not None:
+            from autodecoder.latent.family import FamilyFrame
+
+            self._family = FamilyFrame.from_dict(self.state["family"])
+        return self._family
+
+    def normalise(self, scan):
+        """``scan`` (a Scan or (m, 3) points, collection frame) registered onto the family's common size
+        (:meth:`FamilyFrame.normalise`); returned as it is by a model of one size."""
+        family = self.family
+        return scan if family is None else family.normalise(scan)
 
     @property
     def latent_dim(self):

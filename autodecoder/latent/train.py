@@ -22,13 +22,14 @@ from pathlib import Path
 from autodecoder.latent.checkpoint import check_output, checkpoint_to_resume, gather_checkpoint
 from autodecoder.latent.collection_split import CollectionScans, split_training_scans
 from autodecoder.latent.distributed import setup_distributed
+from autodecoder.latent.family import FamilyFrame, NormalisedScans, fit_family
 from autodecoder.latent.loop import scan_names, start_run, train_epochs
 from autodecoder.latent.model import LatentModel
 from autodecoder.latent.options import LatentOptions, TrainingInputError
 
 
 def train_latent(scans, out=None, options=None, *, names=None, frame=None, fingerprint="", calibration_names=(),
-                 resume=None, device="cpu", quiet=False, stop_after=None, **overrides):
+                 resume=None, device="cpu", quiet=False, stop_after=None, family=None, **overrides):
     """Train a latent model (autodecoder) over oriented scans, all in one collection frame.
 
     Parameters
@@ -48,6 +49,9 @@ def train_latent(scans, out=None, options=None, *, names=None, frame=None, finge
         The training collection's fingerprint (stored; checked on resume).
     calibration_names : list of str
         Good scans held back for calibration (stored only).
+    family : dict, optional
+        :meth:`autodecoder.latent.family.FamilyFrame.as_dict` when ``scans`` were brought to one size (stored, so
+        that every later scan is registered the same way); a resumed run keeps its own.
     resume : dict, optional
         A checkpoint (see :func:`autodecoder.latent.model.read_checkpoint`) to continue from; its configuration wins
         over ``options`` except ``epochs`` and ``checkpoint_every``.
@@ -64,9 +68,11 @@ def train_latent(scans, out=None, options=None, *, names=None, frame=None, finge
     """
     names = scan_names(scans, names)
     options = LatentOptions.from_dict({**asdict(options or LatentOptions()), **overrides})
+    if resume is not None:
+        family = resume.get("family")
     state, module, pools, scope, options = start_run(scans, names, options, resume=resume, frame=frame,
                                                      fingerprint=fingerprint, calibration_names=calibration_names,
-                                                     device=device)
+                                                     device=device, family=family)
     end_epoch = options.epochs if stop_after is None else min(options.epochs, int(stop_after))
     checkpoint = train_epochs(state, module, pools, scope, options, out, end_epoch, show=not quiet and scope.rank == 0)
     if checkpoint is None:  # nothing left to train (resumed a finished run)
@@ -75,7 +81,7 @@ def train_latent(scans, out=None, options=None, *, names=None, frame=None, finge
 
 
 def train_collection(data, out, *, split="train", calibration_fraction=0.2, resume=False, overwrite=False,
-                     device="auto", quiet=False, **options):
+                     device="auto", quiet=False, family="auto", **options):
     """Train a latent model over the good scans of a collection file and write its checkpoint (``train_latent.py``).
 
     The scans to hold back for calibration are chosen by :func:`split_training_scans`; the checkpoint records them.
@@ -98,6 +104,10 @@ def train_collection(data, out, *, split="train", calibration_fraction=0.2, resu
         Replace an existing ``out`` (otherwise refused unless ``resume``).
     device : {'auto', 'cpu', 'cuda'}
     quiet : bool
+    family : {'auto', True, False}
+        Bring the training scans to one size first (:mod:`autodecoder.latent.family`: a product family whose
+        members differ in length or width); 'auto': when registering some of them onto each other spreads their
+        sizes (:func:`autodecoder.latent.family.fit_family`). A resumed run keeps what it did.
     **options
         :class:`LatentOptions` fields (``seed`` also seeds the hold-out).
 
@@ -133,11 +143,23 @@ def train_collection(data, out, *, split="train", calibration_fraction=0.2, resu
         else:
             train, calibration = split_training_scans(collection, split, calibration_fraction,
                                                       options.get("seed", LatentOptions.seed))
+        scans, family_frame = CollectionScans(collection, train), None
+        meta = collection.metadata()
+        parts = {meta[i]["part_id"] for i in train}
+        if len(parts) > 1 and family is True:
+            raise TrainingInputError(f"{data}: --family on brings one part's scans to one size, but the training "
+                                     f"scans are of {len(parts)} part types ({sorted(parts)})")
+        if len(parts) > 1:  # several part types: their sizes differ by nature, not as a family's
+            family = False
+        if checkpoint is None:
+            scans, family_frame = family_scans(scans, family, options.get("seed", LatentOptions.seed), quiet)
+        elif checkpoint.get("family") is not None:
+            scans = NormalisedScans(scans, FamilyFrame.from_dict(checkpoint["family"]))
         device, initialised = setup_distributed(device)
         try:
-            return train_latent(CollectionScans(collection, train), out, frame=collection.frame,
-                                fingerprint=collection.fingerprint(), calibration_names=calibration,
-                                resume=checkpoint, device=device, quiet=quiet, **options)
+            return train_latent(scans, out, frame=collection.frame, fingerprint=collection.fingerprint(),
+                                calibration_names=calibration, resume=checkpoint, device=device, quiet=quiet,
+                                family=None if family_frame is None else family_frame.as_dict(), **options)
         except TrainingInputError:
             raise
         except ValueError as exc:
@@ -148,3 +170,17 @@ def train_collection(data, out, *, split="train", calibration_fraction=0.2, resu
             import torch.distributed as dist
 
             dist.destroy_process_group()
+
+
+def family_scans(scans, family="auto", seed=0, quiet=True):
+    """``scans`` (a lazy sequence of training scans) brought to one size when they are a product family
+    (:func:`autodecoder.latent.family.fit_family`), with one printed line saying so unless ``quiet``. Returns
+    (the scans to train on, the :class:`~autodecoder.latent.family.FamilyFrame` or None)."""
+    frame, spread = fit_family(scans, family, seed=seed)
+    if frame is None:
+        return scans, None
+    if not quiet:
+        why = "" if spread is None else f" (registered onto each other, their sizes spread by {100 * spread:.0f} %)"
+        print(f"note: the training scans are a family of sizes{why}: each scan is registered onto one common size "
+              f"before training, and so is every scan inspected later (--family off turns it off)", flush=True)
+    return NormalisedScans(scans, frame), frame

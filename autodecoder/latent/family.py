@@ -1,0 +1,163 @@
+"""A product family brought to one size: the good scans of a part made in several lengths (or widths) registered
+onto one common size before the latent model is trained on them, and every later scan registered the same way
+before it is projected.
+
+Why: a latent space trained on the scans of a few members of a family does not interpolate between them. With 8
+members stretched by 0.8-0.9 and 1.1-1.2 along the part's length, the nominal member (1.0) scored 0.54-0.80 AUROC
+(docs/results.md#a-product-family-issue-32-the-first-measurement); the same model trained on scans whose stretch
+was undone by the known factors scored 1.000. So the toolkit undoes the sizes itself, without labels: a family
+whose members differ by a scale along the frame's axes (the fixture's or CAD model's: a bracket in several lengths,
+a housing in three widths) becomes a part in a fixture. What it does not do: variation that is not a scale (a
+hole moved, a wall thickened, a bend) is left to the latent space; and a part of the wrong size is, by
+construction, not a defect.
+
+* :func:`fit_family` decides it (``family='auto'``) and makes the common size: up to ``FAMILY_SCANS`` training scans
+  (evenly chosen) registered onto each other with the scaled motion (:func:`datasets.registration.register_group`),
+  and :func:`size_spread` of the sizes the registration gave them (per axis of the frame, the interquartile range
+  of the log scales; the largest over the axes). Above the bar ``FAMILY_SPREAD`` (synthetic parts in a fixture
+  give at most 0.05, families stretched by 10-20 % 0.25-0.27) a spread is believed only when the sizes make the
+  scans agree: the union of the 16 registered with sizes must be about as sharp as registered rigidly
+  (:func:`union_residual`; rigid / sized at least ``FAMILY_SHARPNESS``). A family's union is as sharp or sharper
+  sized (1.00 and 1.17); real range scans of a bunny, whose smooth views the scaled motion sizes at random (spread
+  0.35-0.41), agree far less sized than rigidly (0.58-0.80): they are one part
+  (docs/results.md#a-product-family-brought-to-one-size-issue-32). How far the scans' own extents spread does not
+  tell a family (the real bunny's views differ in depth as much as a family's lengths), nor a median absolute
+  deviation of the sizes (a family of shorter and longer members has its median in one of the two clusters).
+* :class:`FamilyFrame` holds the common size: those scans, registered, as the target every scan is then registered
+  onto (:meth:`FamilyFrame.normalise`; a training scan without its own points). Stored in the checkpoint.
+"""
+import numpy as np
+
+FAMILY_SPREAD = 0.2  # size_spread above this: the training scans are a family of sizes (module docstring) ...
+FAMILY_SHARPNESS = 0.9  # ... when also their union registered with sizes is at least about as sharp as registered
+# rigidly (rigid residual / sized residual above this; module docstring)
+FAMILY_SCANS = 16  # training scans registered onto each other to decide it and to make the common size's target
+
+
+def _evenly(n, k):
+    return np.unique(np.linspace(0, n - 1, min(k, n)).round().astype(int)) if n else np.zeros(0, int)
+
+
+def size_spread(transforms):
+    """How far registration scaled a group of scans: per axis of the frame the interquartile range of the log of
+    each transform's scale along it (the diagonal of its linear part: the scaled motion's scales are along the
+    frame's axes), the largest over the three axes. 0: every scan kept its size. ``transforms``: (4, 4) each."""
+    if len(transforms) < 3:
+        return 0.0
+    logs = np.log(np.maximum(np.abs([np.diag(np.asarray(T)[:3, :3]) for T in transforms]), 1e-12))
+    return float(_axis_spreads(logs).max())
+
+
+def _axis_spreads(logs):
+    """(3,) interquartile range of (n, 3) log scales, per axis."""
+    return np.subtract(*np.percentile(logs, [75, 25], axis=0))
+
+
+def union_residual(scans, motion="rigid", seed=0):
+    """How sharp registered scans' union is: the median over the scans of each one's median point-to-plane distance
+    to the others (:meth:`datasets.registration.Aligner.without`), in the others' point spacings."""
+    from datasets.registration import Aligner
+
+    target = Aligner.from_scans(scans, max_scans=len(scans), seed=seed, motion=motion)
+    return float(np.median([target.without(str(s.name))._residual(np.asarray(s.points, dtype=np.float64))
+                            / target.spacing for s in scans]))
+
+
+def fit_family(scans, family="auto", max_scans=FAMILY_SCANS, seed=0):
+    """The common size of a product family's training scans, when they are one.
+
+    Parameters
+    ----------
+    scans : sequence of Scan
+        Good training scans (a lazy sequence is read only at the up to ``max_scans`` evenly chosen indices).
+    family : {'auto', True, False}
+        'auto': a family when :func:`size_spread` of the chosen scans' registration exceeds ``FAMILY_SPREAD``.
+    max_scans : int
+    seed : int
+
+    Returns
+    -------
+    frame : FamilyFrame or None
+        None: not a family (or ``family`` False, or fewer than 3 scans).
+    spread : float or None
+        The measured :func:`size_spread` (None when ``family`` is False: nothing was measured).
+    """
+    from datasets.registration import Aligner, register_group
+
+    if family not in ("auto", True, False):
+        raise ValueError(f"family must be 'auto', True or False, got {family!r}")
+    if family is False:
+        return None, None
+    chosen = [scans[int(i)] for i in _evenly(len(scans), max_scans)]
+    if len(chosen) < 3:
+        return None, 0.0
+    moved, transforms = register_group(chosen, seed=seed, motion="scaled", return_transforms=True)
+    spread = size_spread(transforms)
+    if family == "auto" and spread <= FAMILY_SPREAD:
+        return None, spread
+    if family == "auto" and (union_residual(register_group(chosen, seed=seed), "rigid", seed)
+                             < FAMILY_SHARPNESS * union_residual(moved, "scaled", seed)):
+        return None, spread  # sizes that make the scans agree less than a rigid registration does: not a family
+    # a new scan is expected to need what the group's typical member needed (and gets it along an axis its view
+    # does not pin): the mean of their log scales (a median would sit in one cluster of a family of shorter and
+    # longer members)
+    logs = np.log(np.maximum(np.abs([np.diag(np.asarray(T)[:3, :3]) for T in transforms]), 1e-12))
+    typical = logs.mean(axis=0)
+    # the family's axes: those along which the sizes spread; along the others a scan keeps the typical size (a
+    # registration that also scaled them found a wrong pose now and then: a fandisk view squashed to 0.78 in depth)
+    axes = _axis_spreads(logs) > FAMILY_SPREAD
+    if not axes.any():  # family=True on scans whose sizes do not spread: every axis may scale
+        axes[:] = True
+    return FamilyFrame(Aligner.from_scans(moved, max_scans=len(moved), seed=seed, motion="scaled",
+                                          scale_centre=typical, scale_axes=axes)), spread
+
+
+class FamilyFrame:
+    """The common size of a product family's scans, and the registration of any scan onto it.
+
+    Parameters
+    ----------
+    aligner : datasets.registration.Aligner
+        With ``motion='scaled'``: its target is training scans already at the common size.
+    """
+
+    def __init__(self, aligner):
+        if getattr(aligner, "motion", None) != "scaled":
+            raise ValueError("a family frame registers scans with the scaled motion")
+        self.aligner = aligner
+
+    def normalise(self, scan):
+        """``scan`` registered onto the common size: a moved copy of a :class:`datasets.Scan` (points, normals and
+        sensor origin; the transform (4, 4) in ``extra['align']``), or the moved (m, 3) points of an array. A scan
+        whose name is among the target's owners (a training scan) is registered onto the others."""
+        name = str(getattr(scan, "name", "") or "")
+        return self.aligner.without(name).align_scan(scan)
+
+    def as_dict(self):
+        """Plain values (torch tensors for the arrays) for a checkpoint."""
+        return self.aligner.as_dict()
+
+    @classmethod
+    def from_dict(cls, d):
+        from datasets.registration import Aligner
+
+        return cls(Aligner.from_dict(d))
+
+
+class NormalisedScans:
+    """A lazy view of ``scans`` (a sequence of Scan) with each scan registered onto ``frame`` when read."""
+
+    def __init__(self, scans, frame):
+        self.scans, self.frame = scans, frame
+        names = getattr(scans, "names", None)
+        self.names = list(names) if names is not None else [s.name for s in scans]
+
+        self._moved = {}  # each scan is registered once (the trainer reads some twice)
+
+    def __len__(self):
+        return len(self.scans)
+
+    def __getitem__(self, i):
+        if i not in self._moved:
+            self._moved[i] = self.frame.normalise(self.scans[i])
+        return self._moved[i]
