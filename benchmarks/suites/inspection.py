@@ -173,6 +173,14 @@ def _single(part, args):
         rows += [dict(part=part, method=f"{spec} alone", **figures) for spec, figures in alone.items()]
     nn_figures = baselines.nn_figures(data, info["heldback_names"], summary["alpha"])
     one["nn"] = nn_figures
+    if args.family is not None:  # issue 32, item 1: how well the projection fits the unseen member's true surface
+        from benchmarks.family_fit import family_fit
+
+        fit = family_fit(model, data, part, args.family_kind)
+        one["projected_surface"] = fit
+        print(f"  {part}: projected mean surface at the member's true surface (median first-order distance, "
+              f"collection units): unseen member {fit['unseen']:.4f}, trained members' held-back scans "
+              f"{fit['trained']:.4f}", flush=True)
     return data, one, rows + [dict(part=part, **nn_figures)]
 
 
