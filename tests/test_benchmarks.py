@@ -449,3 +449,44 @@ def test_maps_suite_finds_the_scored_runs_only(tmp_path):
     assert run_folders(tmp_path) == [tmp_path / "a/run1", tmp_path / "c/run3"]
     assert run_folders(tmp_path, match="run3") == [tmp_path / "c/run3"]
     assert run_folders(tmp_path, match="run3,a/") == [tmp_path / "a/run1", tmp_path / "c/run3"]
+
+
+def test_member_surface_error_is_the_distance_between_two_spheres():
+    """benchmarks.family_fit against a closed form: a "model" whose projected mean is the signed distance to a
+    sphere of radius 0.30 (g = |x| - 0.30), scored at the true surface of a sphere of radius 0.32 that the scan saw
+    (its upper half), gives 0.02; with the model's family registration (a uniform scale by 0.30 / 0.32 about the
+    origin, recorded as the scan's transform) the true surface is moved onto the model's sphere, and it gives 0."""
+    import trimesh
+
+    from benchmarks.family_fit import member_surface_error
+    from datasets import Frame, Scan
+    from datasets.registration import moved_by
+
+    class Field:
+        def mean_and_gradient(self, x):
+            r = np.linalg.norm(x, axis=1)
+            return r - 0.30, x / r[:, None]
+
+    class Projection:
+        field = Field()
+
+    class Model:
+        def __init__(self, scale=None):
+            self.family = None if scale is None else object()
+            self.scale = scale
+
+        def normalise(self, scan):
+            return scan if self.scale is None else moved_by(scan, np.diag([self.scale] * 3 + [1.0]))
+
+        def project(self, points, normals, seed=0):
+            return Projection()
+
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(3000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d = d[d[:, 2] > 0]
+    scan = Scan("test/good/stretch1.000_000", (0.32 * d).astype(np.float32), d.astype(np.float32), split="test")
+    mesh = trimesh.creation.icosphere(subdivisions=5, radius=0.32)
+    error = member_surface_error(Model(), scan, mesh, Frame.identity())
+    assert error == pytest.approx(0.02, abs=2e-4)
+    assert member_surface_error(Model(0.30 / 0.32), scan, mesh, Frame.identity()) == pytest.approx(0.0, abs=2e-4)
