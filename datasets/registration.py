@@ -1,5 +1,5 @@
 """Registering a scan onto good scans' surface: coarse-to-fine point-to-plane ICP from the scan's own pose, with a
-prior on how far the scan may move. Two motions: rigid (a part placed by hand) and affine (a member of a product
+prior on how far the scan may move. Two motions: rigid (a part placed by hand) and scaled (a member of a product
 family whose size varies, e.g. the same bracket in several lengths).
 
 For parts not held in a fixture (a few degrees of pose error): the scan (source) is moved onto a reference cloud
@@ -18,11 +18,13 @@ itself at no cost), plain ICP drifts by chance, and the prior keeps the scan whe
 numpy on a k-d tree, so a scan is registered the same way on every run (open3d's ICP is not: on such a patch
 repeated runs drifted to different places).
 
-**Affine** (``motion='scaled'``): the scan's points x move to A (x - c) + c + t, c the target's bounding-box centre,
-A any 3 x 3 matrix (a stretch along any direction, a different width, a small turn), with a Gaussian prior on A - I
-(``AFFINE_PRIOR`` per element) and on t (``PRIOR_SIZE``). A view that does not pin a direction's size (a flat face
-seen alone) keeps the prior's A there. Defects are local: a global linear map cannot explain a bump away, and the
-Huber weights keep a foreign object from pulling it. Used by :mod:`autodecoder.latent.family` to bring the scans of
+**Scaled** (``motion='scaled'``): the scan's points x move to R diag(exp s) (x - c) + c + t, c the target's
+bounding-box centre, s a log scale along each axis of the frame (the fixture's or the CAD model's, along which a
+family's members differ: a partial view's principal axes are not the part's, on a bracket they came out 45 degrees
+off its length), with the rigid motion's prior on R and t and a Gaussian prior on s (``SCALE_PRIOR`` about the
+expected size ``scale_centre``), s kept within ``SCALE_BOUND`` either way (:meth:`Aligner.scaled_state`). A view
+that does not span a direction keeps the expected size there. Defects are local: a global scale cannot explain a
+bump away, and the Huber weights keep a foreign object from pulling it. Used by :mod:`autodecoder.latent.family` to bring the scans of
 a product family to one size before the latent model is trained on them (and every later scan before it is scored).
 
 Inspection registers every scan it scores with ``align=True`` (:class:`inspection.config.InspectionConfig`), the
@@ -63,7 +65,7 @@ def _cloud(points, normals=None):
 
 
 class Aligner:
-    """Rigid registration onto a fixed reference cloud.
+    """Registration (rigid or scaled, ``motion``) onto a fixed reference cloud.
 
     Parameters
     ----------
@@ -128,10 +130,6 @@ class Aligner:
         self.iterations = int(iterations)
         self.size = float(np.linalg.norm(np.ptp(pts, axis=0)))
         self.centre = (pts.min(0) + pts.max(0)) / 2
-        # the scaled motion's axes (columns): the frame's own, i.e. the fixture's or the CAD model's, along which a
-        # family's members differ (a partial view's principal axes are not the part's: on a bracket they came out
-        # 45 degrees off its length)
-        self.axes = np.eye(3)
         self._tree = None
 
     @classmethod
@@ -294,8 +292,7 @@ class Aligner:
         self._kdtree()
         if len(pts) > MAX_SOURCE:
             pts = pts[np.linspace(0, len(pts) - 1, MAX_SOURCE).round().astype(np.int64)]
-        c, U = self.centre, self.axes
-        spread = lambda p: np.subtract(*np.percentile((p - c) @ U, [99, 1], axis=0))  # noqa: E731 (per axis)
+        spread = lambda p: np.subtract(*np.percentile(p, [99, 1], axis=0))  # noqa: E731 (per axis of the frame)
         free = (spread(pts) >= SCALE_EXTENT * spread(self.points)) & self.scale_axes
         levels = SCALED_LEVELS if self.levels == DEFAULT_LEVELS else self.levels
         R0, t0, s0 = ((np.eye(3), np.zeros(3), self.scale_centre.copy()) if start is None else
@@ -318,21 +315,21 @@ class Aligner:
 
     def scaled_matrix(self, R, t, s):
         """The (4, 4) affine transform of the scaled motion's state (R, t, s) about this target's centre:
-        x -> R (U diag(exp s) U^T (x - c)) + c + t."""
-        c, U = self.centre, self.axes
-        L = R @ U @ np.diag(np.exp(s)) @ U.T
+        x -> R diag(exp s) (x - c) + c + t."""
+        c = self.centre
+        L = R @ np.diag(np.exp(s))
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = L, c + t - L @ c
         return T
 
     def _scaled_icp(self, pts, levels, free, state, iterations=None):
-        """Robust point-to-plane ICP of the scaled motion x -> R (U diag(exp s) U^T (x - c)) + c + t (c: the
-        target's box centre, U: :attr:`axes`) with its prior, from ``state`` (R, t, s) through ``levels``, at most
+        """Robust point-to-plane ICP of the scaled motion x -> R diag(exp s) (x - c) + c + t (c: the target's box
+        centre) with its prior, from ``state`` (R, t, s) through ``levels``, at most
         ``iterations`` (default the aligner's) at each; only the ``free`` (3,) bool axes' scales move. Returns the
         final (R, t, s)."""
         from scipy.spatial.transform import Rotation
 
-        c, U = self.centre, self.axes
+        c = self.centre
         prior = np.r_[np.full(3, 1 / np.radians(PRIOR_DEGREES) ** 2), np.full(3, 1 / (PRIOR_SIZE * self.size) ** 2),
                       np.where(free, 1 / SCALE_PRIOR**2, 1e12)]
         R, t, s = (np.array(x, dtype=np.float64) for x in state)
@@ -340,15 +337,15 @@ class Aligner:
             voxel = level * self.spacing
             src = _voxel_subsample(pts, voxel) if voxel > self.spacing else pts
             for _ in range(self.iterations if iterations is None else iterations):
-                q = (src - c) @ U  # the scan in the target's axes, about its centre
-                scaled = (q * np.exp(s)) @ U.T  # (m, 3), about c
+                q = src - c  # about the target's centre
+                scaled = q * np.exp(s)  # (m, 3), about c
                 moved = scaled @ R.T + c + t
                 matched = self._matched(moved, voxel, 9)
                 if matched is None:
                     break
                 ok, n, r, sigma, w = matched
                 arm = scaled[ok] @ R.T
-                d_scale = (n @ R @ U) * (q[ok] * np.exp(s))  # d r / d s_k = n . R u_k (u_k . scaled)
+                d_scale = (n @ R) * scaled[ok]  # d r / d s_k = n . R e_k (scaled_k)
                 J = np.c_[np.cross(arm, n), n, d_scale]
                 theta = np.r_[Rotation.from_matrix(R).as_rotvec(), t, s - self.scale_centre]
                 H = J.T @ (w[:, None] * J) + sigma**2 * np.diag(prior)

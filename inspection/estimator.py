@@ -292,8 +292,8 @@ class Inspector(BaseEstimator):
     def _sized(self, scan):
         """``scan`` registered onto the model's family size (:meth:`autodecoder.latent.model.LatentModel.normalise`;
         a training scan onto the others); as it is for a model of one size."""
-        normalise = getattr(self.model, "normalise", None)
-        return scan if normalise is None or getattr(self.model, "family", None) is None else normalise(scan)
+        family = getattr(self.model, "family", None)
+        return scan if family is None else family.normalise(scan)
 
     def _sized_selection(self, selection):
         """Every scan of ``selection`` through :meth:`_sized` (each scan once, the same copy wherever it is used)."""

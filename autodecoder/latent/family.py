@@ -150,20 +150,26 @@ class FamilyFrame:
         return cls(Aligner.from_dict(d))
 
 
+MOVED_KEPT = 32  # NormalisedScans keeps the last this many registered scans (the trainer reads a few twice)
+
+
 class NormalisedScans:
-    """A lazy view of ``scans`` (a sequence of Scan) with each scan registered onto ``frame`` when read."""
+    """A lazy view of ``scans`` (a sequence of Scan) with each scan registered onto ``frame`` when read; the last
+    ``MOVED_KEPT`` are kept, not all (a collection streams)."""
 
     def __init__(self, scans, frame):
         self.scans, self.frame = scans, frame
         names = getattr(scans, "names", None)
         self.names = list(names) if names is not None else [s.name for s in scans]
 
-        self._moved = {}  # each scan is registered once (the trainer reads some twice)
+        self._moved = {}
 
     def __len__(self):
         return len(self.scans)
 
     def __getitem__(self, i):
         if i not in self._moved:
+            if len(self._moved) >= MOVED_KEPT:
+                self._moved.pop(next(iter(self._moved)))  # the oldest
             self._moved[i] = self.frame.normalise(self.scans[i])
         return self._moved[i]

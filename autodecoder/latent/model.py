@@ -139,7 +139,10 @@ class LatentModel:
         if self._family is None and self.state.get("family") is not None:
             from autodecoder.latent.family import FamilyFrame
 
-            self._family = FamilyFrame.from_dict(self.state["family"])
+            try:
+                self._family = FamilyFrame.from_dict(self.state["family"])
+            except (ValueError, TypeError, KeyError) as exc:
+                raise ValueError(f"{self.source}: the checkpoint's family frame is unreadable ({exc})") from None
         return self._family
 
     def normalise(self, scan):

@@ -178,3 +178,16 @@ def test_the_command_line_passes_the_family_choice():
     for flag, value in (("auto", "auto"), ("on", True), ("off", False)):
         args = parse.parse_args(["--data", "x.h5", "--out", "m.pt", "--family", flag])
         assert train_latent.options_from_args(args)["family"] == value
+
+
+def test_an_unreadable_family_frame_names_the_checkpoint(family_model):
+    import torch
+
+    from autodecoder.latent.model import LatentModel, read_checkpoint
+
+    _, root, _ = family_model
+    state = read_checkpoint(root / "model.pt")
+    state["family"] = {"points": torch.zeros(2, 3), "normals": torch.zeros(2, 3), "owners": ["a", "b"]}
+    broken = LatentModel(state, "broken.pt")
+    with pytest.raises(ValueError, match="broken.pt.*family frame is unreadable"):
+        broken.family
