@@ -244,7 +244,7 @@ def trained_model(collection_path, root=CACHE, **train_options):
     options.pop("quiet", None)
 
     folds = options.pop("calibration_folds", None)
-    family = options.pop("family", "auto")
+    family = options.pop("family", False)  # the trainer's default: one part
     if family == "auto":
         family = family_decision(collection_path, fingerprint, options["seed"], root)
     if family:  # keyed only for a family: the models cached before families were sized stay valid for the rest

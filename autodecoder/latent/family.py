@@ -11,6 +11,9 @@ a housing in three widths) becomes a part in a fixture. What it does not do: var
 hole moved, a wall thickened, a bend) is left to the latent space; and a part of the wrong size is, by
 construction, not a defect.
 
+Off by default (``train_collection(family=True)``, ``nsspr-train --family on``): the automatic decision
+(``family='auto'``) took the real bunny's range scans for a family at one training seed of three.
+
 * :func:`fit_family` decides it (``family='auto'``) and makes the common size: up to ``FAMILY_SCANS`` training scans
   (evenly chosen) registered onto each other with the scaled motion (:func:`datasets.registration.register_group`),
   and :func:`size_spread` of the sizes the registration gave them (per axis of the frame, the interquartile range

@@ -81,7 +81,7 @@ def train_latent(scans, out=None, options=None, *, names=None, frame=None, finge
 
 
 def train_collection(data, out, *, split="train", calibration_fraction=0.2, resume=False, overwrite=False,
-                     device="auto", quiet=False, family="auto", **options):
+                     device="auto", quiet=False, family=False, **options):
     """Train a latent model over the good scans of a collection file and write its checkpoint (``train_latent.py``).
 
     The scans to hold back for calibration are chosen by :func:`split_training_scans`; the checkpoint records them.
@@ -104,10 +104,12 @@ def train_collection(data, out, *, split="train", calibration_fraction=0.2, resu
         Replace an existing ``out`` (otherwise refused unless ``resume``).
     device : {'auto', 'cpu', 'cuda'}
     quiet : bool
-    family : {'auto', True, False}
+    family : {False, True, 'auto'}
         Bring the training scans to one size first (:mod:`autodecoder.latent.family`: a product family whose
         members differ in length or width); 'auto': when registering some of them onto each other spreads their
-        sizes (:func:`autodecoder.latent.family.fit_family`). A resumed run keeps what it did.
+        sizes (:func:`autodecoder.latent.family.fit_family`). Off by default: 'auto' took the real bunny's range
+        scans for a family at one seed of three and lost 0.10-0.16 AUROC there (docs/results.md). A resumed run
+        keeps what it did.
     **options
         :class:`LatentOptions` fields (``seed`` also seeds the hold-out).
 
@@ -172,7 +174,7 @@ def train_collection(data, out, *, split="train", calibration_fraction=0.2, resu
             dist.destroy_process_group()
 
 
-def family_scans(scans, family="auto", seed=0, quiet=True):
+def family_scans(scans, family=False, seed=0, quiet=True):
     """``scans`` (a lazy sequence of training scans) brought to one size when they are a product family
     (:func:`autodecoder.latent.family.fit_family`), with one printed line saying so unless ``quiet``. Returns
     (the scans to train on, the :class:`~autodecoder.latent.family.FamilyFrame` or None)."""
@@ -182,5 +184,5 @@ def family_scans(scans, family="auto", seed=0, quiet=True):
     if not quiet:
         why = "" if spread is None else f" (registered onto each other, their sizes spread by {100 * spread:.0f} %)"
         print(f"note: the training scans are a family of sizes{why}: each scan is registered onto one common size "
-              f"before training, and so is every scan inspected later (--family off turns it off)", flush=True)
+              f"before training, and so is every scan inspected later", flush=True)
     return NormalisedScans(scans, frame), frame

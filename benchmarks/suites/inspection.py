@@ -120,7 +120,8 @@ def _train_options(args):
     from autodecoder.latent.folds import SUGGESTED_FOLDS
 
     return dict(seed=args.seed, epochs=args.epochs, representation=args.representation,
-                calibration_folds=None if args.folds == "off" else SUGGESTED_FOLDS)
+                calibration_folds=None if args.folds == "off" else SUGGESTED_FOLDS,
+                **({"family": True} if args.family is not None else {}))  # a family tree: trained as one (--family on)
 
 
 def _run_name(args):

@@ -109,7 +109,8 @@ def family_model(tmp_path_factory, one_torch_thread):
             + [ellipsoid_view(f"test/dent/{i}", 1.0, view=1, seed=800 + i, split="test", label="defective",
                               dent=0.5) for i in range(4)])
     ScanCollection.create(root / "tree.h5", family_scans() + held + test)
-    model = train_collection(root / "tree.h5", root / "model.pt", quiet=True, epochs=150, seed=0, latent_dim=2,
+    model = train_collection(root / "tree.h5", root / "model.pt", quiet=True, family="auto", epochs=150, seed=0,
+                             latent_dim=2,
                              width=32, depth=2, features=16, mean_samples=256, screen_samples=128, pair_clusters=8,
                              lr=3e-3, code_lr=1e-2, batch=4)
     return model, root, test
