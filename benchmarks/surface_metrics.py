@@ -59,7 +59,8 @@ def open3d_poisson(points, normals, depth=8):
 
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     pcd.normals = o3d.utility.Vector3dVector(normals)
-    mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pcd, depth=depth)
+    mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pcd, depth=depth, n_threads=1)
+    # one thread: open3d's threaded solve differs from run to run
     density = np.asarray(density)
     mesh.remove_vertices_by_mask(density < np.quantile(density, 0.01))
     return trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.triangles), process=False)

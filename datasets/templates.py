@@ -55,8 +55,8 @@ def sensor_positions(center, diagonal, n, seed, distance=2.0):
 class TemplateSurface:
     """A surface reconstructed from one complete template cloud, to decide which of its points a sensor returns.
 
-    Screened Poisson reconstruction (open3d) of the oriented template, octree depth from its point count
-    (:func:`poisson_depth`), its least supported vertices trimmed (``DENSITY_TRIM``). The template's noise, sigma,
+    Screened Poisson reconstruction (open3d, one thread, so the same template gives the same surface), octree depth
+    from its point count (:func:`poisson_depth`), its least supported vertices trimmed (``DENSITY_TRIM``). The template's noise, sigma,
     is the robust spread (1.4826 MAD) of the points' signed distances to that surface, in the template's units.
 
     Parameters
@@ -85,7 +85,8 @@ class TemplateSurface:
         pcd.normals = o3d.utility.Vector3dVector(normals)
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
             mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
-                pcd, depth=poisson_depth(len(points)))
+                pcd, depth=poisson_depth(len(points)), n_threads=1)  # one thread: open3d's threaded solve sums in
+            # a varying order, so the same template gave views a point apart from run to run
         density = np.asarray(density)
         mesh.remove_vertices_by_mask(density < np.quantile(density, DENSITY_TRIM))
         if len(mesh.triangles) == 0:
