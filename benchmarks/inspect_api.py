@@ -398,3 +398,71 @@ def timed_inspect(inspector, scan):
     result = inspector.inspect(scan, timings=timings)
     timings["total"] = time.perf_counter() - t0
     return float(result.score), np.asarray(result.point_scores), timings
+
+
+def defect_projection(model_path, data_path, split="test"):
+    """How far a calibrated model's projection follows a defect: :func:`field_terms_by_code` of the scans of
+    ``split`` under the model file's stored calibration.
+
+    Raises
+    ------
+    SystemExit
+        A model calibrated with alignment or a product family's model (their scans are moved before projection,
+        which this measurement does not do), or one without a per-location reference.
+    """
+    from datasets import ScanCollection
+
+    insp = _inspector(model_path)
+    if insp.settings_.align or getattr(insp.model, "family", None) is not None or insp.reference_ is None:
+        raise SystemExit(f"{model_path}: calibrated with alignment, a family's model, or no reference: not measured")
+    with ScanCollection(data_path) as c:
+        scans = c.read_many(c.select(split=split))
+    return field_terms_by_code(insp, scans)
+
+
+def field_terms_by_code(inspector, scans):
+    """Every scan of ``scans`` scored with the field's term alone (``'distance'``, z_d) twice, once with the code
+    projected from the whole scan (what the inspection does) and once with the code projected from the scan's good
+    points alone (its ``point_labels`` == 0: a projection no defect can pull, which a scan does not come with), the
+    field read at every point each time against the fitted ``inspector``'s per-location reference; beside it the good
+    points' term alone (``'surface'``, z_s). Each aggregated as the inspector aggregates (stray points left out),
+    without the rays. The scans must lie in the model's frame (no alignment, no family sizing).
+
+    Returns
+    -------
+    list of dict
+        Per scan: ``name``, ``label``, ``defect``, ``own``, ``clean``, ``surface`` (the three per-scan scores; for a
+        good scan, or one without labelled points, ``clean`` is ``own``), and for a defective scan with labelled
+        points ``defect_own`` / ``defect_clean``: the median z_d at its defect points under each code.
+    """
+    from inspection.aggregates import aggregate
+    from inspection.evidence import field_for, gather_evidence
+    from inspection.reference import REFERENCE_QUANTITY, field_quantity
+    from inspection.scores import reference_scores
+
+    settings, reference = inspector.settings_, inspector.reference_
+    out = []
+    for s in scans:
+        ev = gather_evidence(inspector.model, s, quantity=REFERENCE_QUANTITY, projection=settings.projection)
+        noise = float(getattr(ev.field, "noise", 0.0) if settings.noise is None else settings.noise)
+
+        def field_term(value, variance):
+            return reference_scores(reference, "distance", ev.points, value, variance, noise, ev.grazing, ev.normals)
+
+        keep = ~ev.stray if ev.stray is not None and not ev.stray.all() else np.ones(len(ev.points), bool)
+        own = field_term(ev.value, ev.variance)
+        surface = reference_scores(reference, "surface", ev.points, ev.value, ev.variance, noise, ev.grazing,
+                                   ev.normals)
+        one = {"name": s.name, "label": s.label, "defect": s.defect, "own": aggregate(own[keep], settings.aggregate),
+               "surface": aggregate(surface[keep], settings.aggregate)}
+        one["clean"] = one["own"]
+        labels = s.point_labels
+        if s.label != "good" and labels is not None and np.any(labels) and np.count_nonzero(labels == 0) >= 3:
+            good = np.asarray(labels) == 0
+            field = field_for(inspector.model, ev.points[good], None if ev.normals is None else ev.normals[good],
+                              settings.projection)
+            clean = field_term(*field_quantity(field, ev.points, REFERENCE_QUANTITY, with_variance=True))
+            one["clean"] = aggregate(clean[keep], settings.aggregate)
+            one["defect_own"], one["defect_clean"] = float(np.median(own[~good])), float(np.median(clean[~good]))
+        out.append(one)
+    return out

@@ -88,3 +88,11 @@ def part_figures(name, figures):
 
 def slug_of(name):
     return "".join(c if c.isalnum() else "_" for c in name).strip("_")
+
+
+def run_folders(work, match=""):
+    """The run folders below ``work`` with a calibrated model and a scoring summary whose path contains one of the
+    comma-separated texts of ``match`` (all when empty), sorted."""
+    texts = [t for t in match.split(",") if t] or [""]
+    return sorted(p.parent for p in Path(work).rglob("model.pt")
+                  if (p.parent / "results" / "summary.json").is_file() and any(t in str(p.parent) for t in texts))

@@ -439,7 +439,7 @@ def test_trees_run_each_tree_and_report_each_as_it_finishes(monkeypatch):
 
 
 def test_maps_suite_finds_the_scored_runs_only(tmp_path):
-    from benchmarks.suites.maps import run_folders
+    from benchmarks.trees import run_folders
 
     for name, scored in (("a/run1", True), ("b/run2", False), ("c/run3", True)):
         (tmp_path / name / "results").mkdir(parents=True)
@@ -490,3 +490,28 @@ def test_member_surface_error_is_the_distance_between_two_spheres():
     error = member_surface_error(Model(), scan, mesh, Frame.identity())
     assert error == pytest.approx(0.02, abs=2e-4)
     assert member_surface_error(Model(0.30 / 0.32), scan, mesh, Frame.identity()) == pytest.approx(0.0, abs=2e-4)
+
+
+def test_field_terms_by_code_projects_a_clean_code_from_the_good_points_alone():
+    """A 'latent' model that fits a sphere to whatever points it is given: a dent pulls the fit of the whole scan
+    towards itself, the fit of the good points alone is the part's sphere, so the field's term at the dent is larger
+    under the clean code; a good scan is scored once (clean = own); the good points' term ignores the code."""
+    from datasets import Scan
+    from inspection import Inspector
+    from benchmarks.inspect_api import field_terms_by_code
+    from tests.inspection.test_inspector import SphereModel, sphere_scan
+
+    def scan(name, seed, dent=0.0):
+        points, normals = sphere_scan(seed=seed, dent=dent)
+        labels = (np.arccos(np.clip(normals[:, 2], -1, 1)) < 0.35).astype(np.uint8) if dent else None
+        return Scan(name=name, points=points, normals=normals, split="test", label="defective" if dent else "good",
+                    defect="dent" if dent else "", point_labels=labels)
+
+    good = [scan(f"ref{i}", i) for i in range(5)]
+    insp = Inspector(SphereModel(), point_score="distance", alpha=0.2).fit(
+        [scan(f"held{i}", 10 + i) for i in range(5)], reference_scans=good)
+    rows = field_terms_by_code(insp, [scan("good", 20), scan("dent", 21, dent=0.08)])
+    assert rows[0]["own"] == rows[0]["clean"] and "defect_own" not in rows[0]
+    dent = rows[1]
+    assert dent["defect_clean"] > dent["defect_own"] > 0 and dent["clean"] > dent["own"]
+    assert dent["surface"] > rows[0]["surface"]

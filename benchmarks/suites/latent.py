@@ -21,6 +21,13 @@ Modes (``--mode``):
     Seconds per scan of latent models' projection side by side: each of ``--models`` projects the same ``--scans``
     test scans of ``--data`` with the inspection's projection settings, the models taking turns ``--repeats``
     times (a changing machine load falls on all alike), after a warm-up that pays the one-off costs.
+``defects``
+    How far the projection follows a defect (issue 28, item 1), on scored runs: each run folder below ``--runs``
+    with a calibrated ``model.pt`` and its scoring summary (the verdicts suite writes these; ``--match`` picks some)
+    scored with the field's term alone (``distance``) twice, its code projected from the whole scan (the
+    inspection's) and from the scan's good points alone (the labelled defect points left out: a projection no defect
+    can pull), beside the good points' term alone (``surface``); object AUROC overall and per defect type, and the
+    median field term at the defect points under each code (``benchmarks.inspect_api.defect_projection``).
 
 The Chamfer distance is ``benchmarks.surface_metrics.mean_surface_distance``.
 """
@@ -32,7 +39,7 @@ from benchmarks.cache import CACHE
 
 DESCRIPTION = ("latent model: projection vs per-scan fits on fandisk, training budget vs AUROC, projection time per "
                "scan")
-MODES = ("fandisk", "budget", "projection")
+MODES = ("fandisk", "budget", "projection", "defects")
 OUT = {"fandisk": "results/latent_fandisk", "budget": "results/latent_budget"}
 
 
@@ -64,10 +71,15 @@ def add_arguments(parser):
     projection.add_argument("--models", help="comma-separated latent model files")
     projection.add_argument("--scans", type=int, default=32, help="test scans projected per repeat")
     projection.add_argument("--repeats", type=int, default=3)
+    defects = parser.add_argument_group("defects")
+    defects.add_argument("--runs", help="a suite's work folder of scored runs (e.g. results/verdicts)")
+    defects.add_argument("--match", default="", help="comma-separated texts: only runs whose path has one of them")
+    defects.add_argument("--root", default=".", help="the folder the runs were made from (a relative collection "
+                                                     "path in a run's summary is read from here)")
 
 
 def run(args):
-    return {"fandisk": _fandisk, "budget": _budget, "projection": _projection}[args.mode](args)
+    return {"fandisk": _fandisk, "budget": _budget, "projection": _projection, "defects": _defects}[args.mode](args)
 
 
 # --- fandisk ---------------------------------------------------------------------------------------------------
@@ -276,3 +288,38 @@ def _projection(args):
     print(format_table(rows, [("model", "model", ""), ("representation", "representation", ""),
                               ("fastest", "fastest s/scan", ".3f"), ("median", "median s/scan", ".3f")]))
     return {"scans": len(scans), "repeats": args.repeats, "rows": rows}
+
+
+def _defects(args):
+    import numpy as np
+
+    from benchmarks import inspect_api, metrics
+    from benchmarks.table import format_table
+    from benchmarks.trees import run_folders
+
+    if not args.runs:
+        raise SystemExit("--mode defects needs --runs")
+    folders = run_folders(args.runs, args.match)
+    if not folders:
+        raise SystemExit(f"no run folder with model.pt and results/summary.json under {args.runs}")
+    rows = []
+    for folder in folders:
+        data = Path(args.root) / json.loads((folder / "results" / "summary.json").read_text())["data"]
+        scans = inspect_api.defect_projection(folder / "model.pt", data)
+        labels, defects = [s["label"] for s in scans], [s["defect"] for s in scans]
+        name = f"{Path(data).parent.name}/{folder.name}"
+        for key, what in (("own", "field, own code"), ("clean", "field, code from good points"),
+                          ("surface", "good points")):
+            per = metrics.auroc_per_defect([s[key] for s in scans], labels, defects)
+            row = {"run": name, "score": what, **per}
+            if key != "surface":
+                row["at_defects"] = float(np.median([s["defect_" + key] for s in scans if "defect_" + key in s]))
+            rows.append(row)
+        print(f"{name}: field AUROC {rows[-3]['overall']:.3f} -> {rows[-2]['overall']:.3f} with a clean code "
+              f"(good points {rows[-1]['overall']:.3f})", flush=True)
+    kinds = sorted({k for r in rows for k in r} - {"run", "score", "at_defects"}, key=lambda k: (k != "overall", k))
+    print("\nobject AUROC (no rays) of the field's term with the code projected from the whole scan and from its good "
+          "points alone, beside the good points' term; 'at defects': median field term at the defect points")
+    print(format_table(rows, [("run", "run", ""), ("score", "score", "")] + [(k, k, ".3f") for k in kinds]
+                       + [("at_defects", "at defects", ".2f")]))
+    return {"rows": rows}

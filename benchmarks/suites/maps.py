@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks import inspect_api, metrics
+from benchmarks.trees import run_folders
 from benchmarks.table import format_table
 
 DESCRIPTION = "point AUROC of the anomaly map at each patch size (points per patch), on the scored runs of a folder"
@@ -31,14 +32,6 @@ def add_arguments(p):
     p.add_argument("--root", default=".",
                    help="the folder the runs were made from: a relative collection path in a run's summary is read "
                         "from here (default: the current folder)")
-
-
-def run_folders(work, match=""):
-    """The run folders below ``work`` with a calibrated model and a scoring summary whose path contains one of the
-    comma-separated texts of ``match`` (all when empty), sorted."""
-    texts = [t for t in match.split(",") if t] or [""]
-    return sorted(p.parent for p in Path(work).rglob("model.pt")
-                  if (p.parent / "results" / "summary.json").is_file() and any(t in str(p.parent) for t in texts))
 
 
 def run(args):
