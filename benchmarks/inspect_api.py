@@ -406,7 +406,7 @@ def defect_projection(model_path, data_path, split="test"):
 
     Raises
     ------
-    SystemExit
+    ValueError
         A model calibrated with alignment or a product family's model (their scans are moved before projection,
         which this measurement does not do), or one without a per-location reference.
     """
@@ -414,7 +414,7 @@ def defect_projection(model_path, data_path, split="test"):
 
     insp = _inspector(model_path)
     if insp.settings_.align or getattr(insp.model, "family", None) is not None or insp.reference_ is None:
-        raise SystemExit(f"{model_path}: calibrated with alignment, a family's model, or no reference: not measured")
+        raise ValueError(f"{model_path}: calibrated with alignment, a family's model, or no reference: not measured")
     with ScanCollection(data_path) as c:
         scans = c.read_many(c.select(split=split))
     return field_terms_by_code(insp, scans)

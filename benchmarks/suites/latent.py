@@ -305,7 +305,11 @@ def _defects(args):
     rows = []
     for folder in folders:
         data = Path(args.root) / json.loads((folder / "results" / "summary.json").read_text())["data"]
-        scans = inspect_api.defect_projection(folder / "model.pt", data)
+        try:
+            scans = inspect_api.defect_projection(folder / "model.pt", data)
+        except ValueError as e:
+            print(f"skipped: {e}", flush=True)
+            continue
         labels, defects = [s["label"] for s in scans], [s["defect"] for s in scans]
         name = f"{Path(data).parent.name}/{folder.name}"
         for key, what in (("own", "field, own code"), ("clean", "field, code from good points"),
