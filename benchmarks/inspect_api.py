@@ -424,14 +424,16 @@ def field_terms_by_code(inspector, scans):
     """Every scan of ``scans`` scored with the field's term alone (``'distance'``, z_d) twice, once with the code
     projected from the whole scan (what the inspection does) and once with the code projected from the scan's good
     points alone (its ``point_labels`` == 0: a projection no defect can pull, which a scan does not come with), the
-    field read at every point each time against the fitted ``inspector``'s per-location reference; beside it the good
-    points' term alone (``'surface'``, z_s). Each aggregated as the inspector aggregates (stray points left out),
+    field read at every point each time against the fitted ``inspector``'s per-location reference; beside it the same
+    field term without the field's own variance in its denominator (``no_variance``: the reference's spread, the noise
+    and the grazing term alone, the stochastic field's knowledge of where it is unsure left out) and the good points'
+    term alone (``'surface'``, z_s). Each aggregated as the inspector aggregates (stray points left out),
     without the rays. The scans must lie in the model's frame (no alignment, no family sizing).
 
     Returns
     -------
     list of dict
-        Per scan: ``name``, ``label``, ``defect``, ``own``, ``clean``, ``surface`` (the three per-scan scores; for a
+        Per scan: ``name``, ``label``, ``defect``, ``own``, ``clean``, ``no_variance``, ``surface`` (per-scan scores; for a
         good scan, or one without labelled points, ``clean`` is ``own``), and for a defective scan with labelled
         points ``defect_own`` / ``defect_clean``: the median z_d at its defect points under each code.
     """
@@ -454,7 +456,8 @@ def field_terms_by_code(inspector, scans):
         surface = reference_scores(reference, "surface", ev.points, ev.value, ev.variance, noise, ev.grazing,
                                    ev.normals)
         one = {"name": s.name, "label": s.label, "defect": s.defect, "own": aggregate(own[keep], settings.aggregate),
-               "surface": aggregate(surface[keep], settings.aggregate)}
+               "surface": aggregate(surface[keep], settings.aggregate),
+               "no_variance": aggregate(field_term(ev.value, np.zeros_like(ev.variance))[keep], settings.aggregate)}
         one["clean"] = one["own"]
         labels = s.point_labels
         if s.label != "good" and labels is not None and np.any(labels) and np.count_nonzero(labels == 0) >= 3:

@@ -510,8 +510,11 @@ def test_field_terms_by_code_projects_a_clean_code_from_the_good_points_alone():
     good = [scan(f"ref{i}", i) for i in range(5)]
     insp = Inspector(SphereModel(), point_score="distance", alpha=0.2).fit(
         [scan(f"held{i}", 10 + i) for i in range(5)], reference_scans=good)
+    insp.reference_.variance_scale = 1.0  # the field's variance in the term's denominator (the fit may leave it out)
     rows = field_terms_by_code(insp, [scan("good", 20), scan("dent", 21, dent=0.08)])
     assert rows[0]["own"] == rows[0]["clean"] and "defect_own" not in rows[0]
+    # the sphere field's variance (1e-4, the same everywhere) left out of the denominator: the term grows
+    assert rows[0]["no_variance"] > rows[0]["own"] and rows[1]["no_variance"] > rows[1]["own"]
     dent = rows[1]
     assert dent["defect_clean"] > dent["defect_own"] > 0 and dent["clean"] > dent["own"]
     assert dent["surface"] > rows[0]["surface"]

@@ -26,8 +26,9 @@ Modes (``--mode``):
     with a calibrated ``model.pt`` and its scoring summary (the verdicts suite writes these; ``--match`` picks some)
     scored with the field's term alone (``distance``) twice, its code projected from the whole scan (the
     inspection's) and from the scan's good points alone (the labelled defect points left out: a projection no defect
-    can pull), beside the good points' term alone (``surface``); object AUROC overall and per defect type, and the
-    median field term at the defect points under each code (``benchmarks.inspect_api.defect_projection``).
+    can pull), the field's term without the field's own variance, and the good points' term alone (``surface``);
+    object AUROC overall and per defect type, and the median field term at the defect points under each code
+    (``benchmarks.inspect_api.defect_projection``).
 
 The Chamfer distance is ``benchmarks.surface_metrics.mean_surface_distance``.
 """
@@ -313,17 +314,18 @@ def _defects(args):
         labels, defects = [s["label"] for s in scans], [s["defect"] for s in scans]
         name = f"{Path(data).parent.name}/{folder.name}"
         for key, what in (("own", "field, own code"), ("clean", "field, code from good points"),
-                          ("surface", "good points")):
+                          ("no_variance", "field without its variance"), ("surface", "good points")):
             per = metrics.auroc_per_defect([s[key] for s in scans], labels, defects)
             row = {"run": name, "score": what, **per}
-            if key != "surface":
+            if key in ("own", "clean"):
                 row["at_defects"] = float(np.median([s["defect_" + key] for s in scans if "defect_" + key in s]))
             rows.append(row)
-        print(f"{name}: field AUROC {rows[-3]['overall']:.3f} -> {rows[-2]['overall']:.3f} with a clean code "
-              f"(good points {rows[-1]['overall']:.3f})", flush=True)
+        print(f"{name}: field AUROC {rows[-4]['overall']:.3f} -> {rows[-3]['overall']:.3f} with a clean code, "
+              f"{rows[-2]['overall']:.3f} without its variance (good points {rows[-1]['overall']:.3f})", flush=True)
     kinds = sorted({k for r in rows for k in r} - {"run", "score", "at_defects"}, key=lambda k: (k != "overall", k))
     print("\nobject AUROC (no rays) of the field's term with the code projected from the whole scan and from its good "
-          "points alone, beside the good points' term; 'at defects': median field term at the defect points")
+          "points alone, without the field's variance, and the good points' term; 'at defects': median field term at "
+          "the defect points")
     print(format_table(rows, [("run", "run", ""), ("score", "score", "")] + [(k, k, ".3f") for k in kinds]
                        + [("at_defects", "at defects", ".2f")]))
     return {"rows": rows}
