@@ -15,7 +15,8 @@ what a calibration that knew the good test scans' distribution would detect); a 
 misses too is counted apart: there the target asks for more than a false-alarm rate of alpha allows.
 
 The trees and the runner are :mod:`benchmarks.trees` (each run a process of its own). ``--jobs N`` runs N of them
-at once; the figures do not depend on it.
+at once; the figures do not depend on it. ``--folds on``: every tree's model gets 2 fold models (``train_latent.py
+--calibration-folds 2``, trained into the cached model once) and is calibrated with them, the figures of that row.
 """
 import math
 
@@ -43,6 +44,8 @@ def add_arguments(p):
     p.add_argument("--jobs", type=int, default=1, help="(tree, seed) runs at once, each a process (default 1)")
     p.add_argument("--cache", default=cache.CACHE, help="collections and models (default: %(default)s)")
     p.add_argument("--work", default=WORK, help="scored runs and logs (default: %(default)s)")
+    p.add_argument("--folds", choices=("off", "on"), default="off",
+                   help="calibrate with 2 fold models trained into each model (default: %(default)s, the defaults')")
 
 
 def run(args):
@@ -52,11 +55,13 @@ def run(args):
     jobs = [(name, seed) for seed in seeds for name in names]
     results = {}
 
+    folds = args.folds == "on"
+
     def done(name, seed, result):
-        results[(name, seed)] = _figures(name, *result)
+        results[(name, seed)] = _figures(name, *result, folds=folds)
         _report(name, seed, results[(name, seed)])
 
-    run_trees(jobs, args.cache, args.work, args.jobs, done=done)
+    run_trees(jobs, args.cache, args.work, args.jobs, ["--folds", args.folds], done=done)
     rows = [dict(tree=name, seed=seed, **results[(name, seed)]) for name, seed in jobs]
     print()
     print(format_table(rows, [("tree", "tree", ""), ("seed", "seed", "d"), ("auroc", "AUROC", ".3f"),
@@ -76,9 +81,10 @@ def _report(name, seed, r):
           f"{r['good_text']}, oracle {r['oracle']:.3f} ({r['seconds']:.0f} s; log {r['log']})", flush=True)
 
 
-def _figures(name, figures, log, seconds):
-    """The default run's figures of one tree's run (:func:`benchmarks.trees.run_tree`'s result)."""
-    one = _pick(name, part_figures(name, figures))
+def _figures(name, figures, log, seconds, folds=False):
+    """The default run's figures of one tree's run (:func:`benchmarks.trees.run_tree`'s result); ``folds``: the run
+    calibrated with fold models."""
+    one = _pick(name, part_figures(name, figures), folds)
     flagged = one["flagged"]
     n_good = int(flagged.get("n_good") or 0)
     return {"auroc": float(one["auroc"]["overall"]), "defective": float(flagged["defective"]),
@@ -90,13 +96,14 @@ def _figures(name, figures, log, seconds):
             "alpha": float(one.get("alpha") or np.nan), "seconds": seconds, "log": str(log)}
 
 
-def _pick(name, one):
-    """The default run's figures (folds off) out of the tree's part figures."""
+def _pick(name, one, folds=False):
+    """The run's figures (with fold models or without: ``folds``) out of the tree's part figures."""
     suite, options = TREES[name]
-    if suite == "real":
+    if suite == "real":  # its one row
         row = one["verdicts"][0]
         return {**row, "flagged": {**row["flagged"], "n_good": row["flagged"].get("n_good")}}
-    return one["toolkit_summary_nofolds"] if "--templates" in options else one["toolkit_nofolds"]
+    key = "toolkit_summary" if "--templates" in options else "toolkit"
+    return one[key if folds else key + "_nofolds"]
 
 
 def check_targets(rows):
