@@ -335,9 +335,31 @@ def _check_segments(field, origin, d, t_near, t_stop, step, q_out, tree, opts):
     u = np.linspace(0.0, 1.0, n)[:-1]  # the last sample is the point itself (or the box exit)
     t = t_near[:, None] + length[:, None] * u  # (b, n - 1)
     x = origin + t[..., None] * d[:, None, :]  # (b, n - 1, 3)
-    xt = torch.as_tensor(x.reshape(-1, 3), dtype=torch.float32)
-    mean = field.torch_mean(xt).double().numpy().reshape(t.shape)
-    var = np.maximum(field.torch_variance(xt).double().numpy().reshape(t.shape), _MIN_VARIANCE)
+    # which samples a ray may test at all (neither test reads the field): off the surface the scan saw, and where
+    # good parts have a surface
+    tested = np.ones(t.shape, dtype=bool)
+    if tree is not None:
+        # material next to a surface the scan saw is that surface, blurred by the field's resolution: a ray that
+        # grazes an observed edge is not evidence of anything missing
+        tested = ~np.isfinite(tree.query(x, k=1, distance_upper_bound=opts.clearance)[0])
+    if opts.band is not None:
+        # only where good parts have a surface: elsewhere the field's material is its own extrapolation
+        rows, cols = np.nonzero(tested)
+        untested = ~opts.band.tested(x[rows, cols], d[rows])
+        tested[rows[untested], cols[untested]] = False
+    # the field is read only where it can matter: at the samples a ray may test, and within own_depth of the point,
+    # where the tested segment's end is decided (every sample before that is outside it whatever the field says)
+    if q_out is None:
+        read = tested
+    elif opts.own_depth is not None:
+        read = tested | (t > (t_stop - opts.own_depth)[:, None])
+    else:
+        read = np.ones(t.shape, dtype=bool)
+    mean, var = np.zeros(t.shape), np.ones(t.shape)  # unread samples: never tested, never the segment's end
+    if read.any():
+        xt = torch.as_tensor(x[read], dtype=torch.float32)
+        mean[read] = field.torch_mean(xt).double().numpy()
+        var[read] = np.maximum(field.torch_variance(xt).double().numpy(), _MIN_VARIANCE)
     ratio = torch.as_tensor(mean / np.sqrt(var))
     q = torch.special.ndtr(-ratio).numpy()  # P(f <= 0), (b, n - 1)
     log_p_out = torch.special.log_ndtr(ratio).numpy()  # log P(f > 0), accurate where q is ~1
@@ -352,19 +374,7 @@ def _check_segments(field, origin, d, t_near, t_stop, step, q_out, tree, opts):
             outside |= (t <= (t_stop - opts.own_depth)[:, None]) & (length[:, None] > 0)
         has_out = outside.any(1)
         j_end = np.where(has_out, outside.shape[1] - 1 - np.argmax(outside[:, ::-1], axis=1), -1)
-    keep = np.arange(t.shape[1]) <= j_end[:, None]
-    # the neighbour look-ups below only for the samples still kept (the others stay left out whatever they say)
-    if tree is not None:
-        # material next to a surface the scan saw is that surface, blurred by the field's resolution: a ray that
-        # grazes an observed edge is not evidence of anything missing
-        rows, cols = np.nonzero(keep)
-        near = np.isfinite(tree.query(x[rows, cols], k=1, distance_upper_bound=opts.clearance)[0])
-        keep[rows[near], cols[near]] = False
-    if opts.band is not None:
-        # only where good parts have a surface: elsewhere the field's material is its own extrapolation
-        rows, cols = np.nonzero(keep)
-        untested = ~opts.band.tested(x[rows, cols], d[rows])
-        keep[rows[untested], cols[untested]] = False
+    keep = (np.arange(t.shape[1]) <= j_end[:, None]) & tested
     q = np.where(keep, q, 0.0)
     log_p_out = np.where(keep, log_p_out, 0.0)
     rows = np.flatnonzero(has_out)

@@ -456,6 +456,47 @@ def test_band_leaves_out_a_one_sided_fields_cavity_but_not_a_hole_in_the_sheet()
     assert ev_open.score < 1e-6 < 1.0 < ev_hole.score and ev_open_no_band.score > 1.0
 
 
+
+def test_the_field_is_read_only_where_a_ray_can_test_it():
+    """The rays read the field at the samples the band and the scan's own surface leave testable and within
+    own_depth of each point (where the tested segment's end is decided), nowhere else: every point whose marginal
+    is asked for is in the band or that close to an observed point, and the answers are those of the same check
+    with a field that answers nonsense everywhere else (which no unread sample can change)."""
+    from scipy.spatial import cKDTree
+
+    from autodecoder.scanning.free_space import SurfaceBand
+
+    field = OneSidedField()
+    good_surface = _sheet_points(((-0.3, 0.0), 0.15))
+    band = SurfaceBand(good_surface, field.lengthscale)
+    observed = np.c_[0.3 * np.cos(np.linspace(0, 6, 40)), 0.3 * np.sin(np.linspace(0, 6, 40)), np.full(40, -0.5)]
+    own_depth, near_observed = 0.06, cKDTree(observed)
+
+    class Recording(OneSidedField):
+        """The same field, recording where its marginal variance is read (the rays' dense pass); off the band and
+        the points' depth it answers nonsense (a variance of 1e6)."""
+
+        read = []
+
+        def torch_variance(self, x):
+            self.read.append(x.numpy().copy())
+            p = x.numpy().astype(np.float64)
+            there = band.contains(p) | (near_observed.query(p)[0] <= own_depth + 1e-6)
+            return torch.where(torch.as_tensor(there), super().torch_variance(x), torch.full_like(x[:, 0], 1e6))
+
+    recording = Recording()
+    check = blocked_probability(field, SENSOR, observed, observed=observed, own_depth=own_depth, band=band)
+    again = blocked_probability(recording, SENSOR, observed, observed=observed, own_depth=own_depth, band=band)
+    read = np.concatenate(Recording.read).astype(np.float64)
+    assert len(read) and (band.contains(read) | (near_observed.query(read)[0] <= own_depth + 1e-5)).all()
+    for key in ("p_blocked", "max_marginal", "t_end", "t_block"):
+        np.testing.assert_array_equal(getattr(again, key), getattr(check, key))
+    # the test still tests: rays through the sheet where good parts have it are blocked, those through its opening
+    # (centre (-0.3, 0), radius 0.15) free; a ray to p crosses the sheet's face at p_xy (2 - 0.02) / (2 + 0.5)
+    crossing = np.hypot(observed[:, 0] * 1.98 / 2.5 + 0.3, observed[:, 1] * 1.98 / 2.5)
+    assert (check.p_blocked[crossing > 0.17] > 0.9).all() and (check.p_blocked[crossing < 0.13] < 0.1).all()
+    assert (crossing > 0.17).sum() > 20 and (crossing < 0.13).sum() > 2
+
 class SphereField(Field):
     """A solid ball of radius ``radius`` about the origin: mean |x| - radius, sd ``sd`` everywhere (a blurred rim);
     box [-1, 1]^3."""
