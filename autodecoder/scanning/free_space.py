@@ -54,7 +54,10 @@ Which samples of a ray are tested
 How the probability is computed
 -------------------------------
 1. **Marginals on a dense grid.** E f and Var f at samples spaced at most ``step`` apart (default half the kernel
-   lengthscale: the field represents nothing thinner) give q_j = P(f_j <= 0).
+   lengthscale: the field represents nothing thinner) give q_j = P(f_j <= 0). They are read only where they can
+   matter: at the samples the rules above leave testable (observed surfaces, the band, the skim rule: none of these
+   reads the field) and within ``own_depth`` of the point, where the segment's end is decided; every earlier sample
+   lies outside the tested segment whatever the field says there.
 2. **Correlated survival on the samples that matter.** The ``n_select`` tested samples with the largest q_j (in ray
    order) get their full covariance (:func:`autodecoder.scanning.rays.ray_gaussian`) and the Genz orthant probability
    (:func:`autodecoder.scanning.rays.orthant_survival`). Leaving samples out can only raise the survival, so the value is a
@@ -62,8 +65,8 @@ How the probability is computed
    Rays with max_j q_j below ``q_floor`` skip this step and report max_j q_j. log P(free) is kept apart from
    P(blocked) (1 - P(blocked) cancels to 0 for rays through material many sd deep), floored at log(1e-300).
 
-Cost: one mean and one variance evaluation per dense sample, plus n_select (n_select + 1) / 2 covariance pairs per
-ray above the floor (timings: docs/results.md#free-space-along-the-sensors-rays).
+Cost: one mean and one variance evaluation per dense sample that can matter (with a band, a small share of them),
+plus n_select (n_select + 1) / 2 covariance pairs per ray above the floor (timings: docs/results.md#free-space-along-the-sensors-rays).
 """
 import math
 from dataclasses import dataclass
