@@ -71,6 +71,8 @@ def add_arguments(p):
     p.add_argument("--seed", type=int, default=0, help="the tree's seed (default: %(default)s)")
     p.add_argument("--train-seed", type=int, default=0, help="the training's seed (default: %(default)s)")
     p.add_argument("--epochs", type=int, default=None, help="training epochs (default: the trainer's)")
+    p.add_argument("--representation", choices=("siren", "grid"), default=None,
+                   help="the latent model's representation (default: the trainer's)")
     p.add_argument("--no-rays", action="store_true", help="calibrate without the ray score (default: the "
                                                           "inspection's choice: with it, the scans have sensor origins)")
     p.add_argument("--diagnose", action="store_true", help="also the per-point analysis and pictures of the run")
@@ -90,8 +92,10 @@ def run(args):
     from autodecoder.latent.folds import SUGGESTED_FOLDS
 
     model = cache.trained_model(data, root=args.cache, seed=args.train_seed, epochs=args.epochs,
+                                representation=args.representation,
                                 calibration_folds=None if args.folds == "off" else SUGGESTED_FOLDS)
     run_dir = Path(args.work) / data.parent.name / ("defaults" + (f"_e{args.epochs}" if args.epochs else "")
+                                                    + (f"_{args.representation}" if args.representation else "")
                                                     + (f"_t{args.train_seed}" if args.train_seed else "")
                                                     + ("_norays" if args.no_rays else "")
                                                     + {True: "_aligned", False: "_noalign", None: ""}[args.align])

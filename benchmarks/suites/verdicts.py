@@ -16,7 +16,8 @@ misses too is counted apart: there the target asks for more than a false-alarm r
 
 The trees and the runner are :mod:`benchmarks.trees` (each run a process of its own). ``--jobs N`` runs N of them
 at once; the figures do not depend on it. ``--folds on``: every tree's model gets 2 fold models (``train_latent.py
---calibration-folds 2``, trained into the cached model once) and is calibrated with them, the figures of that row.
+--calibration-folds 2``, trained into the cached model once) and is calibrated with them, the figures of that row;
+``--representation grid``: every tree's model a grid one.
 """
 import math
 
@@ -46,6 +47,8 @@ def add_arguments(p):
     p.add_argument("--work", default=WORK, help="scored runs and logs (default: %(default)s)")
     p.add_argument("--folds", choices=("off", "on"), default="off",
                    help="calibrate with 2 fold models trained into each model (default: %(default)s, the defaults')")
+    p.add_argument("--representation", choices=("siren", "grid"), default=None,
+                   help="every tree's latent model in this representation (default: the trainer's)")
 
 
 def run(args):
@@ -61,7 +64,8 @@ def run(args):
         results[(name, seed)] = _figures(name, *result, folds=folds)
         _report(name, seed, results[(name, seed)])
 
-    run_trees(jobs, args.cache, args.work, args.jobs, ["--folds", args.folds], done=done)
+    extra = ["--folds", args.folds] + (["--representation", args.representation] if args.representation else [])
+    run_trees(jobs, args.cache, args.work, args.jobs, extra, done=done)
     rows = [dict(tree=name, seed=seed, **results[(name, seed)]) for name, seed in jobs]
     print()
     print(format_table(rows, [("tree", "tree", ""), ("seed", "seed", "d"), ("auroc", "AUROC", ".3f"),
