@@ -70,6 +70,8 @@ def add_arguments(p):
                    help="the same scans without sensor origins (a collection and model of their own): no rays, the "
                         "grazing term's viewpoint estimated from the normals")
     p.add_argument("--epochs", type=int, default=None, help="training epochs (default: the trainer's)")
+    p.add_argument("--lengthscale", type=float, default=None,
+                   help="the GP kernel lengthscale, collection units (default: the trainer's, 2 x the point spacing)")
     p.add_argument("--representation", choices=("siren", "grid"), default=None,
                    help="the model's nets (default: the trainer's); cached per representation")
     mode = p.add_mutually_exclusive_group()
@@ -119,7 +121,7 @@ def run(args):
 def _train_options(args):
     from autodecoder.latent.folds import SUGGESTED_FOLDS
 
-    return dict(seed=args.seed, epochs=args.epochs, representation=args.representation,
+    return dict(seed=args.seed, epochs=args.epochs, representation=args.representation, lengthscale=args.lengthscale,
                 calibration_folds=None if args.folds == "off" else SUGGESTED_FOLDS,
                 **({"family": True} if args.family is not None else {}))  # a family tree: trained as one (--family on)
 
@@ -127,6 +129,7 @@ def _train_options(args):
 def _run_name(args):
     """The scoring run's folder: what sets it apart from the defaults' (``defaults`` alone for the defaults)."""
     return ("defaults" + (f"_e{args.epochs}" if args.epochs else "")
+            + (f"_l{args.lengthscale:g}" if args.lengthscale else "")
             + (f"_{args.representation}" if args.representation else "")
             + {True: "_aligned", False: "_noalign", None: ""}[args.align]
             + {True: "_rays", False: "_norays", None: ""}[args.rays])
