@@ -46,6 +46,8 @@ POINT_SCORES = {s.name: s for s in (
     PointScore("distance", True, True, "the first-order distance to the mean surface against good scans there"),
     PointScore("surface", True, True, "the good scans' own surface alone, no field: the model-free term of joint "
                                       "(a baseline)"),
+    PointScore("agreement", True, True, "the field's distance residual and the good scans' own surface, counted as "
+                                        "far as both agree (their geometric mean)"),
     PointScore("residual", False, True, "the standardized residual |E f| / sd (needs no reference)"),
     PointScore("nll", False, False, "the paper's negative log likelihood of f = 0"),
 )}
@@ -82,6 +84,10 @@ def point_scores(field, points, kind="residual", noise=None, reference=None, nor
       high only when its residual is large under both on average, in the same units as the other scores.
     * ``'surface'``: z_s alone, the model-free term of ``'joint'``: what the good scans' points say without any
       field (a baseline: whether the model adds anything, ``python -m benchmarks ablation --trees``).
+    * ``'agreement'``: the same two terms, sqrt(z_d z_s) (:func:`agreement_score`): a point counts only as far as
+      both say it is off. Surface the good scans' points never showed (z_s high) is not accused where the projected
+      field explains it (z_d low), and the field's own error at an edge (z_d high) is not where the good points lie
+      on the part (z_s low). In standard deviations, as ``'joint'``.
 
     Parameters
     ----------
@@ -155,19 +161,39 @@ def joint_score(distance_scores, surface_scores):
     return np.sqrt((a**2 + b**2) / 2)
 
 
+def agreement_score(distance_scores, surface_scores):
+    """sqrt(z_d z_s) of two standardized residuals of the same points, elementwise: the geometric mean, in standard
+    deviations (a point 2 deviations off under both scores 2, one 8 off under one and 0.5 under the other 2).
+
+    Parameters
+    ----------
+    distance_scores, surface_scores : (m,) arrays >= 0
+
+    Returns
+    -------
+    (m,) float64 array
+    """
+    a = np.asarray(distance_scores, dtype=np.float64)
+    b = np.asarray(surface_scores, dtype=np.float64)
+    if a.shape != b.shape:
+        raise ValueError(f"agreement_score needs one surface score per distance score, got shapes {a.shape} and "
+                         f"{b.shape}")
+    return np.sqrt(np.maximum(a, 0.0) * np.maximum(b, 0.0))
+
+
 def reference_scores(reference, kind, points, value, variance, noise, grazing=None, normals=None, uncovered=None):
     """The per-location point score ``kind`` (``'distance'``, ``'joint'`` or ``'surface'``) of (m, 3) points whose
     compared quantity (m,) and field variance (m,) are given, against ``reference`` (a :class:`inspection.reference.LocalReference`);
     ``grazing`` (m,) and the points' ``normals`` (m, 3) (for the reference surface's side) or None. ``uncovered``
     (m,) bool or None: points where the reference has no good surface to compare with (a training scan left out of
-    it, :func:`inspection.estimator._uncovered`); there ``'joint'`` takes the field's term for the good points' term.
-    Returns (m,) float64."""
+    it, :func:`inspection.estimator._uncovered`); there ``'joint'`` and ``'agreement'`` take the field's term for the
+    good points' term. Returns (m,) float64."""
     if kind == "surface":
         return reference.surface_scores(points, noise, grazing, normals)
     scores = reference.standardized(points, value, variance, noise, grazing)
-    if kind == "joint":
+    if kind in ("joint", "agreement"):
         surface = reference.surface_scores(points, noise, grazing, normals)
         if uncovered is not None:
             surface = np.where(uncovered, scores, surface)
-        scores = joint_score(scores, surface)
+        scores = (joint_score if kind == "joint" else agreement_score)(scores, surface)
     return scores

@@ -451,6 +451,30 @@ def test_joint_point_score_calibrates_restores_and_ranks_a_dent():
     assert insp.anomaly_scores([dented])[0] > insp.calibration_scores_.max()
 
 
+def test_agreement_point_score_is_the_geometric_mean_and_needs_both_terms():
+    """'agreement' = sqrt(distance * surface) on the same scan and reference (closed form against the two terms
+    scored apart); a point that only one term calls off (8 deviations under one, 0.5 under the other) scores 2, a
+    point 2 deviations off under both scores 2 too, while 'joint' puts the first at 5.7."""
+    from inspection.scores import agreement_score, joint_score
+
+    good = [sphere_scan(seed=s, n=800)[0] for s in range(6)]
+    held = [sphere_scan(seed=s, n=800)[0] for s in range(20, 24)]
+    insp = Inspector(SphereModel(), point_score="agreement", alpha=0.2).fit(held, reference_scans=good)
+    assert Inspector.from_calibration(SphereModel(), insp.calibration()).settings_.point_score == "agreement"
+    maps = {}
+    for kind in ("agreement", "distance", "surface"):
+        one = Inspector.from_calibration(SphereModel(), insp.calibration())
+        one.settings_ = replace(one.settings_, point_score=kind)
+        maps[kind] = one.inspect_components(held[0]).point_scores
+    np.testing.assert_allclose(maps["agreement"] ** 2, maps["distance"] * maps["surface"], rtol=1e-10)
+    np.testing.assert_allclose(agreement_score([8.0, 2.0], [0.5, 2.0]), [2.0, 2.0])
+    np.testing.assert_allclose(joint_score([8.0], [0.5]), [math.sqrt(32.125)])
+    with pytest.raises(ValueError, match="one surface score per distance score"):
+        agreement_score([1.0, 2.0], [1.0])
+    dented = sphere_scan(seed=40, n=800, dent=0.1)[0]  # off under both terms: it still ranks above the good scans
+    assert insp.inspect_components(dented).score > max(insp.calibration_scores_)
+
+
 def test_surface_point_score_is_joints_model_free_term_and_ignores_the_field():
     """'surface' is z_s alone: joint^2 = (distance^2 + surface^2) / 2 on the same scan and reference, and a field
     that errs everywhere leaves it as it was (no field in it), while 'distance' follows the field."""
