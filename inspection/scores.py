@@ -154,10 +154,7 @@ def joint_score(distance_scores, surface_scores):
     -------
     (m,) float64 array
     """
-    a = np.asarray(distance_scores, dtype=np.float64)
-    b = np.asarray(surface_scores, dtype=np.float64)
-    if a.shape != b.shape:
-        raise ValueError(f"joint_score needs one surface score per distance score, got shapes {a.shape} and {b.shape}")
+    a, b = _paired(distance_scores, surface_scores, "joint_score")
     return np.sqrt((a**2 + b**2) / 2)
 
 
@@ -173,12 +170,17 @@ def agreement_score(distance_scores, surface_scores):
     -------
     (m,) float64 array
     """
+    a, b = _paired(distance_scores, surface_scores, "agreement_score")
+    return np.sqrt(np.maximum(a, 0.0) * np.maximum(b, 0.0))
+
+
+def _paired(distance_scores, surface_scores, who):
+    """The two terms of the same points as float64 arrays; a ValueError naming ``who`` when their shapes differ."""
     a = np.asarray(distance_scores, dtype=np.float64)
     b = np.asarray(surface_scores, dtype=np.float64)
     if a.shape != b.shape:
-        raise ValueError(f"agreement_score needs one surface score per distance score, got shapes {a.shape} and "
-                         f"{b.shape}")
-    return np.sqrt(np.maximum(a, 0.0) * np.maximum(b, 0.0))
+        raise ValueError(f"{who} needs one surface score per distance score, got shapes {a.shape} and {b.shape}")
+    return a, b
 
 
 def reference_scores(reference, kind, points, value, variance, noise, grazing=None, normals=None, uncovered=None):
