@@ -70,6 +70,10 @@ def add_arguments(p):
                    help="the same scans without sensor origins (a collection and model of their own): no rays, the "
                         "grazing term's viewpoint estimated from the normals")
     p.add_argument("--epochs", type=int, default=None, help="training epochs (default: the trainer's)")
+    p.add_argument("--width", type=int, default=None,
+                   help="hidden width of the SIREN networks (default: the trainer's, LatentOptions.width)")
+    p.add_argument("--depth", type=int, default=None,
+                   help="hidden layers of the SIREN networks (default: the trainer's, LatentOptions.depth)")
     p.add_argument("--lengthscale", type=float, default=None,
                    help="the GP kernel lengthscale, collection units (default: the trainer's, 2 x the point spacing)")
     p.add_argument("--representation", choices=("siren", "grid"), default=None,
@@ -122,6 +126,7 @@ def _train_options(args):
     from autodecoder.latent.folds import SUGGESTED_FOLDS
 
     return dict(seed=args.seed, epochs=args.epochs, representation=args.representation, lengthscale=args.lengthscale,
+                width=args.width, depth=args.depth,
                 calibration_folds=None if args.folds == "off" else SUGGESTED_FOLDS,
                 **({"family": True} if args.family is not None else {}))  # a family tree: trained as one (--family on)
 
@@ -130,6 +135,7 @@ def _run_name(args):
     """The scoring run's folder: what sets it apart from the defaults' (``defaults`` alone for the defaults)."""
     return ("defaults" + (f"_e{args.epochs}" if args.epochs else "")
             + (f"_l{args.lengthscale:g}" if args.lengthscale else "")
+            + (f"_w{args.width}" if args.width else "") + (f"_d{args.depth}" if args.depth else "")
             + (f"_{args.representation}" if args.representation else "")
             + {True: "_aligned", False: "_noalign", None: ""}[args.align]
             + {True: "_rays", False: "_norays", None: ""}[args.rays])
