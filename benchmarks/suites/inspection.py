@@ -72,6 +72,9 @@ def add_arguments(p):
     p.add_argument("--epochs", type=int, default=None, help="training epochs (default: the trainer's)")
     p.add_argument("--width", type=int, default=None,
                    help="hidden width of the SIREN networks (default: the trainer's, LatentOptions.width)")
+    p.add_argument("--grid-mean", default=None, metavar="KEY=VALUE,...",
+                   help="--representation grid: settings of the mean's grid net over the trainer's "
+                        "(autodecoder.latent.options.LATENT_GRID_MEAN), e.g. shared_cells=160,finest=128")
     p.add_argument("--depth", type=int, default=None,
                    help="hidden layers of the SIREN networks (default: the trainer's, LatentOptions.depth)")
     p.add_argument("--lengthscale", type=float, default=None,
@@ -126,9 +129,19 @@ def _train_options(args):
     from autodecoder.latent.folds import SUGGESTED_FOLDS
 
     return dict(seed=args.seed, epochs=args.epochs, representation=args.representation, lengthscale=args.lengthscale,
-                width=args.width, depth=args.depth,
+                width=args.width, depth=args.depth, grid_mean=_grid_settings(args.grid_mean),
                 calibration_folds=None if args.folds == "off" else SUGGESTED_FOLDS,
                 **({"family": True} if args.family is not None else {}))  # a family tree: trained as one (--family on)
+
+
+def _grid_settings(text):
+    """``"a=1,b=2"`` -> {"a": 1, "b": 2} (integers), None for None."""
+    if not text:
+        return None
+    try:
+        return {k.strip(): int(v) for k, v in (item.split("=") for item in text.split(","))}
+    except ValueError:
+        raise SystemExit(f"--grid-mean takes KEY=INTEGER pairs separated by commas, got {text!r}") from None
 
 
 def _run_name(args):
@@ -136,6 +149,7 @@ def _run_name(args):
     return ("defaults" + (f"_e{args.epochs}" if args.epochs else "")
             + (f"_l{args.lengthscale:g}" if args.lengthscale else "")
             + (f"_w{args.width}" if args.width else "") + (f"_d{args.depth}" if args.depth else "")
+            + ("_grid-" + args.grid_mean.replace("=", "").replace(",", "-") if args.grid_mean else "")
             + (f"_{args.representation}" if args.representation else "")
             + {True: "_aligned", False: "_noalign", None: ""}[args.align]
             + {True: "_rays", False: "_norays", None: ""}[args.rays])
