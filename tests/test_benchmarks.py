@@ -518,3 +518,23 @@ def test_field_terms_by_code_projects_a_clean_code_from_the_good_points_alone():
     dent = rows[1]
     assert dent["defect_clean"] > dent["defect_own"] > 0 and dent["clean"] > dent["own"]
     assert dent["surface"] > rows[0]["surface"]
+
+
+def test_inspection_training_settings_reach_the_trainer_and_name_the_run():
+    """--width, --depth and --grid-mean are training options (and so part of the cached model's key) and set the
+    scored run's folder apart from the defaults'; a malformed --grid-mean is refused by name."""
+    import argparse
+
+    from benchmarks.suites import inspection
+
+    parser = argparse.ArgumentParser()
+    inspection.add_arguments(parser)
+    args = parser.parse_args(["--width", "128", "--representation", "grid", "--grid-mean", "shared_cells=160,finest=128"])
+    options = inspection._train_options(args)
+    assert options["width"] == 128 and options["depth"] is None
+    assert options["grid_mean"] == {"shared_cells": 160, "finest": 128}
+    assert inspection._run_name(args) == "defaults_w128_grid-shared_cells160-finest128_grid"
+    assert inspection._run_name(parser.parse_args([])) == "defaults"
+    assert cache.cache_key("model", {"width": 128}) != cache.cache_key("model", {})
+    with pytest.raises(SystemExit, match="--grid-mean"):
+        inspection._grid_settings("shared_cells=many")
