@@ -85,6 +85,11 @@ def build_parser():
                         "length or width (every scan inspected later is registered the same way); 'auto': when "
                         "registering them onto each other spreads their sizes (it took real range scans of one "
                         "part for a family at one seed of three) (default: %(default)s)")
+    p.add_argument("--pose", choices=("auto", "on", "off"), default="auto",
+                   help="move the training scans into one common pose first, for parts placed by hand (every scan "
+                        "inspected later is registered onto it); 'auto': when registering them onto each other "
+                        "lowers their residuals, the rule with which inspection decides to register scans; not with "
+                        "--family on, whose registration already does it (default: %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     return p
 
@@ -114,7 +119,8 @@ def options_from_args(args):
                    overwrite=args.overwrite, device=args.device, quiet=args.quiet, latent_dim=args.latent_dim,
                    width=args.width, depth=args.depth, epochs=args.epochs, lr=args.lr, batch=args.batch,
                    seed=args.seed, checkpoint_every=args.checkpoint_every,
-                   family={"auto": "auto", "on": True, "off": False}[args.family])
+                   family={"auto": "auto", "on": True, "off": False}[args.family],
+                   pose={"auto": "auto", "on": True, "off": False}[args.pose])
     if args.code_lr is not None:
         options["code_lr"] = args.code_lr
     if args.calibration_folds is not None:

@@ -245,16 +245,19 @@ def trained_model(collection_path, root=CACHE, **train_options):
 
     folds = options.pop("calibration_folds", None)
     family = options.pop("family", False)  # the trainer's default: one part
+    pose = options.pop("pose", "auto")  # the trainer's default: one common pose when the poses spread
     if family == "auto":
         family = family_decision(collection_path, fingerprint, options["seed"], root)
     if family:  # keyed only for a family: the models cached before families were sized stay valid for the rest
         options["family"] = FAMILY_KEY
+    elif pose is True or (pose == "auto" and pose_decision(collection_path, fingerprint, options["seed"], root)):
+        options["pose"] = POSE_KEY  # likewise: keyed only where the training scans are moved into one pose
 
     def build(folder):
         from inspection.training import train_model
 
         train_model(collection_path, folder / "model.pt", quiet=True, calibration_folds=0,
-                    **{**options, "family": bool(family)})
+                    **{**options, "family": bool(family), "pose": pose})
 
     label = collection_path.parent.name.rsplit("_", 1)[0]
     model = cached_path("model", {"collection": fingerprint, **options}, build, root, label=label) / "model.pt"
@@ -263,6 +266,27 @@ def trained_model(collection_path, root=CACHE, **train_options):
 
 
 FAMILY_KEY = "scaled-5"  # the rule by which a family's scans are brought to one size (autodecoder.latent.family)
+
+
+POSE_KEY = "group-1"  # the rule by which training scans placed by hand are moved into one pose (fit_pose)
+
+
+def pose_decision(collection_path, fingerprint, seed=0, root=CACHE):
+    """Whether the trainer's ``pose='auto'`` moves this collection's training scans into one common pose
+    (:func:`autodecoder.latent.family.poses_spread` on the scans it trains on), cached per collection and seed."""
+    def build(folder):
+        from autodecoder.latent.collection_split import CollectionScans, split_training_scans
+        from autodecoder.latent.family import poses_spread
+        from datasets import ScanCollection
+
+        with ScanCollection(collection_path) as c:
+            train, _ = split_training_scans(c, "train", 0.2, seed)
+            spread = poses_spread(CollectionScans(c, train), seed=seed)
+        (folder / "decision.json").write_text(json.dumps({"pose": bool(spread)}) + "\n")
+
+    folder = cached_path("pose", {"collection": fingerprint, "seed": seed, "rule": POSE_KEY}, build, root,
+                         label=Path(collection_path).parent.name.rsplit("_", 1)[0])
+    return bool(json.loads((folder / "decision.json").read_text())["pose"])
 
 
 def family_decision(collection_path, fingerprint, seed=0, root=CACHE):

@@ -53,6 +53,10 @@ SCALED_LEVELS = (16.0, 8.0, 4.0, 2.0, 1.0)  # scaled motion: voxel sizes of its 
 # longer has its ends a tenth of its length from the target's, beyond the finer levels' reach)
 MOTIONS = ("rigid", "scaled")
 ALIGN_SCANS = 64  # good training scans stacked as the target (subsampled to max_points): the more, the more of the part it covers
+# good scans' poses spread (inspection's align='auto' registers scans; training moves them into one pose first) when
+# registration lowers their residuals this much
+AUTO_RATIO = 1.1
+AUTO_SCANS = 12  # training scans registered onto the others to decide it
 
 
 def _cloud(points, normals=None):
@@ -524,3 +528,37 @@ def moved_by(scan, T):
         before = scan.extra.get("align")
         changes["extra"] = {**scan.extra, "align": T if before is None else np.asarray(T) @ np.asarray(before)}
     return replace(scan, **changes)
+
+
+def pose_spread(scans, max_scans=AUTO_SCANS, seed=0):
+    """How far good scans' poses spread: each of up to ``max_scans`` of them (evenly chosen) registered onto the
+    others (:meth:`Aligner.from_scans` without it), the ratio of its median point-to-plane residual before and after
+    the registration; returns the median ratio over those scans (1.0: registration changes nothing).
+
+    Why this statistic: a residual ratio is free of the part's size and of the sensor's noise (both scale the
+    residuals before and after alike), and a part in a fixture gives 1.0 within 1 % whatever its shape, while a
+    few degrees of hand placement give 1.3 and more (docs/results.md#parts-placed-by-hand-alignment-in-the-calibration-issue-27).
+    Fewer than 3 scans: 1.0 (nothing to compare).
+    """
+    from datasets.validation import points_and_normals
+
+    scans = list(scans)
+    if len(scans) < 3:
+        return 1.0
+    aligner = Aligner.from_scans(scans, seed=seed)
+    pick = np.unique(np.linspace(0, len(scans) - 1, min(max_scans, len(scans))).round().astype(int))
+    ratios = []
+    for i in pick:
+        scan = scans[i]
+        others = aligner.without(str(getattr(scan, "name", "") or f"scan {i}"))
+        pts = np.asarray(points_and_normals(scan)[0], dtype=np.float64).reshape(-1, 3)
+        T = others.transform(pts)
+        residuals = []
+        for p in (pts, pts @ T[:3, :3].T + T[:3, 3]):
+            ok, distances = others.plane_distances(p, 12.0 * others.spacing)
+            if ok.sum() < 10:
+                break
+            residuals.append(np.median(distances))
+        if len(residuals) == 2 and residuals[1] > 0:
+            ratios.append(residuals[0] / residuals[1])
+    return float(np.median(ratios)) if ratios else 1.0

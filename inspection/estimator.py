@@ -290,8 +290,9 @@ class Inspector(BaseEstimator):
         return result
 
     def _sized(self, scan):
-        """``scan`` registered onto the model's family size (:meth:`autodecoder.latent.model.LatentModel.normalise`;
-        a training scan onto the others); as it is for a model of one size."""
+        """``scan`` registered onto the model's common frame, a family's size or the common pose of parts placed by
+        hand (:meth:`autodecoder.latent.model.LatentModel.normalise`; a training scan onto the others); as it is for
+        a model without one."""
         family = getattr(self.model, "family", None)
         return scan if family is None else family.normalise(scan)
 

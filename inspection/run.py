@@ -77,9 +77,13 @@ def describe_calibration(insp, info):
         return lines
     t = insp.decision_threshold_
     aligned = [f"note: {insp.alignment_note_}"] if getattr(insp, "alignment_note_", "") else []
-    if getattr(insp.model, "family", None) is not None:
+    frame = getattr(insp.model, "family", None)
+    if frame is not None and frame.kind == "size":
         aligned.append("note: the model was trained on a family of sizes: every scan is registered onto its common "
                        "size before it is scored (a part of another size in the family's range is not a defect)")
+    elif frame is not None:
+        aligned.append("note: the model was trained on scans moved into one common pose (their poses spread): every "
+                       "scan is registered onto it before it is scored")
     lines = [f"calibrated on {info['n']} scans ({info['how']}): {what}; threshold {t.value:.4g} at alpha={t.alpha:g} "
              f"({t.basis})"]
     if t.note:

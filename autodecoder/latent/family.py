@@ -1,7 +1,8 @@
-"""A product family brought to one size: the good scans of a part made in several lengths (or widths) registered
-onto one common size before the latent model is trained on them, and every later scan registered the same way
-before it is projected.
+"""The training scans brought into one common frame before the latent model is trained on them, and every later scan
+registered the same way before it is projected: one size (a product family) or one pose (parts placed by hand).
 
+A product family
+----------------
 Why: a latent space trained on the scans of a few members of a family does not interpolate between them. With 8
 members stretched by 0.8-0.9 and 1.1-1.2 along the part's length, the nominal member (1.0) scored 0.54-0.80 AUROC
 (docs/results.md#a-product-family-issue-32-the-first-measurement); the same model trained on scans whose stretch
@@ -26,8 +27,21 @@ Off by default (``train_collection(family=True)``, ``nsspr-train --family on``):
   (docs/results.md#a-product-family-brought-to-one-size-issue-32). How far the scans' own extents spread does not
   tell a family (the real bunny's views differ in depth as much as a family's lengths), nor a median absolute
   deviation of the sizes (a family of shorter and longer members has its median in one of the two clusters).
-* :class:`FamilyFrame` holds the common size: those scans, registered, as the target every scan is then registered
-  onto (:meth:`FamilyFrame.normalise`; a training scan without its own points). Stored in the checkpoint.
+
+Parts placed by hand
+--------------------
+Why: a model trained on scans each placed by hand learns the blur of every placement; registering a new scan onto
+the training scans (inspection's ``align``) then puts it into a frame the model never saw sharply. On the real
+bunny's half-depth tree placed by hand (5 degrees, 2 % of its size) the field's term of a view from below (three
+training scans of it) was 1.5 times a fixture's, and the tree's AUROC fell 0.02-0.04 below the same tree without the
+placement at two seeds of three (docs/results.md). :func:`fit_pose` decides it the way inspection decides to
+register scans (:func:`datasets.registration.pose_spread` above ``AUTO_RATIO``; on by default, ``pose='auto'``) and
+moves every training scan into one common pose (:func:`datasets.registration.register_group`), the target every
+later scan is registered onto with the rigid motion.
+
+* :class:`FamilyFrame` holds the common frame: training scans, registered, as the target every scan is then
+  registered onto (:meth:`FamilyFrame.normalise`; a training scan without its own points). Stored in the
+  checkpoint (its ``'family'`` entry, the name it has had since sizes came first).
 """
 import numpy as np
 
@@ -121,22 +135,85 @@ def fit_family(scans, family="auto", max_scans=FAMILY_SCANS, seed=0):
                                           scale_centre=typical, scale_axes=axes)), spread
 
 
+def _pose_scans(scans, max_scans=None):
+    from datasets.registration import ALIGN_SCANS
+
+    return [scans[int(i)] for i in _evenly(len(scans), ALIGN_SCANS if max_scans is None else max_scans)]
+
+
+def poses_spread(scans, max_scans=None, seed=0):
+    """Whether :func:`fit_pose` with ``pose='auto'`` moves ``scans`` into one common pose, without doing it (a few
+    seconds): ``datasets.registration.pose_spread`` of the scans it would choose above ``AUTO_RATIO``."""
+    from datasets.registration import AUTO_RATIO, pose_spread
+
+    chosen = _pose_scans(scans, max_scans)
+    return len(chosen) >= 3 and pose_spread(chosen, seed=seed) > AUTO_RATIO
+
+
+def fit_pose(scans, pose="auto", max_scans=None, seed=0):
+    """The common pose of training scans placed by hand, when their poses spread (module docstring).
+
+    Parameters
+    ----------
+    scans : sequence of Scan
+        Good training scans (a lazy sequence is read only at the up to ``max_scans`` evenly chosen indices).
+    pose : {'auto', True, False}
+        'auto': when :func:`datasets.registration.pose_spread` exceeds ``AUTO_RATIO`` (the rule inspection's
+        ``align='auto'`` uses); True: always; False: never.
+    max_scans : int, optional
+        Training scans moved into the common pose and stacked as the target (default
+        ``datasets.registration.ALIGN_SCANS``: a target of every training scan covers what any view sees; onto 8 of
+        them a view from below slid by 10 % of the part's size, docs/results.md).
+    seed : int
+
+    Returns
+    -------
+    frame : FamilyFrame or None
+        With the rigid motion; None: the poses do not spread (or ``pose`` False, or fewer than 3 scans).
+    spread : float or None
+        The measured pose spread (None when ``pose`` is not 'auto').
+    """
+    from datasets.registration import AUTO_RATIO, Aligner, pose_spread, register_group
+
+    if pose not in ("auto", True, False):
+        raise ValueError(f"pose must be 'auto', True or False, got {pose!r}")
+    if pose is False:
+        return None, None
+    chosen = _pose_scans(scans, max_scans)
+    if len(chosen) < 3:
+        return None, None
+    spread = None
+    if pose == "auto":
+        spread = pose_spread(chosen, seed=seed)
+        if spread <= AUTO_RATIO:
+            return None, spread
+    moved = register_group(chosen, seed=seed)
+    return FamilyFrame(Aligner.from_scans(moved, max_scans=len(moved), seed=seed)), spread
+
+
 class FamilyFrame:
-    """The common size of a product family's scans, and the registration of any scan onto it.
+    """The common frame of a model's training scans (one size: a product family; one pose: parts placed by hand),
+    and the registration of any scan onto it.
 
     Parameters
     ----------
     aligner : datasets.registration.Aligner
-        With ``motion='scaled'``: its target is training scans already at the common size.
+        Its target is training scans already in the common frame; ``motion='scaled'`` for a family's size,
+        ``'rigid'`` for a common pose.
     """
 
     def __init__(self, aligner):
-        if getattr(aligner, "motion", None) != "scaled":
-            raise ValueError("a family frame registers scans with the scaled motion")
+        if getattr(aligner, "motion", None) not in ("scaled", "rigid"):
+            raise ValueError("a common frame registers scans with the scaled or the rigid motion")
         self.aligner = aligner
 
+    @property
+    def kind(self):
+        """'size' (a product family: scaled motion) or 'pose' (parts placed by hand: rigid motion)."""
+        return "size" if self.aligner.motion == "scaled" else "pose"
+
     def normalise(self, scan):
-        """``scan`` registered onto the common size: a moved copy of a :class:`datasets.Scan` (points, normals and
+        """``scan`` registered onto the common frame: a moved copy of a :class:`datasets.Scan` (points, normals and
         sensor origin; the transform (4, 4) in ``extra['align']``), or the moved (m, 3) points of an array. A scan
         whose name is among the target's owners (a training scan) is registered onto the others."""
         name = str(getattr(scan, "name", "") or "")

@@ -133,9 +133,9 @@ class LatentModel:
 
     @property
     def family(self):
-        """The :class:`autodecoder.latent.family.FamilyFrame` the training scans were brought to one size with
-        (a product family), or None. Its model explains scans at that size: register a new scan with
-        :meth:`normalise` before projecting it (the inspection does)."""
+        """The :class:`autodecoder.latent.family.FamilyFrame` the training scans were brought into before training
+        (one size: a product family; one pose: parts placed by hand), or None. Its model explains scans in that
+        frame: register a new scan with :meth:`normalise` before projecting it (the inspection does)."""
         if self._family is None and self.state.get("family") is not None:
             from autodecoder.latent.family import FamilyFrame
 
@@ -146,8 +146,8 @@ class LatentModel:
         return self._family
 
     def normalise(self, scan):
-        """``scan`` (a Scan or (m, 3) points, collection frame) registered onto the family's common size
-        (:meth:`FamilyFrame.normalise`); returned as it is by a model of one size."""
+        """``scan`` (a Scan or (m, 3) points, collection frame) registered onto the training scans' common frame
+        (:meth:`FamilyFrame.normalise`); returned as it is by a model without one (a part in a fixture)."""
         family = self.family
         return scan if family is None else family.normalise(scan)
 

@@ -22,7 +22,7 @@ from pathlib import Path
 from autodecoder.latent.checkpoint import check_output, checkpoint_to_resume, gather_checkpoint
 from autodecoder.latent.collection_split import CollectionScans, split_training_scans
 from autodecoder.latent.distributed import setup_distributed
-from autodecoder.latent.family import FamilyFrame, NormalisedScans, fit_family
+from autodecoder.latent.family import FamilyFrame, NormalisedScans, fit_family, fit_pose
 from autodecoder.latent.loop import scan_names, start_run, train_epochs
 from autodecoder.latent.model import LatentModel
 from autodecoder.latent.options import LatentOptions, TrainingInputError
@@ -81,7 +81,7 @@ def train_latent(scans, out=None, options=None, *, names=None, frame=None, finge
 
 
 def train_collection(data, out, *, split="train", calibration_fraction=0.2, resume=False, overwrite=False,
-                     device="auto", quiet=False, family=False, **options):
+                     device="auto", quiet=False, family=False, pose="auto", **options):
     """Train a latent model over the good scans of a collection file and write its checkpoint (``train_latent.py``).
 
     The scans to hold back for calibration are chosen by :func:`split_training_scans`; the checkpoint records them.
@@ -110,6 +110,10 @@ def train_collection(data, out, *, split="train", calibration_fraction=0.2, resu
         sizes (:func:`autodecoder.latent.family.fit_family`). Off by default: 'auto' took the real bunny's range
         scans for a family at one seed of three and lost 0.10-0.16 AUROC there (docs/results.md). A resumed run
         keeps what it did.
+    pose : {'auto', True, False}
+        When the scans are not brought to one size: move them into one common pose first (parts placed by hand,
+        :func:`autodecoder.latent.family.fit_pose`); 'auto' (the default): when their poses spread, by the rule
+        with which inspection's ``align='auto'`` decides to register scans. A resumed run keeps what it did.
     **options
         :class:`LatentOptions` fields (``seed`` also seeds the hold-out).
 
@@ -154,7 +158,10 @@ def train_collection(data, out, *, split="train", calibration_fraction=0.2, resu
         if len(parts) > 1:  # several part types: their sizes differ by nature, not as a family's
             family = False
         if checkpoint is None:
-            scans, family_frame = family_scans(scans, family, options.get("seed", LatentOptions.seed), quiet)
+            seed = options.get("seed", LatentOptions.seed)
+            scans, family_frame = family_scans(scans, family, seed, quiet)
+            if family_frame is None:
+                scans, family_frame = pose_scans(scans, pose, seed, quiet)
         elif checkpoint.get("family") is not None:
             scans = NormalisedScans(scans, FamilyFrame.from_dict(checkpoint["family"]))
         device, initialised = setup_distributed(device)
@@ -172,6 +179,21 @@ def train_collection(data, out, *, split="train", calibration_fraction=0.2, resu
             import torch.distributed as dist
 
             dist.destroy_process_group()
+
+
+def pose_scans(scans, pose="auto", seed=0, quiet=True):
+    """``scans`` (a lazy sequence of training scans) moved into one common pose when their poses spread (parts placed
+    by hand: :func:`autodecoder.latent.family.fit_pose`), with one printed line saying so unless ``quiet``. Returns
+    (the scans to train on, the :class:`~autodecoder.latent.family.FamilyFrame` or None)."""
+    frame, spread = fit_pose(scans, pose, seed=seed)
+    if frame is None:
+        return scans, None
+    if not quiet:
+        why = "" if spread is None else f" (registered onto each other, their residuals fall by a median " \
+                                        f"{100 * (1 - 1 / spread):.0f} %)"
+        print(f"note: the training scans' poses spread{why}: they are moved into one common pose before training, "
+              f"and every scan inspected later is registered onto it", flush=True)
+    return NormalisedScans(scans, frame), frame
 
 
 def family_scans(scans, family=False, seed=0, quiet=True):

@@ -308,3 +308,61 @@ def test_the_starts_are_the_placement_and_small_turns_about_each_axis():
     np.testing.assert_allclose(angles, START_DEGREES)
     axes = {tuple(np.round(Rotation.from_matrix(R).as_rotvec() / np.radians(START_DEGREES), 9)) for R in starts[1:]}
     assert axes == {tuple(s * np.eye(3)[i]) for i in range(3) for s in (1.0, -1.0)}
+
+
+def test_fit_pose_moves_scans_placed_by_hand_into_one_pose_and_leaves_a_fixture():
+    """fit_pose decides by the rule inspection's align='auto' uses (pose_spread above AUTO_RATIO): a fixture's scans
+    get no frame, scans placed by hand a rigid one whose target is the group in one pose; pose=True always makes
+    one, pose=False never."""
+    from autodecoder.latent.family import fit_pose, poses_spread
+    from inspection.align import pose_spread
+
+    fixture = [_corner(f"train/good/{i:03d}", "train", i, n=500) for i in range(6)]
+    by_hand = [_corner(f"train/good/{i:03d}", "train", i, rotation_deg=4.0, n=500) for i in range(6)]
+    frame, spread = fit_pose(fixture)
+    assert frame is None and abs(spread - 1) < 0.02 and not poses_spread(fixture)
+    frame, spread = fit_pose(by_hand)
+    assert spread > 1.5 and poses_spread(by_hand)
+    assert frame.kind == "pose" and frame.aligner.motion == "rigid"
+    normalised = [frame.normalise(s) for s in by_hand]  # each training scan onto the others
+    assert abs(pose_spread(normalised) - 1) < 0.05
+    assert fit_pose(fixture, pose=True)[0].kind == "pose"
+    assert fit_pose(by_hand, pose=False) == (None, None)
+    with pytest.raises(ValueError, match="pose must be"):
+        fit_pose(by_hand, pose="sometimes")
+
+
+def test_training_on_scans_placed_by_hand_moves_them_into_one_pose(tmp_path, one_torch_thread):
+    """train_collection's default pose='auto' trains a model of corners placed by hand in one common pose: stored
+    in the checkpoint, every scan normalised onto it, so that inspection's align='auto' then finds nothing left to
+    register and says why in one line; a fixture, or pose=False, trains without one."""
+    from autodecoder.latent.model import load_model
+    from autodecoder.latent.train import train_collection
+    from datasets import ScanCollection
+    from inspection.align import pose_spread
+    from inspection.run import calibrate, describe_calibration
+
+    tiny = dict(quiet=True, epochs=3, seed=0, latent_dim=2, width=16, depth=1, features=8, mean_samples=64,
+                screen_samples=32, pair_clusters=4, batch=3)
+
+    def tree(name, degrees):
+        scans = ([_corner(f"train/good/{i:03d}", "train", i, rotation_deg=degrees, n=500) for i in range(6)]
+                 + [_corner(f"validation/good/{i:03d}", "validation", 10 + i, rotation_deg=degrees, n=500)
+                    for i in range(3)])
+        (tmp_path / name).mkdir()
+        ScanCollection.create(tmp_path / name / "tree.h5", scans)
+        return tmp_path / name, scans
+
+    (by_hand, scans), (fixture, _) = tree("by_hand", 4.0), tree("fixture", 0.0)
+    model = train_collection(by_hand / "tree.h5", by_hand / "model.pt", **tiny)
+    assert model.family is not None and model.family.kind == "pose"
+    loaded = load_model(by_hand / "model.pt")
+    assert loaded.family.kind == "pose"
+    new = _corner("test/good/x", "test", 30, rotation_deg=4.0, n=500)
+    np.testing.assert_allclose(loaded.normalise(new).points, model.normalise(new).points)
+    assert abs(pose_spread([loaded.normalise(s) for s in scans[:6]]) - 1) < 0.05
+    insp, info = calibrate(by_hand / "model.pt", by_hand / "tree.h5", progress=False)
+    assert insp.settings_.align is False  # nothing left to register after the common pose
+    assert sum("one common pose" in line for line in describe_calibration(insp, info)) == 1
+    assert train_collection(fixture / "tree.h5", fixture / "model.pt", **tiny).family is None
+    assert train_collection(by_hand / "tree.h5", by_hand / "off.pt", pose=False, **tiny).family is None

@@ -179,6 +179,9 @@ def test_the_command_line_passes_the_family_choice():
     for flag, value in (("auto", "auto"), ("on", True), ("off", False)):
         args = parse.parse_args(["--data", "x.h5", "--out", "m.pt", "--family", flag])
         assert train_latent.options_from_args(args)["family"] == value
+        args = parse.parse_args(["--data", "x.h5", "--out", "m.pt", "--pose", flag])
+        assert train_latent.options_from_args(args)["pose"] == value
+    assert train_latent.options_from_args(parse.parse_args(["--data", "x.h5", "--out", "m.pt"]))["pose"] == "auto"
 
 
 def test_an_unreadable_family_frame_names_the_checkpoint(family_model):
