@@ -113,7 +113,8 @@ def train_collection(data, out, *, split="train", calibration_fraction=0.2, resu
     pose : {'auto', True, False}
         When the scans are not brought to one size: move them into one common pose first (parts placed by hand,
         :func:`autodecoder.latent.family.fit_pose`); 'auto' (the default): when their poses spread, by the rule
-        with which inspection's ``align='auto'`` decides to register scans. A resumed run keeps what it did.
+        with which inspection's ``align='auto'`` decides to register scans. Not for several part types (their scans
+        stay where they lie). A resumed run keeps what it did.
     **options
         :class:`LatentOptions` fields (``seed`` also seeds the hold-out).
 
@@ -155,8 +156,8 @@ def train_collection(data, out, *, split="train", calibration_fraction=0.2, resu
         if len(parts) > 1 and family is True:
             raise TrainingInputError(f"{data}: --family on brings one part's scans to one size, but the training "
                                      f"scans are of {len(parts)} part types ({sorted(parts)})")
-        if len(parts) > 1:  # several part types: their sizes differ by nature, not as a family's
-            family = False
+        if len(parts) > 1:  # several part types: their sizes differ by nature, not as a family's, and one part's
+            family = pose = False  # scans are not to be registered onto another's (inspection registers per part)
         if checkpoint is None:
             seed = options.get("seed", LatentOptions.seed)
             scans, family_frame = family_scans(scans, family, seed, quiet)
