@@ -57,6 +57,18 @@ def registered_onto(scans, good_scans):
     return [aligner.align_scan(s) for s in scans]
 
 
+def in_common_frame(model_path, scans):
+    """``scans`` registered onto the model's common frame (the pose of training scans placed by hand, or a family's
+    size: ``LatentModel.normalise``, a training scan onto the others), as the toolkit registers them before it scores
+    them; None when the model has no such frame. A baseline given the scans as aligned as the toolkit's are."""
+    from inspection.model_io import load_model
+
+    model = load_model(model_path).model
+    if getattr(model, "family", None) is None:
+        return None
+    return [model.normalise(s) for s in scans]
+
+
 def add_align_options(parser):
     """``--align`` / ``--no-align`` on a suite's parser (``args.align``: True, False or None, the inspection's own
     choice: registered when the training scans' poses spread), for :func:`calibrate_and_score`'s ``align``."""

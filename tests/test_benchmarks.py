@@ -538,3 +538,21 @@ def test_inspection_training_settings_reach_the_trainer_and_name_the_run():
     assert cache.cache_key("model", {"width": 128}) != cache.cache_key("model", {})
     with pytest.raises(SystemExit, match="--grid-mean"):
         inspection._grid_settings("shared_cells=many")
+
+
+def test_the_baseline_is_registered_onto_the_models_common_frame_where_it_has_one(monkeypatch):
+    """inspect_api.in_common_frame: scans through the model's own LatentModel.normalise (the toolkit's registration)
+    when the model has a common frame, None when it has none (the suite then registers as the calibration did)."""
+    from types import SimpleNamespace
+
+    import inspection.model_io
+    from benchmarks import inspect_api
+
+    shifted = SimpleNamespace(family=object(), normalise=lambda s: s + 1.0)
+    plain = SimpleNamespace(family=None, normalise=lambda s: s)
+    models = {"framed.pt": shifted, "plain.pt": plain}
+    monkeypatch.setattr(inspection.model_io, "load_model", lambda path: SimpleNamespace(model=models[str(path)]))
+    scans = [np.zeros((3, 3)), np.ones((2, 3))]
+    moved = inspect_api.in_common_frame("framed.pt", scans)
+    assert [m.tolist() for m in moved] == [(s + 1.0).tolist() for s in scans]
+    assert inspect_api.in_common_frame("plain.pt", scans) is None

@@ -432,9 +432,16 @@ def score(data, model, run_dir, args):
     with ScanCollection(data) as c:
         train = c.read_many([i for i in c.select(split="train") if c.names[i] not in held])
         test = c.read_many([c.index_of(n) for n in scored["name"]])
+    # the baseline registered as the toolkit registers: onto the model's common pose (training scans placed by
+    # hand), or, where the calibration registered, each scan onto the training scans; timed per test scan
+    framed = inspect_api.in_common_frame(model, train)
+    train = train if framed is None else framed
     t0 = time.perf_counter()
-    if summary.get("aligned"):  # the baseline with ICP where the toolkit registered: each scan onto the training scans
+    if framed is not None:
+        test = inspect_api.in_common_frame(model, test)
+    elif summary.get("aligned"):
         test = inspect_api.registered_onto(test, train)
+    registered = framed is not None or bool(summary.get("aligned"))
     nn = np.array([v for v, _ in baselines.nn_baseline(np.concatenate([s.points for s in train]), test)])
     t_nn = (time.perf_counter() - t0) / len(test)
     ours = metrics.auroc_per_defect(scored["score"], scored["label"], scored["defect"])
@@ -444,7 +451,7 @@ def score(data, model, run_dir, args):
     cols = [k for k in (*KINDS, "overall") if k in ours]
     print(f"\nreal bunny ({len(train)} training scans for the NN baseline, {int((~bad).sum())} good and "
           f"{int(bad.sum())} defective test scans); object AUROC")
-    nn_name = "nearest-neighbour top5%" + (" (ICP)" if summary.get("aligned") else "")
+    nn_name = "nearest-neighbour top5%" + (" (ICP)" if registered else "")
     # the default's two terms alone (issue 29: rays must not cost the point score anything on real parts)
     terms = {name: metrics.auroc_per_defect(scored[key], scored["label"], scored["defect"])
              for name, key in (("point score alone", "score_points"), ("ray score alone", "score_rays"))
