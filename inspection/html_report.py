@@ -258,7 +258,7 @@ def _table_html(rows, summary, viewed):
 
 def _settings_html(summary):
     keys = ("aggregate", "point_score", "noise", "projection", "n_calibration", "calibration_source", "aligned",
-            "seconds_per_scan", "model_kind")
+            "common_frame", "seconds_per_scan", "model_kind")
     items = "".join(f"<tr><th>{k}</th><td>{_e(_short(summary[k]))}</td></tr>" for k in keys if k in summary)
     if summary.get("rays"):
         items += f"<tr><th>rays</th><td>{_e(summary['rays'].get('score', 'on'))}</td></tr>"

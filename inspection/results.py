@@ -51,6 +51,9 @@ def summarize_run(handle, insp, data, split, align, results):
              "noise": settings.noise, "projection": settings.projection, "n_calibration": insp.n_calibration_,
              "calibration_source": insp.calibration_source_,
              "decision": None if parted else insp.decision_threshold_.as_dict(), "aligned": bool(align),
+             # the frame every scan was registered onto before projection: the model's training scans' common
+             # 'pose' (parts placed by hand) or a family's 'size'; None for a part in a fixture
+             "common_frame": getattr(getattr(insp.model, "family", None), "kind", None),
              "seconds_per_scan": float(np.mean(results["seconds"])) if results["seconds"] else None,
              "maps": results["maps"], "higher_score_means": "more anomalous",
              "rays": None if not settings.rays else {

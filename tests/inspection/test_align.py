@@ -340,7 +340,7 @@ def test_training_on_scans_placed_by_hand_moves_them_into_one_pose(tmp_path, one
     from autodecoder.latent.train import train_collection
     from datasets import ScanCollection
     from inspection.align import pose_spread
-    from inspection.run import calibrate, describe_calibration
+    from inspection.run import calibrate, describe_calibration, score
 
     tiny = dict(quiet=True, epochs=3, seed=0, latent_dim=2, width=16, depth=1, features=8, mean_samples=64,
                 screen_samples=32, pair_clusters=4, batch=3)
@@ -364,5 +364,8 @@ def test_training_on_scans_placed_by_hand_moves_them_into_one_pose(tmp_path, one
     insp, info = calibrate(by_hand / "model.pt", by_hand / "tree.h5", progress=False)
     assert insp.settings_.align is False  # nothing left to register after the common pose
     assert sum("one common pose" in line for line in describe_calibration(insp, info)) == 1
+    summary = score(by_hand / "model.pt", by_hand / "tree.h5", tmp_path / "out", split="validation", maps="none",
+                    echo=lambda line: None)
+    assert summary["common_frame"] == "pose" and summary["aligned"] is False
     assert train_collection(fixture / "tree.h5", fixture / "model.pt", **tiny).family is None
     assert train_collection(by_hand / "tree.h5", by_hand / "off.pt", pose=False, **tiny).family is None
