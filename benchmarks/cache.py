@@ -273,16 +273,16 @@ POSE_KEY = "group-1"  # the rule by which training scans placed by hand are move
 
 def pose_decision(collection_path, fingerprint, seed=0, root=CACHE):
     """Whether the trainer's ``pose='auto'`` moves this collection's training scans into one common pose
-    (:func:`autodecoder.latent.family.poses_spread` on the scans it trains on), cached per collection and seed."""
+    (:func:`autodecoder.latent.family.pose_decision` on the scans it trains on), cached per collection and seed."""
     def build(folder):
         from autodecoder.latent.collection_split import CollectionScans, split_training_scans
-        from autodecoder.latent.family import poses_spread
+        from autodecoder.latent.family import pose_decision as decide
         from datasets import ScanCollection
 
         with ScanCollection(collection_path) as c:
             train, _ = split_training_scans(c, "train", 0.2, seed)
-            spread = poses_spread(CollectionScans(c, train), seed=seed)
-        (folder / "decision.json").write_text(json.dumps({"pose": bool(spread)}) + "\n")
+            spread, moves = decide(CollectionScans(c, train), seed=seed)
+        (folder / "decision.json").write_text(json.dumps({"pose": bool(moves), "spread": spread}) + "\n")
 
     folder = cached_path("pose", {"collection": fingerprint, "seed": seed, "rule": POSE_KEY}, build, root,
                          label=Path(collection_path).parent.name.rsplit("_", 1)[0])

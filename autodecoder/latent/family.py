@@ -135,19 +135,28 @@ def fit_family(scans, family="auto", max_scans=FAMILY_SCANS, seed=0):
                                           scale_centre=typical, scale_axes=axes)), spread
 
 
-def _pose_scans(scans, max_scans=None):
+def _pose_chosen(scans, max_scans=None):
+    """Up to ``max_scans`` (default ``datasets.registration.ALIGN_SCANS``) evenly chosen scans of ``scans``."""
     from datasets.registration import ALIGN_SCANS
 
     return [scans[int(i)] for i in _evenly(len(scans), ALIGN_SCANS if max_scans is None else max_scans)]
 
 
-def poses_spread(scans, max_scans=None, seed=0):
-    """Whether :func:`fit_pose` with ``pose='auto'`` moves ``scans`` into one common pose, without doing it (a few
-    seconds): ``datasets.registration.pose_spread`` of the scans it would choose above ``AUTO_RATIO``."""
+def _spread_and_decision(chosen, seed):
+    """(:func:`datasets.registration.pose_spread` of ``chosen`` or None for fewer than 3, whether it is above
+    ``AUTO_RATIO``)."""
     from datasets.registration import AUTO_RATIO, pose_spread
 
-    chosen = _pose_scans(scans, max_scans)
-    return len(chosen) >= 3 and pose_spread(chosen, seed=seed) > AUTO_RATIO
+    if len(chosen) < 3:
+        return None, False
+    spread = pose_spread(chosen, seed=seed)
+    return spread, spread > AUTO_RATIO
+
+
+def pose_decision(scans, max_scans=None, seed=0):
+    """What :func:`fit_pose` with ``pose='auto'`` decides, without moving anything (a few seconds): (the pose
+    spread of the scans it would choose, or None for fewer than 3; whether they are to be moved into one pose)."""
+    return _spread_and_decision(_pose_chosen(scans, max_scans), seed)
 
 
 def fit_pose(scans, pose="auto", max_scans=None, seed=0):
@@ -173,20 +182,19 @@ def fit_pose(scans, pose="auto", max_scans=None, seed=0):
     spread : float or None
         The measured pose spread (None when ``pose`` is not 'auto').
     """
-    from datasets.registration import AUTO_RATIO, Aligner, pose_spread, register_group
+    from datasets.registration import Aligner, register_group
 
     if pose not in ("auto", True, False):
         raise ValueError(f"pose must be 'auto', True or False, got {pose!r}")
     if pose is False:
         return None, None
-    chosen = _pose_scans(scans, max_scans)
+    chosen, spread = _pose_chosen(scans, max_scans), None
+    if pose == "auto":
+        spread, moves = _spread_and_decision(chosen, seed)
+        if not moves:
+            return None, spread
     if len(chosen) < 3:
         return None, None
-    spread = None
-    if pose == "auto":
-        spread = pose_spread(chosen, seed=seed)
-        if spread <= AUTO_RATIO:
-            return None, spread
     moved = register_group(chosen, seed=seed)
     return FamilyFrame(Aligner.from_scans(moved, max_scans=len(moved), seed=seed)), spread
 

@@ -153,9 +153,10 @@ def train_collection(data, out, *, split="train", calibration_fraction=0.2, resu
         scans, family_frame = CollectionScans(collection, train), None
         meta = collection.metadata()
         parts = {meta[i]["part_id"] for i in train}
-        if len(parts) > 1 and family is True:
-            raise TrainingInputError(f"{data}: --family on brings one part's scans to one size, but the training "
-                                     f"scans are of {len(parts)} part types ({sorted(parts)})")
+        for flag, value in (("--family on", family), ("--pose on", pose)):
+            if len(parts) > 1 and value is True:
+                raise TrainingInputError(f"{data}: {flag} registers one part's scans onto each other, but the "
+                                         f"training scans are of {len(parts)} part types ({sorted(parts)})")
         if len(parts) > 1:  # several part types: their sizes differ by nature, not as a family's, and one part's
             family = pose = False  # scans are not to be registered onto another's (inspection registers per part)
         if checkpoint is None:

@@ -314,15 +314,15 @@ def test_fit_pose_moves_scans_placed_by_hand_into_one_pose_and_leaves_a_fixture(
     """fit_pose decides by the rule inspection's align='auto' uses (pose_spread above AUTO_RATIO): a fixture's scans
     get no frame, scans placed by hand a rigid one whose target is the group in one pose; pose=True always makes
     one, pose=False never."""
-    from autodecoder.latent.family import fit_pose, poses_spread
+    from autodecoder.latent.family import fit_pose, pose_decision
     from inspection.align import pose_spread
 
     fixture = [_corner(f"train/good/{i:03d}", "train", i, n=500) for i in range(6)]
     by_hand = [_corner(f"train/good/{i:03d}", "train", i, rotation_deg=4.0, n=500) for i in range(6)]
     frame, spread = fit_pose(fixture)
-    assert frame is None and abs(spread - 1) < 0.02 and not poses_spread(fixture)
+    assert frame is None and abs(spread - 1) < 0.02 and pose_decision(fixture) == (spread, False)
     frame, spread = fit_pose(by_hand)
-    assert spread > 1.5 and poses_spread(by_hand)
+    assert spread > 1.5 and pose_decision(by_hand) == (spread, True)
     assert frame.kind == "pose" and frame.aligner.motion == "rigid"
     normalised = [frame.normalise(s) for s in by_hand]  # each training scan onto the others
     assert abs(pose_spread(normalised) - 1) < 0.05

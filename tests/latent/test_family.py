@@ -170,6 +170,8 @@ def test_family_sizing_of_several_part_types_is_refused(tmp_path):
     ScanCollection.create(tmp_path / "two.h5", scans)
     with pytest.raises(TrainingInputError, match="two.h5.*2 part types"):
         train_collection(tmp_path / "two.h5", tmp_path / "m.pt", quiet=True, family=True, epochs=1)
+    with pytest.raises(TrainingInputError, match="two.h5: --pose on .*2 part types"):  # nor a common pose
+        train_collection(tmp_path / "two.h5", tmp_path / "m.pt", quiet=True, pose=True, epochs=1)
 
 
 def test_the_command_line_passes_the_family_choice():
