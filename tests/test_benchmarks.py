@@ -556,3 +556,30 @@ def test_the_baseline_is_registered_onto_the_models_common_frame_where_it_has_on
     moved = inspect_api.in_common_frame("framed.pt", scans)
     assert [m.tolist() for m in moved] == [(s + 1.0).tolist() for s in scans]
     assert inspect_api.in_common_frame("plain.pt", scans) is None
+
+
+def test_paired_member_scans_see_every_member_from_the_same_camera_positions():
+    """benchmarks.family_fit.paired_member_scans: members of a stretched box's family, synthesised with one seed, are
+    seen from the same directions (each camera at the same multiple of its own member's diagonal from its centre),
+    moved into the given frame, and named after their member."""
+    import trimesh
+
+    from benchmarks.family_fit import paired_member_scans
+    from datasets import Frame
+
+    box = trimesh.creation.box(extents=(2.0, 1.0, 0.6))
+    frame = Frame.fit(box.vertices)
+    members = paired_member_scans(box, "stretch", (0.9, 1.0, 1.1), frame, views=3, seed=3, n_points=300)
+    assert sorted(members) == [0.9, 1.0, 1.1]
+
+    def directions(scans):
+        origins = np.array([frame.to_file(s.sensor_origin) for s in scans])
+        return origins / np.linalg.norm(origins, axis=1, keepdims=True)
+
+    # the stretch keeps the box centred at 0 and changes its diagonal: the directions from the centre are shared
+    for f in (0.9, 1.1):
+        np.testing.assert_allclose(directions(members[f]), directions(members[1.0]), atol=1e-6)
+        assert all(s.name.startswith(f"paired/good/stretch{f:.3f}_") for s in members[f])
+    # the longest member's points reach farthest along the stretched axis
+    reach = {f: max(np.abs(frame.to_file(s.points))[:, 0].max() for s in scans) for f, scans in members.items()}
+    assert reach[0.9] < reach[1.0] < reach[1.1] < 1.1 + 0.05  # half the stretched length, and depth noise

@@ -198,13 +198,18 @@ def _single(part, args):
     nn_figures = baselines.nn_figures(data, info["heldback_names"], summary["alpha"])
     one["nn"] = nn_figures
     if args.family is not None:  # issue 32, item 1: how well the projection fits the unseen member's true surface
-        from benchmarks.family_fit import family_fit
+        from benchmarks.family_fit import family_fit, paired_family_fit
 
         fit = family_fit(model, data, part, args.family_kind)
         one["projected_surface"] = fit
         print(f"  {part}: projected mean surface at the member's true surface (median first-order distance, "
               f"collection units): unseen member {fit['unseen']:.4f}, trained members' held-back scans "
               f"{fit['trained']:.4f}", flush=True)
+        paired = paired_family_fit(model, data, part, args.family_kind, args.family, scale=args.family_scale)
+        one["projected_surface_paired"] = paired
+        members = ", ".join(f"{k} {v:.4f}" for k, v in paired["members"].items())
+        print(f"  {part}: the same from the same {paired['views']} camera positions for every member: {members}; "
+              f"unseen over trained, median over views {paired['paired_ratio']:.2f}", flush=True)
     return data, one, rows + [dict(part=part, **nn_figures)]
 
 
