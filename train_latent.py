@@ -80,11 +80,11 @@ def build_parser():
                         "step is many small tensor operations, which one thread runs faster than two on a 2-core "
                         "CPU (docs/results.md#latent-training-in-two-minutes-issue-19); use more cores with "
                         "torchrun processes (default: the trainer's TRAINING_THREADS, one)")
-    p.add_argument("--family", choices=("off", "on", "auto"), default="off",
+    p.add_argument("--family", choices=("auto", "on", "off"), default="auto",
                    help="bring the training scans to one size first: for a product family whose members differ in "
                         "length or width (every scan inspected later is registered the same way); 'auto': when "
-                        "registering them onto each other spreads their sizes (it took real range scans of one "
-                        "part for a family at one seed of three) (default: %(default)s)")
+                        "registering them onto each other spreads their sizes, and the sizes make them agree and "
+                        "are reproducible (default: %(default)s)")
     p.add_argument("--pose", choices=("auto", "on", "off"), default="auto",
                    help="move the training scans into one common pose first, for parts placed by hand (every scan "
                         "inspected later is registered onto it); 'auto': when registering them onto each other "

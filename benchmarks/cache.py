@@ -244,7 +244,7 @@ def trained_model(collection_path, root=CACHE, **train_options):
     options.pop("quiet", None)
 
     folds = options.pop("calibration_folds", None)
-    family = options.pop("family", False)  # the trainer's default: one part
+    family = options.pop("family", "auto")  # the trainer's default: a family when fit_family decides it
     pose = options.pop("pose", "auto")  # the trainer's default: one common pose when the poses spread
     if family == "auto":
         family = family_decision(collection_path, fingerprint, options["seed"], root)
@@ -266,6 +266,7 @@ def trained_model(collection_path, root=CACHE, **train_options):
 
 
 FAMILY_KEY = "scaled-5"  # the rule by which a family's scans are brought to one size (autodecoder.latent.family)
+FAMILY_DECISION_KEY = "scaled-5-reproducible"  # the rule by which family='auto' decides it (fit_family)
 
 
 POSE_KEY = "group-1"  # the rule by which training scans placed by hand are moved into one pose (fit_pose)
@@ -281,12 +282,19 @@ def pose_decision(collection_path, fingerprint, seed=0, root=CACHE):
 
         with ScanCollection(collection_path) as c:
             train, _ = split_training_scans(c, "train", 0.2, seed)
-            spread, moves = decide(CollectionScans(c, train), seed=seed)
+            spread, moves = decide(CollectionScans(c, train), seed=seed) if _one_part(c, train) else (None, False)
         (folder / "decision.json").write_text(json.dumps({"pose": bool(moves), "spread": spread}) + "\n")
 
     folder = cached_path("pose", {"collection": fingerprint, "seed": seed, "rule": POSE_KEY}, build, root,
                          label=Path(collection_path).parent.name.rsplit("_", 1)[0])
     return bool(json.loads((folder / "decision.json").read_text())["pose"])
+
+
+def _one_part(collection, indices):
+    """Whether the scans at ``indices`` are of one part type (the trainer registers none of several types' scans
+    onto each other: :func:`autodecoder.latent.train.train_collection`)."""
+    meta = collection.metadata()
+    return len({meta[i]["part_id"] for i in indices}) <= 1
 
 
 def family_decision(collection_path, fingerprint, seed=0, root=CACHE):
@@ -300,10 +308,11 @@ def family_decision(collection_path, fingerprint, seed=0, root=CACHE):
 
         with ScanCollection(collection_path) as c:
             train, _ = split_training_scans(c, "train", 0.2, seed)
-            frame, spread = fit_family(CollectionScans(c, train), "auto", seed=seed)
+            frame, spread = (fit_family(CollectionScans(c, train), "auto", seed=seed) if _one_part(c, train)
+                             else (None, None))
         (folder / "decision.json").write_text(json.dumps({"family": frame is not None, "spread": spread}) + "\n")
 
-    folder = cached_path("family", {"collection": fingerprint, "seed": seed, "rule": FAMILY_KEY}, build, root,
+    folder = cached_path("family", {"collection": fingerprint, "seed": seed, "rule": FAMILY_DECISION_KEY}, build, root,
                          label=Path(collection_path).parent.name.rsplit("_", 1)[0])
     return bool(json.loads((folder / "decision.json").read_text())["family"])
 

@@ -81,7 +81,7 @@ def train_latent(scans, out=None, options=None, *, names=None, frame=None, finge
 
 
 def train_collection(data, out, *, split="train", calibration_fraction=0.2, resume=False, overwrite=False,
-                     device="auto", quiet=False, family=False, pose="auto", **options):
+                     device="auto", quiet=False, family="auto", pose="auto", **options):
     """Train a latent model over the good scans of a collection file and write its checkpoint (``train_latent.py``).
 
     The scans to hold back for calibration are chosen by :func:`split_training_scans`; the checkpoint records them.
@@ -104,12 +104,11 @@ def train_collection(data, out, *, split="train", calibration_fraction=0.2, resu
         Replace an existing ``out`` (otherwise refused unless ``resume``).
     device : {'auto', 'cpu', 'cuda'}
     quiet : bool
-    family : {False, True, 'auto'}
+    family : {'auto', True, False}
         Bring the training scans to one size first (:mod:`autodecoder.latent.family`: a product family whose
-        members differ in length or width); 'auto': when registering some of them onto each other spreads their
-        sizes (:func:`autodecoder.latent.family.fit_family`). Off by default: 'auto' took the real bunny's range
-        scans for a family at one seed of three and lost 0.10-0.16 AUROC there (docs/results.md). A resumed run
-        keeps what it did.
+        members differ in length or width); 'auto' (the default): when registering some of them onto each other
+        spreads their sizes, and the sizes make them agree and are reproducible
+        (:func:`autodecoder.latent.family.fit_family`). A resumed run keeps what it did.
     pose : {'auto', True, False}
         When the scans are not brought to one size: move them into one common pose first (parts placed by hand,
         :func:`autodecoder.latent.family.fit_pose`); 'auto' (the default): when their poses spread, by the rule
@@ -198,7 +197,7 @@ def pose_scans(scans, pose="auto", seed=0, quiet=True):
     return NormalisedScans(scans, frame), frame
 
 
-def family_scans(scans, family=False, seed=0, quiet=True):
+def family_scans(scans, family="auto", seed=0, quiet=True):
     """``scans`` (a lazy sequence of training scans) brought to one size when they are a product family
     (:func:`autodecoder.latent.family.fit_family`), with one printed line saying so unless ``quiet``. Returns
     (the scans to train on, the :class:`~autodecoder.latent.family.FamilyFrame` or None)."""

@@ -130,8 +130,7 @@ def _train_options(args):
 
     return dict(seed=args.seed, epochs=args.epochs, representation=args.representation, lengthscale=args.lengthscale,
                 width=args.width, depth=args.depth, grid_mean=_grid_settings(args.grid_mean),
-                calibration_folds=None if args.folds == "off" else SUGGESTED_FOLDS,
-                **({"family": True} if args.family is not None else {}))  # a family tree: trained as one (--family on)
+                calibration_folds=None if args.folds == "off" else SUGGESTED_FOLDS)
 
 
 def _grid_settings(text):

@@ -49,6 +49,22 @@ def test_size_spread_is_the_largest_axis_iqr_of_the_log_scales():
     assert size_spread(transforms[:2]) == 0.0
 
 
+def test_sizes_are_reproducible_for_a_family_and_not_when_the_halves_disagree():
+    """size_reproducibility: a family of ellipsoids registered onto one size gets the same size from either half
+    of the others (far below the bar); scans that were never brought to one size, alternately 1.0 and 1.2 times as
+    long, get a size from each half that depends on which scans that half holds (above the bar); fewer than 5
+    scans: nan."""
+    from autodecoder.latent.family import FAMILY_REPRODUCIBLE, size_reproducibility
+    from datasets.registration import register_group
+
+    moved, transforms = register_group(family_scans(), motion="scaled", return_transforms=True)
+    assert size_reproducibility(moved, transforms) < FAMILY_REPRODUCIBLE / 2
+    mixed = [ellipsoid_view(f"train/good/m{i}", 1.0 if i % 2 else 1.2, view=i % 4, seed=40 + i) for i in range(8)]
+    spread = [np.diag([1.0 if i % 2 else 1 / 1.2, 1.0, 1.0, 1.0]) for i in range(8)]
+    assert size_reproducibility(mixed, spread) > FAMILY_REPRODUCIBLE
+    assert np.isnan(size_reproducibility(mixed[:4], spread[:4]))
+
+
 @pytest.fixture(scope="module")
 def fitted_family():
     from autodecoder.latent.family import fit_family
@@ -183,7 +199,8 @@ def test_the_command_line_passes_the_family_choice():
         assert train_latent.options_from_args(args)["family"] == value
         args = parse.parse_args(["--data", "x.h5", "--out", "m.pt", "--pose", flag])
         assert train_latent.options_from_args(args)["pose"] == value
-    assert train_latent.options_from_args(parse.parse_args(["--data", "x.h5", "--out", "m.pt"]))["pose"] == "auto"
+    defaults = train_latent.options_from_args(parse.parse_args(["--data", "x.h5", "--out", "m.pt"]))
+    assert defaults["pose"] == "auto" and defaults["family"] == "auto"
 
 
 def test_an_unreadable_family_frame_names_the_checkpoint(family_model):
