@@ -86,6 +86,11 @@ def test_a_family_is_told_from_one_part_and_brought_to_one_size(fitted_family):
     assert fit_family(family_scans(), False) == (None, None)
     with pytest.raises(ValueError, match="family"):
         fit_family(family_scans(), "yes")
+    # an unseen member (1.0) is sized between the trained members around it, to their common length
+    size = {s: frame.normalise(ellipsoid_view(f"test/good/{s}", s, view=0, seed=7, split="test")).extra["align"][0, 0]
+            for s in (0.87, 1.0, 1.13)}
+    assert size[0.87] > size[1.0] > size[1.13]
+    np.testing.assert_allclose([size[s] * s for s in (0.87, 1.13)], size[1.0], rtol=0.03)
     # an unseen member (1.0), seen from a trained view, lands on the common surface as a trained member does
     target = frame.aligner
     for stretch in (1.0, 1.2):
