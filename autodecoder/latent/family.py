@@ -122,7 +122,9 @@ def fit_family(scans, family="auto", max_scans=FAMILY_SCANS, seed=0):
     scans : sequence of Scan
         Good training scans (a lazy sequence is read only at the up to ``max_scans`` evenly chosen indices).
     family : {'auto', True, False}
-        'auto': a family when :func:`size_spread` of the chosen scans' registration exceeds ``FAMILY_SPREAD``.
+        'auto': a family when :func:`size_spread` of the chosen scans' registration exceeds ``FAMILY_SPREAD``,
+        their union registered with sizes is about as sharp as registered rigidly (``FAMILY_SHARPNESS``) and the
+        sizes are reproducible (:func:`size_reproducibility` below ``FAMILY_REPRODUCIBLE``; module docstring).
     max_scans : int
     seed : int
 
