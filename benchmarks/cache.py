@@ -266,7 +266,7 @@ def trained_model(collection_path, root=CACHE, **train_options):
 
 
 FAMILY_KEY = "scaled-5"  # the rule by which a family's scans are brought to one size (autodecoder.latent.family)
-FAMILY_DECISION_KEY = "scaled-5-reproducible"  # the rule by which family='auto' decides it (fit_family)
+FAMILY_DECISION_KEY = "scaled-5-first-round"  # the rule by which family='auto' decides it (fit_family)
 
 
 POSE_KEY = "group-1"  # the rule by which training scans placed by hand are moved into one pose (fit_pose)
