@@ -88,8 +88,8 @@ def build_parser():
     p.add_argument("--pose", choices=("auto", "on", "off"), default="auto",
                    help="move the training scans into one common pose first, for parts placed by hand (every scan "
                         "inspected later is registered onto it); 'auto': when registering them onto each other "
-                        "lowers their residuals, the rule with which inspection decides to register scans; not with "
-                        "--family on, whose registration already does it (default: %(default)s)")
+                        "lowers their residuals, the rule with which inspection decides to register scans; not for a "
+                        "family of sizes, whose registration already does it (default: %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     return p
 

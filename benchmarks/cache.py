@@ -276,13 +276,14 @@ def pose_decision(collection_path, fingerprint, seed=0, root=CACHE):
     """Whether the trainer's ``pose='auto'`` moves this collection's training scans into one common pose
     (:func:`autodecoder.latent.family.pose_decision` on the scans it trains on), cached per collection and seed."""
     def build(folder):
-        from autodecoder.latent.collection_split import CollectionScans, split_training_scans
+        from autodecoder.latent.collection_split import CollectionScans, part_types, split_training_scans
         from autodecoder.latent.family import pose_decision as decide
         from datasets import ScanCollection
 
         with ScanCollection(collection_path) as c:
             train, _ = split_training_scans(c, "train", 0.2, seed)
-            spread, moves = decide(CollectionScans(c, train), seed=seed) if _one_part(c, train) else (None, False)
+            one_part = len(part_types(c, train)) <= 1  # as the trainer: never across several part types
+            spread, moves = decide(CollectionScans(c, train), seed=seed) if one_part else (None, False)
         (folder / "decision.json").write_text(json.dumps({"pose": bool(moves), "spread": spread}) + "\n")
 
     folder = cached_path("pose", {"collection": fingerprint, "seed": seed, "rule": POSE_KEY}, build, root,
@@ -290,26 +291,19 @@ def pose_decision(collection_path, fingerprint, seed=0, root=CACHE):
     return bool(json.loads((folder / "decision.json").read_text())["pose"])
 
 
-def _one_part(collection, indices):
-    """Whether the scans at ``indices`` are of one part type (the trainer registers none of several types' scans
-    onto each other: :func:`autodecoder.latent.train.train_collection`)."""
-    meta = collection.metadata()
-    return len({meta[i]["part_id"] for i in indices}) <= 1
-
-
 def family_decision(collection_path, fingerprint, seed=0, root=CACHE):
     """Whether the trainer's ``family='auto'`` brings this collection's training scans to one size
     (:func:`autodecoder.latent.family.fit_family` on the scans it trains on), cached per collection and seed (the
     decision registers 16 scans onto each other: half a minute)."""
     def build(folder):
-        from autodecoder.latent.collection_split import CollectionScans, split_training_scans
+        from autodecoder.latent.collection_split import CollectionScans, part_types, split_training_scans
         from autodecoder.latent.family import fit_family
         from datasets import ScanCollection
 
         with ScanCollection(collection_path) as c:
             train, _ = split_training_scans(c, "train", 0.2, seed)
-            frame, spread = (fit_family(CollectionScans(c, train), "auto", seed=seed) if _one_part(c, train)
-                             else (None, None))
+            one_part = len(part_types(c, train)) <= 1
+            frame, spread = fit_family(CollectionScans(c, train), "auto", seed=seed) if one_part else (None, None)
         (folder / "decision.json").write_text(json.dumps({"family": frame is not None, "spread": spread}) + "\n")
 
     folder = cached_path("family", {"collection": fingerprint, "seed": seed, "rule": FAMILY_DECISION_KEY}, build, root,

@@ -82,12 +82,13 @@ def family_fit(model_path, collection_path, part, kind, max_scans=8):
 
 
 def paired_member_scans(mesh, kind, factors, frame, views=16, seed=7919, n_points=4000):
-    """Good scans of members of ``mesh``'s family from the same camera positions: {factor: [Scan]}.
+    """Good scans of members of ``mesh``'s family from the same camera positions.
 
     Each member (:data:`benchmarks.cache.VARIATIONS` ``[kind](mesh, factor)``) is synthesised with the same ``seed``
     (its cameras depend on the seed alone, at distances in multiples of its own diagonal:
     :func:`datasets.synth.synthesise`), and its scans moved from file units into ``frame`` (the collection's) as
     :func:`benchmarks.cache.family_collection` moves a collection's; named ``paired/good/<kind><factor>_<view>``.
+    Returns {factor: (the member's mesh in file units, its scans)}.
     """
     from dataclasses import replace
 
@@ -97,9 +98,10 @@ def paired_member_scans(mesh, kind, factors, frame, views=16, seed=7919, n_point
 
     out = {}
     for factor in factors:
-        scans, own = synthesise(VARIATIONS[kind](mesh, float(factor)), n_train=0, n_test_good=int(views),
-                                n_test_defective=0, n_points=n_points, seed=seed, progress=False)
-        out[float(factor)] = [
+        member = VARIATIONS[kind](mesh, float(factor))
+        scans, own = synthesise(member, n_train=0, n_test_good=int(views), n_test_defective=0, n_points=n_points,
+                                seed=seed, progress=False)
+        out[float(factor)] = member, [
             frame.apply(replace(s, name=f"paired/good/{kind}{float(factor):.3f}_{s.name.rsplit('/', 1)[1]}",
                                 points=own.to_file(s.points),
                                 sensor_origin=None if s.sensor_origin is None else own.to_file(s.sensor_origin)))
@@ -122,7 +124,7 @@ def paired_family_fit(model_path, collection_path, part, kind, test_factor, scal
     from autodecoder.latent.model import load_model
     from datasets import ScanCollection
 
-    from .cache import COLLECTION_DEFAULTS, VARIATIONS, family_ranges, part_mesh
+    from .cache import COLLECTION_DEFAULTS, family_ranges, part_mesh
 
     ranges = family_ranges(kind, float(scale))
     lows, highs = [r for r in ranges if max(r) <= test_factor], [r for r in ranges if min(r) >= test_factor]
@@ -133,8 +135,8 @@ def paired_family_fit(model_path, collection_path, part, kind, test_factor, scal
         common = c.frame
     members = paired_member_scans(mesh, kind, [float(test_factor)] + trained, common, views, seed,
                                   COLLECTION_DEFAULTS["n_points"])
-    errors = {f: np.array([member_surface_error(model, s, VARIATIONS[kind](mesh, f), common) for s in scans])
-              for f, scans in members.items()}
+    errors = {f: np.array([member_surface_error(model, s, member, common) for s in scans])
+              for f, (member, scans) in members.items()}
     unseen = errors[float(test_factor)]
     others = np.mean([errors[f] for f in trained], axis=0) if trained else np.full(len(unseen), np.nan)
     return {"members": {f"{f:g}": float(np.median(e)) for f, e in errors.items()},

@@ -569,8 +569,10 @@ def test_paired_member_scans_see_every_member_from_the_same_camera_positions():
 
     box = trimesh.creation.box(extents=(2.0, 1.0, 0.6))
     frame = Frame.fit(box.vertices)
-    members = paired_member_scans(box, "stretch", (0.9, 1.0, 1.1), frame, views=3, seed=3, n_points=300)
+    made = paired_member_scans(box, "stretch", (0.9, 1.0, 1.1), frame, views=3, seed=3, n_points=300)
+    members = {f: scans for f, (_, scans) in made.items()}
     assert sorted(members) == [0.9, 1.0, 1.1]
+    assert all(np.ptp(mesh.vertices[:, 0]) == pytest.approx(2.0 * f) for f, (mesh, _) in made.items())
 
     def directions(scans):
         origins = np.array([frame.to_file(s.sensor_origin) for s in scans])

@@ -74,3 +74,11 @@ class CollectionScans:
 
     def __getitem__(self, k):
         return self.collection[self.indices[k]]
+
+
+def part_types(collection, indices):
+    """The sorted part ids of the scans at ``indices`` of ``collection``: the trainer registers scans onto each other
+    (a family's common size, the common pose of parts placed by hand) only when there is one
+    (:func:`autodecoder.latent.train.train_collection`)."""
+    meta = collection.metadata()
+    return sorted({meta[i]["part_id"] for i in indices})

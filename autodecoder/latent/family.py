@@ -99,6 +99,7 @@ def size_reproducibility(moved, transforms, seed=0):
     registration); the sizes given to smooth views that do not pin theirs depend on which scans they meet (0.13-0.78
     on the real bunny's range scans; docs/results.md). nan for fewer than 5 scans."""
     from datasets.registration import Aligner
+    from datasets.validation import points_and_normals
 
     if len(moved) < 5:
         return float("nan")
@@ -108,7 +109,7 @@ def size_reproducibility(moved, transforms, seed=0):
     differences = []
     for i, scan in enumerate(moved):
         others = [m for j, m in enumerate(moved) if j != i]
-        points = np.asarray(scan.points, dtype=np.float64) if hasattr(scan, "points") else np.asarray(scan)
+        points = np.asarray(points_and_normals(scan)[0], dtype=np.float64).reshape(-1, 3)
         sizes = [np.log(abs(Aligner.from_scans(half, max_scans=len(half), seed=seed, motion="scaled")
                             .transform(points)[axis, axis])) for half in (others[0::2], others[1::2])]
         differences.append(abs(sizes[0] - sizes[1]))

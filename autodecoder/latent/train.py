@@ -20,7 +20,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from autodecoder.latent.checkpoint import check_output, checkpoint_to_resume, gather_checkpoint
-from autodecoder.latent.collection_split import CollectionScans, split_training_scans
+from autodecoder.latent.collection_split import CollectionScans, part_types, split_training_scans
 from autodecoder.latent.distributed import setup_distributed
 from autodecoder.latent.family import FamilyFrame, NormalisedScans, fit_family, fit_pose
 from autodecoder.latent.loop import scan_names, start_run, train_epochs
@@ -150,12 +150,11 @@ def train_collection(data, out, *, split="train", calibration_fraction=0.2, resu
             train, calibration = split_training_scans(collection, split, calibration_fraction,
                                                       options.get("seed", LatentOptions.seed))
         scans, family_frame = CollectionScans(collection, train), None
-        meta = collection.metadata()
-        parts = {meta[i]["part_id"] for i in train}
+        parts = part_types(collection, train)
         for flag, value in (("--family on", family), ("--pose on", pose)):
             if len(parts) > 1 and value is True:
                 raise TrainingInputError(f"{data}: {flag} registers one part's scans onto each other, but the "
-                                         f"training scans are of {len(parts)} part types ({sorted(parts)})")
+                                         f"training scans are of {len(parts)} part types ({parts})")
         if len(parts) > 1:  # several part types: their sizes differ by nature, not as a family's, and one part's
             family = pose = False  # scans are not to be registered onto another's (inspection registers per part)
         if checkpoint is None:
