@@ -20,7 +20,7 @@ from .config import DEFAULT_AGGREGATE, DEFAULT_PROJECTION, InspectionConfig
 from .evidence import ScanEvidence, field_for, gather_evidence, scan_name, stage
 from .aggregates import aggregate as aggregate_scores
 from .reference import REFERENCE_QUANTITY, LocalReference
-from .scores import POINT_SCORES, point_scores, reference_scores
+from .scores import POINT_SCORES, WEIGHED_SCORES, fit_term_variances, point_scores, reference_scores, reference_terms
 from .selection import model_parts, select_scans
 from .threshold import DEFAULT_ALPHA, fit_threshold
 
@@ -328,15 +328,17 @@ class Inspector(BaseEstimator):
         return gather_evidence(self.model, scan, index, quantity=quantity, projection=settings.projection,
                                need_origin=settings.rays, exclude_own_code=exclude_own_code, timings=timings)
 
-    def _score(self, evidence: ScanEvidence, reference, settings, timings=None, uncovered=None):
+    def _score(self, evidence: ScanEvidence, reference, settings, timings=None, uncovered=None, terms=None):
         """A :class:`ScanResult` of a scan's evidence against ``reference`` (components: points, rays);
         ``timings`` as in :meth:`inspect`; ``uncovered`` (m,) bool: a training scan's points where no other good scan
-        has a surface (:func:`_uncovered`), where the joint score takes the field's term for the good points' term."""
-        noise = float(getattr(evidence.field, "noise", 0.0) if settings.noise is None else settings.noise)
+        has a surface (:func:`_uncovered`), where the joint score takes the field's term for the good points' term;
+        ``terms``: the joint score's two terms of these points, already computed (:meth:`_fit_term_variances`)."""
+        noise = _noise(evidence, settings)
         with stage(timings, "reference"):
             if POINT_SCORES[settings.point_score].reference:
                 values = reference_scores(reference, settings.point_score, evidence.points, evidence.value,
-                                          evidence.variance, noise, evidence.grazing, evidence.normals, uncovered)
+                                          evidence.variance, noise, evidence.grazing, evidence.normals, uncovered,
+                                          terms)
             else:
                 values = point_scores(evidence.field, evidence.points, kind=settings.point_score,
                                       noise=settings.noise)
@@ -491,8 +493,11 @@ class Inspector(BaseEstimator):
         uncovered = [None] * len(held)
         if needs_reference and crossed:
             uncovered += _uncovered(held, self.reference_, crossed, crossed_references)
-        components = [self._score(good, reference_j, settings, uncovered=out).components
-                      for good, reference_j, out in zip(goods, references, uncovered)]
+        terms = [None] * len(goods)
+        if settings.point_score in WEIGHED_SCORES:
+            terms = self._fit_term_variances(goods, references, uncovered, settings)
+        components = [self._score(good, reference_j, settings, uncovered=out, terms=t).components
+                      for good, reference_j, out, t in zip(goods, references, uncovered, terms)]
         roles = ["held-back"] * len(held) + [role] * len(crossed)
         how = selection.how
         if crossed:
@@ -500,6 +505,22 @@ class Inspector(BaseEstimator):
                     else f" and {len(crossed)} training scans cross-fitted")
         self.calibration_source_ = how
         return self._calibrate_from(components, names + [g.name for g in crossed], roles)
+
+    def _fit_term_variances(self, goods, references, uncovered, settings):
+        """Weigh the joint score's two terms by what the calibration scans show (:func:`fit_term_variances`, on
+        every point of theirs but the stray returns, which no scan's score counts), and set the variances on every
+        reference they are scored against. These scans are the ones the threshold is drawn from: held back, or scored
+        by a fold model or cross-fitted, none of them part of the reference it is compared with. Returns each scan's
+        two terms (computed once)."""
+        terms = [reference_terms(reference, good.points, good.value, good.variance, _noise(good, settings),
+                                 good.grazing, good.normals, out)
+                 for good, reference, out in zip(goods, references, uncovered)]
+        kept = [slice(None) if good.stray is None or good.stray.all() else ~good.stray for good in goods]
+        variances = fit_term_variances(np.concatenate([t[0][k] for t, k in zip(terms, kept)]),
+                                       np.concatenate([t[1][k] for t, k in zip(terms, kept)]))
+        for reference in {id(r): r for r in references}.values():
+            reference.term_variances = variances
+        return terms
 
     def _fit_alignment(self, settings, selection):
         """Decide ``align='auto'`` (the training scans' pose spread, :func:`inspection.align.pose_spread`) and, when
@@ -591,7 +612,7 @@ class Inspector(BaseEstimator):
         residuals, base, field_var, noise_var, grazing = [], [], [], [], []
         for good, reference in zip(goods, references):
             m_ref, s_ref = reference.stats(good.points)
-            noise = float(getattr(good.field, "noise", 0.0) if settings.noise is None else settings.noise)
+            noise = _noise(good, settings)
             residuals.append(good.value - m_ref)
             base.append(s_ref**2)
             field_var.append(good.variance)
@@ -782,6 +803,11 @@ class Inspector(BaseEstimator):
         if scans is None or len(scans) != len(values):
             raise ValueError("a model of several part types judges each scan against its own part: pass the scans")
         return np.array([fn(self.for_scan(s), values[i:i + 1])[0] for i, s in enumerate(scans)])
+
+
+def _noise(evidence, settings):
+    """The measurement noise a scan's point scores use: the settings' (a length), else its projected field's own."""
+    return float(getattr(evidence.field, "noise", 0.0) if settings.noise is None else settings.noise)
 
 
 def _uncovered(held, reference, crossed, crossed_references, quantile=COVERAGE_QUANTILE):

@@ -88,7 +88,8 @@ class LocalReference:
 
     The good scans' points also describe the part's surface by themselves, independently of any field:
     :meth:`surface_scores` scores a point by its offset from the plane through its ``k`` nearest distinct reference
-    points (the ``'joint'`` point score).
+    points (the ``'joint'`` point score). ``term_variances`` says how much each of the two terms spreads on good scans
+    (:func:`inspection.scores.fit_term_variances`): the joint score weighs each by it.
 
     Parameters
     ----------
@@ -116,10 +117,14 @@ class LocalReference:
     surface_normals : (n2, 3) array, optional
         Unit outward normals of ``surface_points``: with the scored points' normals, a plane is fitted only through
         points on the same side of a thin wall (:meth:`surface`).
+    term_variances : (v_d, v_s), positive floats
+        The variances of the field's term (:meth:`standardized`) and of the good points' term (:meth:`surface_scores`)
+        on good scans; (1, 1), equal weights, is the reference of a calibration stored before they were fitted.
     """
 
     def __init__(self, points, values, k=REFERENCE_NEIGHBOURS, quantity=REFERENCE_QUANTITY, variance_scale=0.0, owners=None,
-                 grazing_scale=0.0, surface_points=None, surface_owners=None, surface_normals=None):
+                 grazing_scale=0.0, surface_points=None, surface_owners=None, surface_normals=None,
+                 term_variances=(1.0, 1.0)):
         self.points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
         self.values = np.asarray(values, dtype=np.float32).reshape(-1)
         if len(self.points) != len(self.values) or len(self.points) < k:
@@ -133,6 +138,10 @@ class LocalReference:
                              f"{grazing_scale!r}")
         self.k = int(k)
         self.quantity = quantity
+        v_d, v_s = (float(v) for v in term_variances)
+        if not (np.isfinite(v_d) and np.isfinite(v_s) and v_d > 0 and v_s > 0):
+            raise ValueError(f"term_variances must be two positive finite numbers, got {term_variances!r}")
+        self.term_variances = (v_d, v_s)
         self.variance_scale = float(variance_scale)
         self.grazing_scale = float(grazing_scale)
         self.owners = None if owners is None else np.asarray(owners, dtype=np.int64).reshape(-1)
@@ -179,7 +188,8 @@ class LocalReference:
             surface, surface_owners = surface[other], surface_owners[other]
             surface_normals = None if surface_normals is None else surface_normals[other]
         return LocalReference(self.points[keep], self.values[keep], self.k, self.quantity, self.variance_scale,
-                              self.owners[keep], self.grazing_scale, surface, surface_owners, surface_normals)
+                              self.owners[keep], self.grazing_scale, surface, surface_owners, surface_normals,
+                              self.term_variances)
 
     @property
     def tree(self):
@@ -398,7 +408,8 @@ class LocalReference:
             normals = None if self.surface_normals is None else torch.from_numpy(self.surface_normals[first].copy())
         return {"points": torch.from_numpy(self.points.copy()), "values": torch.from_numpy(self.values.copy()),
                 "k": self.k, "quantity": self.quantity, "variance_scale": self.variance_scale,
-                "grazing_scale": self.grazing_scale, "surface_points": surface, "surface_normals": normals}
+                "grazing_scale": self.grazing_scale, "surface_points": surface, "surface_normals": normals,
+                "term_variances": list(self.term_variances)}
 
     @classmethod
     def from_dict(cls, d):
@@ -407,4 +418,5 @@ class LocalReference:
                    str(d.get("quantity", REFERENCE_QUANTITY)), float(d.get("variance_scale", 0.0)),
                    grazing_scale=float(d.get("grazing_scale", 0.0)),
                    surface_points=None if surface is None else np.asarray(surface),
-                   surface_normals=None if normals is None else np.asarray(normals))
+                   surface_normals=None if normals is None else np.asarray(normals),
+                   term_variances=tuple(d.get("term_variances", (1.0, 1.0))))

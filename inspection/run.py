@@ -69,13 +69,14 @@ def describe_calibration(insp, info):
         for part, one in sorted(insp.parts_.items()):
             t = one.decision_threshold_
             lines.append(f"part {part}: threshold {t.value:.4g} at alpha={t.alpha:g} ({t.basis}) on "
-                         f"{one.n_calibration_} scans")
+                         f"{one.n_calibration_} scans{_term_spread(one)}")
             if t.note:
                 lines.append(f"note: part {part}: {t.note}")
             if getattr(one, "alignment_note_", ""):
                 lines.append(f"note: part {part}: {one.alignment_note_}")
         return lines
     t = insp.decision_threshold_
+    what += _term_spread(insp)
     aligned = [f"note: {insp.alignment_note_}"] if getattr(insp, "alignment_note_", "") else []
     frame = getattr(insp.model, "family", None)
     if frame is not None and frame.kind == "size":
@@ -89,6 +90,19 @@ def describe_calibration(insp, info):
     if t.note:
         lines.append(f"note: {t.note}")
     return lines + aligned
+
+
+def _term_spread(insp):
+    """'' or, for a point score that weighs its two terms (:func:`inspection.scores.fit_term_variances`), how much
+    each spreads on the good calibration scans, the weight it gets being the inverse of its variance."""
+    from .scores import WEIGHED_SCORES
+
+    reference = getattr(insp, "reference_", None)
+    if insp.settings_.point_score not in WEIGHED_SCORES or reference is None:
+        return ""
+    v_d, v_s = reference.term_variances
+    return (f" (its terms weighed by their spread on the good scans: the field's {v_d ** 0.5:.2f}, the good "
+            f"points' {v_s ** 0.5:.2f} standard deviations)")
 
 
 def _calibrate_for_scoring(handle, data, alpha, progress, echo, align="auto"):

@@ -52,6 +52,9 @@ POINT_SCORES = {s.name: s for s in (
     PointScore("nll", False, False, "the paper's negative log likelihood of f = 0"),
 )}
 _MIN_VARIANCE = 1e-20
+# the point scores that weigh two terms by their variances on good scans (fit_term_variances)
+WEIGHED_SCORES = ("joint", "agreement")
+MIN_TERM_VARIANCE = 1e-4  # fit_term_variances: a term that is ~0 on every good point still divides by this
 
 
 def point_scores(field, points, kind="residual", noise=None, reference=None, normals=None, origin=None):
@@ -138,40 +141,81 @@ def point_scores(field, points, kind="residual", noise=None, reference=None, nor
     return 0.5 * (mean**2 / total + np.log(2 * math.pi * total))
 
 
-def joint_score(distance_scores, surface_scores):
-    """sqrt((z_d^2 + z_s^2) / 2) of two standardized residuals of the same points, elementwise.
+def joint_score(distance_scores, surface_scores, variances=(1.0, 1.0)):
+    """sqrt((z_d^2 / v_d + z_s^2 / v_s) / 2) of two standardized residuals of the same points, elementwise.
 
-    Under a good part each residual is ~N(0, 1); taken as independent, -log of their joint density is
-    (z_d^2 + z_s^2) / 2 up to a constant, and its square root keeps the score in standard deviations (a point 2
-    deviations off under both scores 2), which the log-normal tail of :mod:`inspection.threshold` and the maps'
-    fixed colour range expect. Equal weights: neither residual is trusted more a priori.
+    Under a good part each residual is ~N(0, v) with its own variance v, which good scans show
+    (:func:`fit_term_variances`); taken as independent, -log of their joint density is (z_d^2 / v_d + z_s^2 / v_s) / 2
+    up to a constant, and its square root keeps the score in standard deviations (a point off by one of its term's
+    good spread under both terms scores 1), which the log-normal tail of :mod:`inspection.threshold` and the maps'
+    fixed colour range expect. A term whose residuals spread more on good scans of this part (the field's at the
+    edges of a real part, the good points' under placement) counts less; (1, 1), equal weights, is the score of a
+    calibration stored before the variances were fitted.
 
     Parameters
     ----------
     distance_scores, surface_scores : (m,) arrays >= 0
+    variances : (v_d, v_s), positive floats
+        The two terms' variances on good scans.
 
     Returns
     -------
     (m,) float64 array
     """
     a, b = _paired(distance_scores, surface_scores, "joint_score")
-    return np.sqrt((a**2 + b**2) / 2)
+    v_d, v_s = _checked_variances(variances)
+    return np.sqrt((a**2 / v_d + b**2 / v_s) / 2)
 
 
-def agreement_score(distance_scores, surface_scores):
-    """sqrt(z_d z_s) of two standardized residuals of the same points, elementwise: the geometric mean, in standard
+def agreement_score(distance_scores, surface_scores, variances=(1.0, 1.0)):
+    """sqrt((z_d / sqrt(v_d)) (z_s / sqrt(v_s))) of two standardized residuals of the same points, elementwise: the
+    geometric mean of the two terms, each in its good spread (``variances`` as in :func:`joint_score`), in standard
     deviations (a point 2 deviations off under both scores 2, one 8 off under one and 0.5 under the other 2).
 
     Parameters
     ----------
     distance_scores, surface_scores : (m,) arrays >= 0
+    variances : (v_d, v_s), positive floats
 
     Returns
     -------
     (m,) float64 array
     """
     a, b = _paired(distance_scores, surface_scores, "agreement_score")
-    return np.sqrt(np.maximum(a, 0.0) * np.maximum(b, 0.0))
+    v_d, v_s = _checked_variances(variances)
+    return np.sqrt(np.maximum(a, 0.0) / math.sqrt(v_d) * np.maximum(b, 0.0) / math.sqrt(v_s))
+
+
+def fit_term_variances(distance_scores, surface_scores):
+    """The variances (v_d, v_s) of the two terms of ``'joint'`` that make good scans' residuals most likely.
+
+    Maximum likelihood of z ~ N(0, v) for each term over the points of good scans the model and the reference did
+    not see (held-back scans, training scans scored by fold models or cross-fitted; their stray returns left out by
+    the caller): v = mean(z^2). Why: each term is standardized by its own noise model, and on a given part one of
+    them may still spread more than the other (on the benchmarks' parts the good points' term is under-dispersed,
+    mean square 0.15-0.65 on solids and real scans, the field's 0.5-0.9); weighing each by what good scans show is
+    what makes their sum a likelihood (docs/results.md, issue 28).
+
+    Parameters
+    ----------
+    distance_scores, surface_scores : (n,) arrays >= 0
+        The terms of the same points (``'joint'`` takes the field's term where the good points' has no surface).
+
+    Returns
+    -------
+    (v_d, v_s) : floats >= ``MIN_TERM_VARIANCE``
+    """
+    a, b = _paired(distance_scores, surface_scores, "fit_term_variances")
+    if a.size == 0 or not (np.isfinite(a).all() and np.isfinite(b).all()):
+        raise ValueError(f"fit_term_variances needs finite residuals of at least one point, got {a.size} points")
+    return (max(float(np.mean(a**2)), MIN_TERM_VARIANCE), max(float(np.mean(b**2)), MIN_TERM_VARIANCE))
+
+
+def _checked_variances(variances):
+    v_d, v_s = (float(v) for v in variances)
+    if not (np.isfinite(v_d) and np.isfinite(v_s) and v_d > 0 and v_s > 0):
+        raise ValueError(f"the terms' variances must be positive finite numbers, got {variances!r}")
+    return v_d, v_s
 
 
 def _paired(distance_scores, surface_scores, who):
@@ -183,19 +227,33 @@ def _paired(distance_scores, surface_scores, who):
     return a, b
 
 
-def reference_scores(reference, kind, points, value, variance, noise, grazing=None, normals=None, uncovered=None):
-    """The per-location point score ``kind`` (``'distance'``, ``'joint'`` or ``'surface'``) of (m, 3) points whose
-    compared quantity (m,) and field variance (m,) are given, against ``reference`` (a :class:`inspection.reference.LocalReference`);
-    ``grazing`` (m,) and the points' ``normals`` (m, 3) (for the reference surface's side) or None. ``uncovered``
-    (m,) bool or None: points where the reference has no good surface to compare with (a training scan left out of
-    it, :func:`inspection.estimator._uncovered`); there ``'joint'`` and ``'agreement'`` take the field's term for the
-    good points' term. Returns (m,) float64."""
+def reference_terms(reference, points, value, variance, noise, grazing=None, normals=None, uncovered=None):
+    """The two terms (z_d, z_s) of ``'joint'`` for (m, 3) points (arguments as in :func:`reference_scores`), before
+    their variances weigh them: the field's distance residual against good scans there, and the offset from the good
+    scans' own surface (the field's term where ``uncovered``). Returns two (m,) float64 arrays."""
+    distance = reference.standardized(points, value, variance, noise, grazing)
+    surface = reference.surface_scores(points, noise, grazing, normals)
+    if uncovered is not None:
+        surface = np.where(uncovered, distance, surface)
+    return distance, surface
+
+
+def reference_scores(reference, kind, points, value, variance, noise, grazing=None, normals=None, uncovered=None,
+                     terms=None):
+    """The per-location point score ``kind`` (``'distance'``, ``'joint'``, ``'agreement'`` or ``'surface'``) of (m, 3)
+    points whose compared quantity (m,) and field variance (m,) are given, against ``reference`` (a
+    :class:`inspection.reference.LocalReference`); ``grazing`` (m,) and the points' ``normals`` (m, 3) (for the
+    reference surface's side) or None. ``uncovered`` (m,) bool or None: points where the reference has no good
+    surface to compare with (a training scan left out of it, :func:`inspection.estimator._uncovered`); there
+    ``'joint'`` and ``'agreement'`` take the field's term for the good points' term. These two weigh their terms by
+    the reference's ``term_variances`` (:func:`fit_term_variances`). ``terms``: (z_d, z_s) of
+    :func:`reference_terms` already computed for these points (``'joint'`` and ``'agreement'`` only). Returns (m,)
+    float64."""
     if kind == "surface":
         return reference.surface_scores(points, noise, grazing, normals)
-    scores = reference.standardized(points, value, variance, noise, grazing)
     if kind in ("joint", "agreement"):
-        surface = reference.surface_scores(points, noise, grazing, normals)
-        if uncovered is not None:
-            surface = np.where(uncovered, scores, surface)
-        scores = (joint_score if kind == "joint" else agreement_score)(scores, surface)
-    return scores
+        if terms is None:
+            terms = reference_terms(reference, points, value, variance, noise, grazing, normals, uncovered)
+        combine = joint_score if kind == "joint" else agreement_score
+        return combine(*terms, variances=reference.term_variances)
+    return reference.standardized(points, value, variance, noise, grazing)

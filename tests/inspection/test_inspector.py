@@ -445,10 +445,39 @@ def test_joint_point_score_calibrates_restores_and_ranks_a_dent():
     distance = Inspector.from_calibration(SphereModel(), insp.calibration())
     distance.settings_ = replace(distance.settings_, point_score="distance")
     scan = held[0]
+    assert restored.reference_.term_variances == insp.reference_.term_variances
     np.testing.assert_allclose(insp.inspect_components(scan).point_scores, joint_score(
-        distance.inspect_components(scan).point_scores, insp.reference_.surface_scores(scan, 0.01)), rtol=1e-12)
+        distance.inspect_components(scan).point_scores, insp.reference_.surface_scores(scan, 0.01),
+        variances=insp.reference_.term_variances), rtol=1e-12)
     dented = sphere_scan(seed=40, n=800, dent=0.05)[0]
     assert insp.anomaly_scores([dented])[0] > insp.calibration_scores_.max()
+
+
+def test_joint_weighs_its_terms_by_their_mean_square_on_the_calibration_scans():
+    """The joint score's term variances are the mean squares of each term over the calibration scans' points (their
+    stray returns left out), recomputed here from the two terms scored apart; a calibration stored before they were
+    fitted (no term_variances) scores with equal weights, as it was calibrated."""
+    good = [sphere_scan(seed=s, n=800)[0] for s in range(6)]
+    held = [sphere_scan(seed=s, n=800)[0] for s in range(20, 24)]
+    insp = Inspector(SphereModel(), point_score="joint", alpha=0.2).fit(held, reference_scans=good, cross_fit=False)
+    distance = Inspector.from_calibration(SphereModel(), insp.calibration())
+    distance.settings_ = replace(distance.settings_, point_score="distance")
+    z_d, z_s = [], []
+    for scan in held:
+        components = insp.inspect_components(scan)
+        kept = ~components.stray if components.stray is not None else slice(None)
+        z_d.append(distance.inspect_components(scan).point_scores[kept])
+        z_s.append(insp.reference_.surface_scores(scan, 0.01)[kept])
+    expected = (np.mean(np.concatenate(z_d) ** 2), np.mean(np.concatenate(z_s) ** 2))
+    np.testing.assert_allclose(insp.reference_.term_variances, expected, rtol=1e-9)
+    assert not np.allclose(expected, 1.0, rtol=0.05)  # the sphere's terms are not N(0, 1): the weights do something
+    stored = insp.calibration()
+    del stored.extra["reference"]["term_variances"]
+    old = Inspector.from_calibration(SphereModel(), stored)
+    assert old.reference_.term_variances == (1.0, 1.0)
+    np.testing.assert_allclose(old.inspect_components(held[0]).point_scores ** 2,
+                               (distance.inspect_components(held[0]).point_scores ** 2
+                                + insp.reference_.surface_scores(held[0], 0.01) ** 2) / 2, rtol=1e-10)
 
 
 def test_agreement_point_score_is_the_geometric_mean_and_needs_both_terms():
@@ -466,7 +495,9 @@ def test_agreement_point_score_is_the_geometric_mean_and_needs_both_terms():
         one = Inspector.from_calibration(SphereModel(), insp.calibration())
         one.settings_ = replace(one.settings_, point_score=kind)
         maps[kind] = one.inspect_components(held[0]).point_scores
-    np.testing.assert_allclose(maps["agreement"] ** 2, maps["distance"] * maps["surface"], rtol=1e-10)
+    v_d, v_s = insp.reference_.term_variances
+    np.testing.assert_allclose(maps["agreement"] ** 2, maps["distance"] * maps["surface"] / math.sqrt(v_d * v_s),
+                               rtol=1e-10)
     np.testing.assert_allclose(agreement_score([8.0, 2.0], [0.5, 2.0]), [2.0, 2.0])
     np.testing.assert_allclose(joint_score([8.0], [0.5]), [math.sqrt(32.125)])
     with pytest.raises(ValueError, match="one surface score per distance score"):
@@ -486,7 +517,9 @@ def test_surface_point_score_is_joints_model_free_term_and_ignores_the_field():
         one = Inspector.from_calibration(SphereModel(), insp.calibration())
         one.settings_ = replace(one.settings_, point_score=kind)
         maps[kind] = one.inspect_components(held[0]).point_scores
-    np.testing.assert_allclose(maps["joint"] ** 2, (maps["distance"] ** 2 + maps["surface"] ** 2) / 2, rtol=1e-10)
+    v_d, v_s = insp.reference_.term_variances
+    np.testing.assert_allclose(maps["joint"] ** 2, (maps["distance"] ** 2 / v_d + maps["surface"] ** 2 / v_s) / 2,
+                               rtol=1e-10)
     np.testing.assert_allclose(maps["surface"], insp.reference_.surface_scores(held[0], 0.01), rtol=1e-12)
     class ShrunkSphereModel(SphereModel):  # the fitted sphere, then 0.1 smaller: a field off the part everywhere
         def project(self, points, normals=None, **options):

@@ -7,7 +7,7 @@ import pytest
 from autodecoder.field.protocol import Field
 from inspection import point_scores
 from inspection.reference import LocalReference
-from inspection.scores import joint_score
+from inspection.scores import fit_term_variances, joint_score
 
 
 def _naive_surface(reference_points, query, k, self_distance):
@@ -83,6 +83,38 @@ def test_surface_scores_and_joint_score_formulae():
     np.testing.assert_allclose(joint_score([3.0, 0.0, 1.0], [4.0, 2.0, 1.0]), [math.sqrt(12.5), math.sqrt(2), 1.0])
     with pytest.raises(ValueError, match="one surface score per distance score"):
         joint_score([1.0, 2.0], [1.0])
+
+
+def test_fitted_term_variances_recover_a_known_noisy_term_and_weigh_it_down():
+    """Terms drawn with known spreads (the field's 2 standard deviations, the good points' 0.5) give back their
+    variances; weighed by them, the joint score is the likelihood's closed form and ranks scans whose defect shows in
+    the quiet term above good scans better than equal weights do (where the noisy term's largest values, not the
+    defect, set a scan's worst points)."""
+    rng = np.random.default_rng(0)
+    z_d, z_s = np.abs(rng.normal(0, 2.0, 200000)), np.abs(rng.normal(0, 0.5, 200000))
+    v_d, v_s = fit_term_variances(z_d, z_s)
+    assert v_d == pytest.approx(4.0, rel=0.02) and v_s == pytest.approx(0.25, rel=0.02)
+    np.testing.assert_allclose(joint_score([2.0, 0.0], [0.5, 1.0], variances=(4.0, 0.25)), [1.0, math.sqrt(2.0)])
+
+    def scan_scores(variances, defective, n_scans=200, m=400):
+        out = []
+        for _ in range(n_scans):
+            d, s = np.abs(rng.normal(0, 2.0, m)), np.abs(rng.normal(0, 0.5, m))
+            if defective:
+                s[:8] += 1.5  # 3 of the quiet term's standard deviations, on 2 % of the points
+            out.append(np.sort(joint_score(d, s, variances=variances))[-4:].mean())  # the worst 1 %
+        return np.array(out)
+
+    def auroc(variances):
+        good, bad = scan_scores(variances, False), scan_scores(variances, True)
+        return np.mean(bad[:, None] > good[None, :])
+
+    fitted, equal = auroc((v_d, v_s)), auroc((1.0, 1.0))
+    assert fitted > 0.9 and fitted > equal + 0.2
+    with pytest.raises(ValueError, match="at least one point"):
+        fit_term_variances([], [])
+    with pytest.raises(ValueError, match="positive finite"):
+        joint_score([1.0], [1.0], variances=(0.0, 1.0))
 
 
 class _PlaneField(Field):
