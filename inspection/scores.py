@@ -54,6 +54,7 @@ POINT_SCORES = {s.name: s for s in (
 _MIN_VARIANCE = 1e-20
 # the point scores that weigh two terms by their variances on good scans (fit_term_variances)
 WEIGHED_SCORES = ("joint", "agreement")
+CHI2_1_MEDIAN = 0.454936423119572  # the median of chi-square(1): median(z^2) / this estimates Var z for Gaussian z
 MIN_TERM_VARIANCE = 1e-4  # fit_term_variances: a term that is ~0 on every good point still divides by this
 
 
@@ -81,10 +82,11 @@ def point_scores(field, points, kind="residual", noise=None, reference=None, nor
       where the defects are and good scans are not (figures: docs/results.md#the-per-point-score).
     * ``'joint'`` (the default with a reference): the ``'distance'`` score z_d and the reference surface's z_s (:meth:`LocalReference.surface_scores`:
       the point's offset from the plane through its nearest good-scan points) taken together as two independent
-      standardized residuals, sqrt((z_d^2 + z_s^2) / 2) (:func:`joint_score`). The projected field errs at a
-      scan's borders and at grazing angles, where the good scans' points still lie on the part; the good scans'
-      points do not follow the scan's own field and are noisy and sparse, where the field is smooth. A point scores
-      high only when its residual is large under both on average, in the same units as the other scores.
+      standardized residuals, each over its variance on good scans, sqrt((z_d^2 / v_d + z_s^2 / v_s) / 2)
+      (:func:`joint_score`, :func:`fit_term_variances`). The projected field errs at a scan's borders and at
+      grazing angles, where the good scans' points still lie on the part; the good scans' points do not follow the
+      scan's own field and are noisy and sparse, where the field is smooth. A point scores high only when its
+      residual is large under both on average, in the same units as the other scores.
     * ``'surface'``: z_s alone, the model-free term of ``'joint'``: what the good scans' points say without any
       field (a baseline: whether the model adds anything, ``python -m benchmarks ablation --trees``).
     * ``'agreement'``: the same two terms, sqrt(z_d z_s) (:func:`agreement_score`): a point counts only as far as
@@ -187,14 +189,19 @@ def agreement_score(distance_scores, surface_scores, variances=(1.0, 1.0)):
 
 
 def fit_term_variances(distance_scores, surface_scores):
-    """The variances (v_d, v_s) of the two terms of ``'joint'`` that make good scans' residuals most likely.
+    """The variances (v_d, v_s) of the two terms of ``'joint'`` on good scans, each fitted robustly.
 
-    Maximum likelihood of z ~ N(0, v) for each term over the points of good scans the model and the reference did
-    not see (held-back scans, training scans scored by fold models or cross-fitted; their stray returns left out by
-    the caller): v = mean(z^2). Why: each term is standardized by its own noise model, and on a given part one of
-    them may still spread more than the other (on the benchmarks' parts the good points' term is under-dispersed,
-    mean square 0.15-0.65 on solids and real scans, the field's 0.5-0.9); weighing each by what good scans show is
-    what makes their sum a likelihood (docs/results.md, issue 28).
+    Each term is modelled on the points of good scans the model and the reference did not see (held-back scans,
+    training scans scored by fold models or cross-fitted; their stray returns left out by the caller) as z ~ N(0, v),
+    and v is estimated by median(z^2) / ``CHI2_1_MEDIAN`` (the median of a chi-square with one degree of freedom): the
+    variance's maximum-likelihood value, mean(z^2), when the terms are Gaussian, but not set by a few scans' far
+    points. Why: each term is standardized by its own noise model, and on a given part one of them may still spread
+    more than the other (the field's term on a real part's side views, the good points' under placement); weighing
+    each by what good scans show is what makes their sum a likelihood. Why the median: with few training scans a
+    cross-fitted scan carries surface that no other training scan saw, which inflates the good points' mean square
+    (and so weighs that term down) although new scans, compared with every training scan, never show it; the mean
+    square also weighed the 8-training-scan benchmarks' maps down where the median does not (figures:
+    docs/results.md, issue 28).
 
     Parameters
     ----------
@@ -208,7 +215,7 @@ def fit_term_variances(distance_scores, surface_scores):
     a, b = _paired(distance_scores, surface_scores, "fit_term_variances")
     if a.size == 0 or not (np.isfinite(a).all() and np.isfinite(b).all()):
         raise ValueError(f"fit_term_variances needs finite residuals of at least one point, got {a.size} points")
-    return (max(float(np.mean(a**2)), MIN_TERM_VARIANCE), max(float(np.mean(b**2)), MIN_TERM_VARIANCE))
+    return tuple(max(float(np.median(z**2)) / CHI2_1_MEDIAN, MIN_TERM_VARIANCE) for z in (a, b))
 
 
 def _checked_variances(variances):

@@ -5,6 +5,7 @@ import warnings
 
 import numpy as np
 import pytest
+from scipy import stats
 
 from inspection import Inspector, NotFittedError, aggregate, conformal_p_values, conformal_threshold, point_scores
 from inspection.calibration import Calibration
@@ -453,9 +454,9 @@ def test_joint_point_score_calibrates_restores_and_ranks_a_dent():
     assert insp.anomaly_scores([dented])[0] > insp.calibration_scores_.max()
 
 
-def test_joint_weighs_its_terms_by_their_mean_square_on_the_calibration_scans():
-    """The joint score's term variances are the mean squares of each term over the calibration scans' points (their
-    stray returns left out), recomputed here from the two terms scored apart; a calibration stored before they were
+def test_joint_weighs_its_terms_by_their_spread_on_the_calibration_scans():
+    """The joint score's term variances are median(z^2) / median(chi2_1) of each term over the calibration scans'
+    points (their stray returns left out), recomputed here from the two terms scored apart; a calibration stored before they were
     fitted (no term_variances) scores with equal weights, as it was calibrated."""
     good = [sphere_scan(seed=s, n=800)[0] for s in range(6)]
     held = [sphere_scan(seed=s, n=800)[0] for s in range(20, 24)]
@@ -468,7 +469,8 @@ def test_joint_weighs_its_terms_by_their_mean_square_on_the_calibration_scans():
         kept = ~components.stray if components.stray is not None else slice(None)
         z_d.append(distance.inspect_components(scan).point_scores[kept])
         z_s.append(insp.reference_.surface_scores(scan, 0.01)[kept])
-    expected = (np.mean(np.concatenate(z_d) ** 2), np.mean(np.concatenate(z_s) ** 2))
+    chi2_median = stats.chi2(1).median()
+    expected = (np.median(np.concatenate(z_d) ** 2) / chi2_median, np.median(np.concatenate(z_s) ** 2) / chi2_median)
     np.testing.assert_allclose(insp.reference_.term_variances, expected, rtol=1e-9)
     assert not np.allclose(expected, 1.0, rtol=0.05)  # the sphere's terms are not N(0, 1): the weights do something
     stored = insp.calibration()

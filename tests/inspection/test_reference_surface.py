@@ -94,6 +94,10 @@ def test_fitted_term_variances_recover_a_known_noisy_term_and_weigh_it_down():
     z_d, z_s = np.abs(rng.normal(0, 2.0, 200000)), np.abs(rng.normal(0, 0.5, 200000))
     v_d, v_s = fit_term_variances(z_d, z_s)
     assert v_d == pytest.approx(4.0, rel=0.02) and v_s == pytest.approx(0.25, rel=0.02)
+    # robust: 1 % of the good points far out (a cross-fitted scan's surface no other scan saw) barely moves it
+    far = z_s.copy()
+    far[:2000] = 30.0
+    assert fit_term_variances(z_d, far)[1] == pytest.approx(0.25, rel=0.05)
     np.testing.assert_allclose(joint_score([2.0, 0.0], [0.5, 1.0], variances=(4.0, 0.25)), [1.0, math.sqrt(2.0)])
 
     def scan_scores(variances, defective, n_scans=200, m=400):
