@@ -98,7 +98,8 @@ def test_a_left_out_training_scan_marks_only_the_surface_no_other_scan_saw():
     """inspection.estimator._uncovered against brute force: held-back scans on a square set the reach (the 99 %
     quantile of their points' distance to every training scan's points); a training scan that alone saw a flap
     beyond the square, left out, marks exactly its points farther than that from the other scans' points; there the
-    joint score is the field's term alone (sqrt((z_d^2 + z_d^2) / 2) = z_d), elsewhere it is as before."""
+    joint score is the field's term alone (sqrt((z_d^2 + z_d^2) / 2) = z_d at equal term variances), elsewhere it is as
+    before."""
     from types import SimpleNamespace
 
     from inspection.estimator import _uncovered

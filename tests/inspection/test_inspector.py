@@ -456,8 +456,8 @@ def test_joint_point_score_calibrates_restores_and_ranks_a_dent():
 
 def test_joint_weighs_its_terms_by_their_spread_on_the_calibration_scans():
     """The joint score's term variances are median(z^2) / median(chi2_1) of each term over the calibration scans'
-    points (their stray returns left out), recomputed here from the two terms scored apart; a calibration stored before they were
-    fitted (no term_variances) scores with equal weights, as it was calibrated."""
+    points (their stray returns left out), recomputed here from the two terms scored apart; a calibration stored
+    before they were fitted (no term_variances) scores with equal weights, as it was calibrated."""
     good = [sphere_scan(seed=s, n=800)[0] for s in range(6)]
     held = [sphere_scan(seed=s, n=800)[0] for s in range(20, 24)]
     insp = Inspector(SphereModel(), point_score="joint", alpha=0.2).fit(held, reference_scans=good, cross_fit=False)
