@@ -739,10 +739,21 @@ class Inspector(BaseEstimator):
         return {"components": self._combination().as_dict()}
 
     def summary(self):
-        """Per part (a model of several part types; else {}): the threshold, how it was drawn, and the number of
-        calibration scans (summary.json)."""
+        """Per part (a model of several part types; else {}): the threshold, how it was drawn, the number of
+        calibration scans and the point score's term variances (summary.json)."""
         return {p: {"threshold": float(i.threshold_), "decision": i.decision_threshold_.as_dict(),
-                    "n_calibration": int(i.n_calibration_)} for p, i in sorted((self.parts_ or {}).items())}
+                    "n_calibration": int(i.n_calibration_), "term_variances": i.term_variances()}
+                for p, i in sorted((self.parts_ or {}).items())}
+
+    def term_variances(self):
+        """[v_d, v_s], the variances on the good calibration scans that weigh the point score's two terms (the
+        field's, the good points'; :func:`inspection.scores.fit_term_variances`), or None for a point score without
+        them or a model of several part types (each part has its own: :meth:`summary`)."""
+        self._check_is_fitted()
+        reference = getattr(self, "reference_", None)
+        if getattr(self, "parts_", None) or reference is None or self.settings_.point_score not in WEIGHED_SCORES:
+            return None
+        return [float(v) for v in reference.term_variances]
 
     def _check_is_fitted(self):
         if not hasattr(self, "calibration_scores_"):

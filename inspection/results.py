@@ -60,6 +60,8 @@ def summarize_run(handle, insp, data, split, align, results):
                  "options": settings.ray_options,
                  "score": "the point score plus what the ray score shows beyond the good calibration scans' "
                           "(inspection.combine, rule " + COMBINATION_RULE + ")"}}
+    # the joint score's two terms' variances on the good calibration scans (field, good points), what weighs them
+    extra["term_variances"] = None if parted else insp.term_variances()
     if parted:  # thresholds per part: summary['parts']; scores compare within a part only
         extra["parts"] = insp.summary()
     summary = summarize(results["rows"], None if parted else insp.threshold_, insp.alpha, results["point_labels"],

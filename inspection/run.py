@@ -95,12 +95,10 @@ def describe_calibration(insp, info):
 def _term_spread(insp):
     """'' or, for a point score that weighs its two terms (:func:`inspection.scores.fit_term_variances`), how much
     each spreads on the good calibration scans, the weight it gets being the inverse of its variance."""
-    from .scores import WEIGHED_SCORES
-
-    reference = getattr(insp, "reference_", None)
-    if insp.settings_.point_score not in WEIGHED_SCORES or reference is None:
+    variances = insp.term_variances()
+    if variances is None:
         return ""
-    v_d, v_s = reference.term_variances
+    v_d, v_s = variances
     return (f" (its terms weighed by their spread on the good scans: the field's {v_d ** 0.5:.2f}, the good "
             f"points' {v_s ** 0.5:.2f} standard deviations)")
 

@@ -128,6 +128,9 @@ def test_score_calibrates_an_uncalibrated_model_on_its_held_back_scans(workdir, 
     assert decision["n"] == 6 and decision["basis"] == "log-normal" and decision["alpha"] == 0.02
     assert summary["threshold"] == pytest.approx(decision["value"]) and "49" in decision["note"]
     assert "threshold basis: log-normal on 6 good scans" in said and "note: 3 held-back scans are fewer" in said
+    variances = cal.extra["reference"]["term_variances"]  # the joint score's terms, weighed by the good scans
+    assert summary["point_score"] == "joint" and summary["term_variances"] == pytest.approx(variances)
+    assert f"the field's {variances[0] ** 0.5:.2f}, the good points' {variances[1] ** 0.5:.2f}" in said
 
 
 def test_uncalibrated_model_on_other_data_is_an_error(workdir, tmp_path, capsys):
