@@ -260,6 +260,10 @@ def _settings_html(summary):
     keys = ("aggregate", "point_score", "noise", "projection", "n_calibration", "calibration_source", "aligned",
             "common_frame", "seconds_per_scan", "model_kind")
     items = "".join(f"<tr><th>{k}</th><td>{_e(_short(summary[k]))}</td></tr>" for k in keys if k in summary)
+    if summary.get("term_variances"):  # the point score's two terms, each weighed by its spread on good scans
+        v_d, v_s = summary["term_variances"]
+        items += (f"<tr><th>point score's terms</th><td>weighed by their spread on the good calibration scans: the "
+                  f"field's {v_d ** 0.5:.2f}, the good points' {v_s ** 0.5:.2f} standard deviations</td></tr>")
     if summary.get("rays"):
         items += f"<tr><th>rays</th><td>{_e(summary['rays'].get('score', 'on'))}</td></tr>"
     return (f'<section id="settings"><h2>How the scores were made</h2><table class="kv">{items}</table>'

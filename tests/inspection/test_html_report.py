@@ -86,6 +86,8 @@ def test_score_writes_a_self_contained_report(results):
     threshold = summary["threshold"]
     assert f"{threshold:.5g}" in visible and summary["decision"]["basis"] in visible
     assert "predicted false-alarm rate" in visible
+    assert summary["point_score"] == "joint"  # its terms' weights, as calibrate printed them
+    assert f"the good points' {summary['term_variances'][1] ** 0.5:.2f} standard deviations" in visible
     # the data: one 3D view per scan (--maps all), the histogram and the ROC (labels exist)
     data = json.loads(re.search(r'<script type="application/json" id="report-data">(.*?)</script>', text,
                                 re.S).group(1))
