@@ -69,6 +69,18 @@ def _plane(points, nb, valid, k):
     return np.einsum("mi,mi->m", normal, points - centroid), np.maximum(spread, 0.0)
 
 
+def checked_term_variances(variances):
+    """(v_d, v_s) as two positive finite floats (the variances that weigh the joint score's two terms); a ValueError
+    for anything else (a calibration record stored with a damaged entry among them)."""
+    try:
+        values = tuple(float(v) for v in variances)
+    except (TypeError, ValueError):
+        values = ()
+    if len(values) != 2 or not all(math.isfinite(v) and v > 0 for v in values):
+        raise ValueError(f"term_variances must be two positive finite numbers, got {variances!r}")
+    return values
+
+
 class LocalReference:
     """What good scans look like at each place: the per-location noise floor of the ``'distance'`` and ``'joint'``
     point scores.
@@ -138,10 +150,7 @@ class LocalReference:
                              f"{grazing_scale!r}")
         self.k = int(k)
         self.quantity = quantity
-        v_d, v_s = (float(v) for v in term_variances)
-        if not (np.isfinite(v_d) and np.isfinite(v_s) and v_d > 0 and v_s > 0):
-            raise ValueError(f"term_variances must be two positive finite numbers, got {term_variances!r}")
-        self.term_variances = (v_d, v_s)
+        self.term_variances = checked_term_variances(term_variances)
         self.variance_scale = float(variance_scale)
         self.grazing_scale = float(grazing_scale)
         self.owners = None if owners is None else np.asarray(owners, dtype=np.int64).reshape(-1)
@@ -419,4 +428,4 @@ class LocalReference:
                    grazing_scale=float(d.get("grazing_scale", 0.0)),
                    surface_points=None if surface is None else np.asarray(surface),
                    surface_normals=None if normals is None else np.asarray(normals),
-                   term_variances=tuple(d.get("term_variances", (1.0, 1.0))))
+                   term_variances=d.get("term_variances", (1.0, 1.0)))

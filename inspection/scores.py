@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .reference import field_quantity
+from .reference import checked_term_variances, field_quantity
 
 
 
@@ -165,7 +165,7 @@ def joint_score(distance_scores, surface_scores, variances=(1.0, 1.0)):
     (m,) float64 array
     """
     a, b = _paired(distance_scores, surface_scores, "joint_score")
-    v_d, v_s = _checked_variances(variances)
+    v_d, v_s = checked_term_variances(variances)
     return np.sqrt((a**2 / v_d + b**2 / v_s) / 2)
 
 
@@ -184,7 +184,7 @@ def agreement_score(distance_scores, surface_scores, variances=(1.0, 1.0)):
     (m,) float64 array
     """
     a, b = _paired(distance_scores, surface_scores, "agreement_score")
-    v_d, v_s = _checked_variances(variances)
+    v_d, v_s = checked_term_variances(variances)
     return np.sqrt(np.maximum(a, 0.0) / math.sqrt(v_d) * np.maximum(b, 0.0) / math.sqrt(v_s))
 
 
@@ -216,13 +216,6 @@ def fit_term_variances(distance_scores, surface_scores):
     if a.size == 0 or not (np.isfinite(a).all() and np.isfinite(b).all()):
         raise ValueError(f"fit_term_variances needs finite residuals of at least one point, got {a.size} points")
     return tuple(max(float(np.median(z**2)) / CHI2_1_MEDIAN, MIN_TERM_VARIANCE) for z in (a, b))
-
-
-def _checked_variances(variances):
-    v_d, v_s = (float(v) for v in variances)
-    if not (np.isfinite(v_d) and np.isfinite(v_s) and v_d > 0 and v_s > 0):
-        raise ValueError(f"the terms' variances must be positive finite numbers, got {variances!r}")
-    return v_d, v_s
 
 
 def _paired(distance_scores, surface_scores, who):
@@ -258,7 +251,7 @@ def reference_scores(reference, kind, points, value, variance, noise, grazing=No
     float64."""
     if kind == "surface":
         return reference.surface_scores(points, noise, grazing, normals)
-    if kind in ("joint", "agreement"):
+    if kind in WEIGHED_SCORES:
         if terms is None:
             terms = reference_terms(reference, points, value, variance, noise, grazing, normals, uncovered)
         combine = joint_score if kind == "joint" else agreement_score

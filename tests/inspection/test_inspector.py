@@ -474,6 +474,10 @@ def test_joint_weighs_its_terms_by_their_spread_on_the_calibration_scans():
     np.testing.assert_allclose(insp.reference_.term_variances, expected, rtol=1e-9)
     assert not np.allclose(expected, 1.0, rtol=0.05)  # the sphere's terms are not N(0, 1): the weights do something
     stored = insp.calibration()
+    for damaged in ([1.0], "x", [1.0, float("nan")], None):  # a damaged record: one clear error
+        stored.extra["reference"]["term_variances"] = damaged
+        with pytest.raises(ValueError, match="term_variances must be two positive finite numbers"):
+            Inspector.from_calibration(SphereModel(), stored)
     del stored.extra["reference"]["term_variances"]
     old = Inspector.from_calibration(SphereModel(), stored)
     assert old.reference_.term_variances == (1.0, 1.0)
