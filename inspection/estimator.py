@@ -373,8 +373,9 @@ class Inspector(BaseEstimator):
         return np.array([self.inspect(s, i).score for i, s in enumerate(scans)], dtype=np.float64)
 
     def anomaly_map(self, scan):
-        """The scan's anomaly map (m,): each point's patch residual, in standard deviations (higher = more anomalous;
-        :mod:`inspection.maps`), what the PLY maps and the report show. The points' own scores are
+        """The scan's anomaly map (m,): each point's patch residual, with its ray's evidence where the calibration
+        scores rays, in standard deviations (higher = more anomalous; :mod:`inspection.maps`), what the PLY maps and
+        the report show. The points' own scores are
         ``inspect_components(scan).point_scores``. Works unfitted."""
         from .maps import map_values
 

@@ -41,7 +41,8 @@ mean of the worst 1 %). Measured on a thin-walled box (docs/results_archive.md),
 defective from good scans far better than the probabilities themselves, which saturate near 1 on rays the field is
 merely unsure about as well as on rays through walls it is sure of. The per-point map gives every point the value of the nearest tested
 returned ray (in space) and, where larger, of the hole rays within (``gap`` + 1.5) mean spacings of it in the
-image (the rim of a hole). Its values are P(blocked) in [0, 1]; higher = more anomalous.
+image (the rim of a hole). Its values are P(blocked) in [0, 1]; higher = more anomalous. The same rays'
+surprisals per point (``point_surprisal``, nats) go into the anomaly map (:func:`inspection.maps.map_values`).
 """
 import logging
 from dataclasses import dataclass, field
@@ -70,6 +71,9 @@ class RayEvidence:
         Aggregate of the surprisals -log P(free) of all tested rays, in nats (higher = more anomalous).
     point_map : (m,) float64 array
         Per-point ray score in [0, 1].
+    point_surprisal : (m,) float64 array
+        The same rays' surprisal -log P(free) at each point, in nats (>= 0): what :func:`inspection.maps.map_values`
+        adds to the points' own negative log likelihood.
     ray_index : (R,) int array
         Points whose rays were tested.
     ray_values, ray_surprisal : (R,) float64 arrays
@@ -85,6 +89,7 @@ class RayEvidence:
     ray_index: np.ndarray
     ray_values: np.ndarray
     ray_surprisal: np.ndarray
+    point_surprisal: np.ndarray = None
     empty_directions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     empty_values: np.ndarray = field(default_factory=lambda: np.zeros(0))
     empty_surprisal: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -222,6 +227,7 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
     # every point takes the value of the nearest tested ray: the points seen through a hole lie together
     nearest = cKDTree(points[index]).query(points, k=1)[1]
     point_map = values[nearest].astype(np.float64)
+    point_surprisal = np.maximum(surprisal[nearest], 0.0).astype(np.float64)
     e_dirs, e_values, e_surprisal, e_block = np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros((0, 3))
     if n_empty > 0:
         dirs, h_uv, uv, pitch = image_holes(points, origin, gap)
@@ -238,11 +244,13 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
             for k, near in enumerate(cKDTree(uv).query_ball_point(h_uv, (gap + 1.5) * pitch)):
                 if near:
                     point_map[near] = np.maximum(point_map[near], e_values[k])
+                    point_surprisal[near] = np.maximum(point_surprisal[near], e_surprisal[k])
     # the surprisal of what the sensor saw, -log P(free): the rays' negative log likelihood. Probabilities near 1
     # all look alike, so a top-k mean of them cannot tell a ray the field is unsure about from one through a wall
     # it is sure of; their surprisals can (P = 0.99: 4.6 nats; a wall 5 sd deep: ~15)
     score = aggregate_values(np.concatenate([surprisal, e_surprisal]), aggregate)
     return RayEvidence(score=score, point_map=point_map, ray_index=index, ray_values=values, ray_surprisal=surprisal,
+                       point_surprisal=point_surprisal,
                        empty_directions=e_dirs, empty_values=e_values, empty_surprisal=e_surprisal,
                        ray_block=ray_block, empty_block=e_block)
 

@@ -136,8 +136,8 @@ def fit_family(scans, family="auto", max_scans=FAMILY_SCANS, seed=0):
         None: not a family (or ``family`` False, or fewer than 3 scans).
     spread : float or None
         The measured :func:`size_spread` (None when ``family`` is False: nothing was measured; after one round of
-        registration when the decision was made there: on the benchmarks' parts in a fixture 0.009-0.049 after one
-        round, 3-8 s, the cup's 0.108 going on; families and the real bunny 0.28-0.38).
+        registration when the decision was made there, as it is for a part in a fixture; the values measured on the
+        benchmarks' parts and families: docs/results.md, "A product family brought to one size").
     """
     from datasets.registration import Aligner, register_group
 

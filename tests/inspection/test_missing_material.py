@@ -202,6 +202,16 @@ def test_hole_in_a_thin_wall_scores_higher_than_no_hole():
     # seeded: the same result twice
     again = ray_evidence(field, holed, SENSOR, n_rays=256)
     np.testing.assert_array_equal(again.point_map, ev_holed.point_map)
+    # the per-point surprisal: the nearest tested ray's -log P(free) (brute force), and at a hole's rim at least the
+    # missing returns' there
+    for ev, pts in ((ev_holed, holed), (ev_blind, holed[blind])):
+        nearest = np.argmin(np.linalg.norm(pts[:, None, :] - pts[ev.ray_index][None], axis=2), axis=1)
+        own = ev.ray_surprisal[nearest]
+        assert np.all(ev.point_surprisal >= own - 1e-12)
+        np.testing.assert_allclose(ev.point_surprisal[ev.point_map == ev.ray_values[nearest]],
+                                   own[ev.point_map == ev.ray_values[nearest]], rtol=1e-12)
+    assert ev_holed.point_surprisal[through == 1].min() > 4.6  # P(blocked) > 0.99
+    assert ev_blind.point_surprisal[rim].mean() > ev_blind.point_surprisal[~rim].mean() + 1
 
 
 def test_ray_options_validated():
@@ -274,6 +284,27 @@ def test_inspector_with_rays_flags_the_hole_and_round_trips():
     plain = Inspector(WallModel(), alpha=0.2).fit(good)
     assert plain.predict(tests[2:]).tolist() == [1, 1]
     assert insp.ray_map(tests[2]).shape == (len(tests[2].points),)
+    # the anomaly map adds each point's ray surprisal to its patch's likelihood: sqrt(r^2 + 2 s); the points seen
+    # through the hole, on a good floor, stand out in it and not in the patch residual alone
+    from sklearn.metrics import roc_auc_score
+
+    from inspection.maps import patch_residuals, with_ray_evidence
+
+    comps = insp.inspect_components(tests[2])
+    patch = patch_residuals(tests[2].points, comps.point_scores, excluded=comps.stray)
+    amap = insp.anomaly_map(tests[2])
+    np.testing.assert_allclose(amap ** 2 - patch ** 2, 2 * comps.rays.point_surprisal, rtol=1e-9, atol=1e-9)
+    through = tests[2].point_labels == 1
+    assert roc_auc_score(through, amap) > 0.95 and roc_auc_score(through, patch) < 0.8
+    good_comps = insp.inspect_components(tests[0])  # no ray evidence on a good scan: the patch residual itself
+    np.testing.assert_allclose(insp.anomaly_map(tests[0]),
+                               with_ray_evidence(patch_residuals(tests[0].points, good_comps.point_scores,
+                                                                 excluded=good_comps.stray),
+                                                 good_comps.rays.point_surprisal), rtol=1e-12)
+    assert good_comps.rays.point_surprisal.max() < 0.1
+    with pytest.raises(ValueError, match="3 ray surprisals for 4 map values"):
+        with_ray_evidence(np.ones(4), np.zeros(3))
+    np.testing.assert_array_equal(with_ray_evidence(np.arange(3.0), None), np.arange(3.0))
     # stored and restored: the same scores without the calibration scans
     cal = Calibration.from_dict(insp.calibration(source="unit test").as_dict())
     assert cal.config().ray_options["n_rays"] == 256
