@@ -262,7 +262,8 @@ def point_maps(model_path, data_path, split="test", fields=False, neighbours=())
     results : list of dict
         Per scan: ``score`` (float), ``point_scores`` ((m_i,) array: the points' own scores), ``map`` ((m_i,)
         array: the anomaly map's values, :func:`inspection.maps.map_values`), with ``neighbours`` (a sequence of
-        patch sizes) ``maps`` ({patch size: (m_i,) array}, the same map at each) and, with ``fields``, ``field``
+        patch sizes) ``maps`` ({patch size: (m_i,) array}, the same map at each) and ``patch_maps`` (the same
+        without the rays' evidence) and, with ``fields``, ``field``
         (the projected stochastic field).
     """
     from datasets import ScanCollection
@@ -280,6 +281,7 @@ def point_maps(model_path, data_path, split="test", fields=False, neighbours=())
                "map": map_values(settings, s, r)[0]}
         if neighbours:
             one["maps"] = {k: map_values(settings, s, r, k)[0] for k in neighbours}
+            one["patch_maps"] = {k: map_values(settings, s, r, k, rays=False)[0] for k in neighbours}
         if fields:
             one["field"] = r.field
         results.append(one)

@@ -87,7 +87,7 @@ def patch_residuals(points, residuals, neighbours=MAP_NEIGHBOURS, excluded=None)
     return out
 
 
-def map_values(settings, scan, res, neighbours=MAP_NEIGHBOURS):
+def map_values(settings, scan, res, neighbours=MAP_NEIGHBOURS, rays=True):
     """What a scan's maps show: the patch residuals of its standardized residuals (:func:`patch_residuals`; its
     point scores when they are standardized, else the field's plain ``'residual'``), with rays sqrt(r^2 + 2 s) with
     each point's ray surprisal s (module docstring), and its ray map (m,) with rays, else None.
@@ -99,6 +99,8 @@ def map_values(settings, scan, res, neighbours=MAP_NEIGHBOURS):
     res : the scan's :class:`inspection.estimator.ScanResult` (its ``point_scores`` and ``stray`` in the same order)
     neighbours : int >= 1
         Points per patch (:func:`patch_residuals`); the default is the maps'.
+    rays : bool
+        False: the patch residuals alone, without the rays' evidence (what the maps showed before it; benchmarks).
 
     Returns
     -------
@@ -115,7 +117,7 @@ def map_values(settings, scan, res, neighbours=MAP_NEIGHBOURS):
     values = patch_residuals(points, resid, neighbours, excluded=res.stray)
     if not settings.rays:
         return values, None
-    return with_ray_evidence(values, res.rays.point_surprisal), res.rays.point_map
+    return (with_ray_evidence(values, res.rays.point_surprisal) if rays else values), res.rays.point_map
 
 
 def with_ray_evidence(values, surprisal):

@@ -6,7 +6,9 @@ Python API with the model's stored calibration (:func:`benchmarks.inspect_api.po
 are made at each patch size of ``--neighbours`` (:func:`inspection.maps.map_values`; 1 = the points' own
 residuals). Printed per run: the collection, its points per scan, the labelled defect points per defective scan
 (min / median / max: the defects' own size in points), and the point AUROC of every point of the test scans (good
-scans' points count as good) at each patch size, then the same per defect type at the default patch size and at 1.
+scans' points count as good) at each patch size, with the rays' evidence where the run scores rays (as the maps
+show it), and at the default patch size without it; then the same per defect type at the default patch size and
+at 1.
 The default patch size is ``inspection.maps.MAP_NEIGHBOURS`` (:func:`benchmarks.inspect_api.map_neighbours`).
 """
 import json
@@ -53,16 +55,19 @@ def run(args):
                                                          np.max(defect_points))) if defect_points else "-"}
         for k in sizes:
             row[f"k{k}"] = metrics.point_auroc(labels, [r["maps"][k] for r in results])
+        row["patch"] = metrics.point_auroc(labels, [r["patch_maps"][default] for r in results])
         rows.append(row)
         kinds = [s.label for s in scans], [s.defect for s in scans]
         for k in (1, default):
             per = metrics.point_auroc_per_defect(labels, [r["maps"][k] for r in results], *kinds)
             per_type.append({"run": name, "patch": k, **per})
-        print(f"{name}: " + " ".join(f"k={k} {row[f'k{k}']:.3f}" for k in sizes), flush=True)
+        print(f"{name}: " + " ".join(f"k={k} {row[f'k{k}']:.3f}" for k in sizes)
+              + f" (k={default} without the rays {row['patch']:.3f})", flush=True)
     print(f"\npoint AUROC of the anomaly map by points per patch (k; the default is {default}, k=1 the "
-          f"points' own residuals); 'defect': labelled points per defective scan, min/median/max")
+          f"points' own residuals), with the rays' evidence where the run scores rays, and at k={default} without "
+          f"it; 'defect': labelled points per defective scan, min/median/max")
     print(format_table(rows, [("run", "run", ""), ("points", "points", "d"), ("defect", "defect", "")]
-                       + [(f"k{k}", f"k={k}", ".3f") for k in sizes]))
+                       + [(f"k{k}", f"k={k}", ".3f") for k in sizes] + [("patch", f"k={default}, no rays", ".3f")]))
     kinds = sorted({k for p in per_type for k in p} - {"run", "patch"}, key=lambda k: (k != "overall", k))
     print("\nper defect type, at k=1 and the default")
     print(format_table(per_type, [("run", "run", ""), ("patch", "k", "d")] + [(k, k, ".3f") for k in kinds]))
