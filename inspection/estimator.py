@@ -836,27 +836,13 @@ def _uncovered(held, reference, crossed, crossed_references, quantile=COVERAGE_Q
     term. Its field term and every other point count as before (leaving the points out instead also dropped the
     grazing border a new scan has, and calibrated too low).
 
-    The same holds, nearer than the reach, for a face of a thin wall that only the left-out scan saw (with the
-    points' normals: :meth:`inspection.reference.LocalReference.surface`'s support): without it the good points'
-    plane there comes from the wall's other face, a wall's thickness away, and reads as a defect; where the whole
-    reference has that face (the scan's own points) and the reference without the scan has not, the points are
-    marked as well."""
+    A face of a thin wall that only the left-out scan saw, nearer than the reach, needs no mark here: the joint
+    score takes the field's term wherever no good scan of the reference it is compared with saw the point's side,
+    for every scan (:func:`inspection.scores.reference_terms`)."""
     distances = [reference.surface_distance(g.points[~g.stray] if g.stray is not None and not g.stray.all()
                                             else g.points) for g in held]
     reach = float(np.quantile(np.concatenate(distances), quantile)) if distances else np.inf
-    out = []
-    for g, ref_j in zip(crossed, crossed_references):
-        far = ref_j.surface_distance(g.points) > reach
-        if getattr(g, "normals", None) is not None:
-            # the side of a thin wall that only this scan saw: without it the good points' plane comes from the
-            # wall's other face, a wall's thickness away (as far as a defect), where the whole reference has it
-            near = np.flatnonzero(~far)
-            unsupported = near[~ref_j.surface(g.points[near], g.normals[near], with_support=True)[2]]
-            if len(unsupported):  # (few points: the whole reference is asked about those alone)
-                far[unsupported] = reference.surface(g.points[unsupported], g.normals[unsupported],
-                                                     with_support=True)[2]
-        out.append(far)
-    return out
+    return [ref_j.surface_distance(g.points) > reach for g, ref_j in zip(crossed, crossed_references)]
 
 
 def _good_scans(good_scans, model):

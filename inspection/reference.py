@@ -325,14 +325,16 @@ class LocalReference:
             offset[todo], spread[todo] = _plane(points[todo], tree.data[idx], valid, k)
         return offset, spread, supported
 
-    def surface_scores(self, points, noise, grazing=None, normals=None):
+    def surface_scores(self, points, noise, grazing=None, normals=None, with_support=False):
         """|offset| / sqrt(spread + noise^2 (1 + grazing_scale * g)) with offset, spread of :meth:`surface` (with the
         points' ``normals`` (m, 3), optional): how many standard deviations a point lies off the good scans'
         surface. The neighbours' spread holds their own noise and the surface's curvature; the point's own
         measurement noise grows with the grazing factor g (m,) (None: 0) as in :meth:`standardized`. (m,)
-        float64."""
-        offset, spread = self.surface(points, normals)
-        return np.abs(offset) / np.sqrt(self._total(spread, 0.0, float(noise) ** 2, grazing, 0.0, self.grazing_scale))
+        float64; with ``with_support`` also :meth:`surface`'s ``supported`` (m,) bool."""
+        offset, spread, supported = self.surface(points, normals, with_support=True)
+        scores = np.abs(offset) / np.sqrt(self._total(spread, 0.0, float(noise) ** 2, grazing, 0.0,
+                                                      self.grazing_scale))
+        return (scores, supported) if with_support else scores
 
     def stats(self, points):
         """Local mean and standard deviation of the reference values around each point: (m,), (m,)."""

@@ -230,12 +230,20 @@ def _paired(distance_scores, surface_scores, who):
 def reference_terms(reference, points, value, variance, noise, grazing=None, normals=None, uncovered=None):
     """The two terms (z_d, z_s) of ``'joint'`` for (m, 3) points (arguments as in :func:`reference_scores`), before
     their variances weigh them: the field's distance residual against good scans there, and the offset from the good
-    scans' own surface (the field's term where ``uncovered``). Returns two (m,) float64 arrays."""
+    scans' own surface; the field's term stands for the good points' where ``uncovered`` and where no good scan saw
+    the point's side of the surface.
+
+    Why the second: with the points' normals, the good points' plane is fitted through good points on the point's
+    side (:meth:`inspection.reference.LocalReference.surface`); where fewer than 3 of them are (``supported``
+    False: the face of a thin wall no training view saw, an enclosure's inside seen from below), the plane comes
+    from the wall's other face, a wall's thickness away, and a good scan's points there read as far off as a
+    defect's. The good points cannot speak where no good scan looked; the projected field, which saw this scan, can
+    (as for a training scan left out of the reference, :func:`inspection.estimator._uncovered`). Measured:
+    docs/results.md, "Faces no good scan saw". Returns two (m,) float64 arrays."""
     distance = reference.standardized(points, value, variance, noise, grazing)
-    surface = reference.surface_scores(points, noise, grazing, normals)
-    if uncovered is not None:
-        surface = np.where(uncovered, distance, surface)
-    return distance, surface
+    surface, supported = reference.surface_scores(points, noise, grazing, normals, with_support=True)
+    unseen = ~supported if uncovered is None else (np.asarray(uncovered, dtype=bool) | ~supported)
+    return distance, np.where(unseen, distance, surface)
 
 
 def reference_scores(reference, kind, points, value, variance, noise, grazing=None, normals=None, uncovered=None,

@@ -137,16 +137,19 @@ def test_a_left_out_training_scan_marks_only_the_surface_no_other_scan_saw():
     assert (plain[masks[0]] > masked[masks[0]]).mean() > 0.9  # the flap read as far off the other scans' surface
 
 
-def test_a_left_out_scan_that_alone_saw_one_face_of_a_thin_wall_takes_the_field_term_there():
+def test_a_scan_whose_face_of_a_thin_wall_no_good_scan_saw_takes_the_field_term_there():
     """A wall 0.02 thick: scan 0 alone saw its top face, scans 1 and 2 its bottom face. Left out, scan 0's points
     have only the bottom face's points near them, normals opposite, a wall's thickness away (nearer than the
-    held-back scans' reach, so the distance rule alone keeps them): the good points' plane would come from the other
-    face, so they are marked; scans 1 and 2, left out, still have the other's points on their side and are not.
-    Without normals the rule cannot tell the faces apart and marks nothing."""
+    held-back scans' reach, so the distance rule of _uncovered keeps them): the good points' plane would come from
+    the other face, so the joint score's good-points term is the field's term there
+    (inspection.scores.reference_terms); scans 1 and 2, left out, still have the other's points on their side and
+    keep the good points' term. A new scan of the top face against a reference of bottom-face scans alone is judged
+    the same way; without normals no side can be told and the good points' term stays."""
     from types import SimpleNamespace
 
     from inspection.estimator import _uncovered
     from inspection.reference import LocalReference
+    from inspection.scores import reference_terms
 
     rng = np.random.default_rng(4)
     g = np.arange(0.0, 1.0 + 1e-9, 0.04)
@@ -164,7 +167,26 @@ def test_a_left_out_scan_that_alone_saw_one_face_of_a_thin_wall_takes_the_field_
     reach = np.quantile(np.concatenate([reference.surface_distance(h.points) for h in held]), 0.99)
     assert reach > 0.03
     crossed = [SimpleNamespace(points=p, normals=n, stray=None) for p, n in scans]
-    masks = _uncovered(held, reference, crossed, [reference.without(j) for j in range(3)])
-    assert masks[0].all() and not masks[1].any() and not masks[2].any()
-    blind = [SimpleNamespace(points=p, normals=None, stray=None) for p, _ in scans]
-    assert not any(m.any() for m in _uncovered(held, reference, blind, [reference.without(j) for j in range(3)]))
+    # the distance rule marks none of them: the wall is thinner than the reach
+    assert not any(m.any() for m in _uncovered(held, reference, crossed, [reference.without(j) for j in range(3)]))
+
+    def terms(ref, p, n):
+        value, variance = rng.normal(0, 0.004, len(p)), np.full(len(p), 1e-6)
+        return reference_terms(ref, p, value, variance, 0.002, normals=n)
+
+    z_d, z_s = terms(reference.without(0), top, up)
+    np.testing.assert_array_equal(z_s, z_d)  # no good point on its side: the field's term
+    plane_term = reference.without(0).surface_scores(top, 0.002)  # the plane through the other face, no sides
+    assert np.median(plane_term) > 3 > np.median(z_d)  # a wall's thickness off: as far as a defect
+    for j in (1, 2):
+        p, n = scans[j]
+        z_d, z_s = terms(reference.without(j), p, n)
+        np.testing.assert_allclose(z_s, reference.without(j).surface_scores(p, 0.002, normals=n))
+        assert not np.array_equal(z_s, z_d)
+    bottom_only = LocalReference(points[owners > 0], np.zeros(int((owners > 0).sum())),
+                                 surface_points=points[owners > 0], surface_normals=normals[owners > 0])
+    new_top = top + rng.normal(0, 0.002, top.shape)
+    z_d, z_s = terms(bottom_only, new_top, up)
+    np.testing.assert_array_equal(z_s, z_d)
+    z_d, z_s = terms(bottom_only, new_top, None)
+    np.testing.assert_allclose(z_s, bottom_only.surface_scores(new_top, 0.002))
