@@ -521,7 +521,7 @@ def test_field_terms_by_code_projects_a_clean_code_from_the_good_points_alone():
 
 
 def test_inspection_training_settings_reach_the_trainer_and_name_the_run():
-    """--width, --depth and --grid-mean are training options (and so part of the cached model's key) and set the
+    """--width, --depth, --grid-mean and --calibration-fraction are training options (and so part of the cached model's key) and set the
     scored run's folder apart from the defaults'; a malformed --grid-mean is refused by name."""
     import argparse
 
@@ -535,6 +535,10 @@ def test_inspection_training_settings_reach_the_trainer_and_name_the_run():
     assert options["grid_mean"] == {"shared_cells": 160, "finest": 128}
     assert inspection._run_name(args) == "defaults_w128_grid-shared_cells160-finest128_grid"
     assert inspection._run_name(parser.parse_args([])) == "defaults"
+    held = parser.parse_args(["--calibration-fraction", "0.4"])
+    assert inspection._train_options(held)["calibration_fraction"] == 0.4
+    assert inspection._train_options(parser.parse_args([]))["calibration_fraction"] is None  # the trainer's
+    assert inspection._run_name(held) == "defaults_cf0.4"
     assert cache.cache_key("model", {"width": 128}) != cache.cache_key("model", {})
     with pytest.raises(SystemExit, match="--grid-mean"):
         inspection._grid_settings("shared_cells=many")

@@ -70,6 +70,8 @@ def add_arguments(p):
                    help="the same scans without sensor origins (a collection and model of their own): no rays, the "
                         "grazing term's viewpoint estimated from the normals")
     p.add_argument("--epochs", type=int, default=None, help="training epochs (default: the trainer's)")
+    p.add_argument("--calibration-fraction", type=float, default=None,
+                   help="share of the good training scans held back for calibration (default: the trainer's)")
     p.add_argument("--width", type=int, default=None,
                    help="hidden width of the SIREN networks (default: the trainer's, LatentOptions.width)")
     p.add_argument("--grid-mean", default=None, metavar="KEY=VALUE,...",
@@ -128,7 +130,8 @@ def run(args):
 def _train_options(args):
     from autodecoder.latent.folds import SUGGESTED_FOLDS
 
-    return dict(seed=args.seed, epochs=args.epochs, representation=args.representation, lengthscale=args.lengthscale,
+    return dict(seed=args.seed, epochs=args.epochs, calibration_fraction=args.calibration_fraction,
+                representation=args.representation, lengthscale=args.lengthscale,
                 width=args.width, depth=args.depth, grid_mean=_grid_settings(args.grid_mean),
                 calibration_folds=None if args.folds == "off" else SUGGESTED_FOLDS)
 
@@ -146,6 +149,7 @@ def _grid_settings(text):
 def _run_name(args):
     """The scoring run's folder: what sets it apart from the defaults' (``defaults`` alone for the defaults)."""
     return ("defaults" + (f"_e{args.epochs}" if args.epochs else "")
+            + (f"_cf{args.calibration_fraction:g}" if args.calibration_fraction is not None else "")
             + (f"_l{args.lengthscale:g}" if args.lengthscale else "")
             + (f"_w{args.width}" if args.width else "") + (f"_d{args.depth}" if args.depth else "")
             + ("_grid-" + args.grid_mean.replace("=", "").replace(",", "-") if args.grid_mean else "")
