@@ -92,6 +92,10 @@ def summarize(rows, threshold, alpha, point_labels=None, point_scores=None, extr
         s = np.array([r["score"] for r in known])
         pred = np.array([_flagged(r) for r in known], dtype=int)
         good = y == 0
+        # what each labelled scan was told: 'uncertain' (rescan) is flagged by the threshold but not a rejection
+        metrics["verdicts"] = {lab: {v: sum(r["label"] == lab and r["verdict"] == v for r in known)
+                                     for v in ("good", UNCERTAIN_VERDICT, "defective")}
+                               for lab in ("good", "defective")}
         if good.any():
             metrics["false_alarm_rate"] = float(pred[good].mean())
         if y.any():

@@ -307,6 +307,11 @@ def test_verdict_targets_are_checked_as_the_issue_states():
     out = check_targets([run("a", 0), run("b", 0), run("c", 0, n_good=50)])
     assert out["expected_over"] == pytest.approx(2 * p16 + p50)
     assert out["p_none_over"] == pytest.approx((1 - p16) ** 2 * (1 - p50))
+    # of the flagged good scans, those told 'defective' rather than 'uncertain' (rescan), where the runs counted it
+    told = [dict(run("a", 2), rejected=1 / 16), dict(run("b", 11, n_good=50), rejected=0.0), run("c", 1)]
+    assert check_targets(told)["lines"][-1] == ("good scans flagged: 13 of 66, of them with the verdict 'defective' "
+                                                "(the rest 'uncertain', rescan): 1")
+    assert not check_targets(fine)["lines"][-1].startswith("good scans flagged")
 
 
 def test_exact_alpha_detection_is_the_good_scans_own_log_normal_quantile():

@@ -70,6 +70,7 @@ def run(args):
     print()
     print(format_table(rows, [("tree", "tree", ""), ("seed", "seed", "d"), ("auroc", "AUROC", ".3f"),
                               ("defective", "def flagged", ".3f"), ("good_text", "good flagged", ">"),
+                              ("rejected_text", "of them 'defective'", ">"),
                               ("oracle", "oracle", ".3f"), ("exact_alpha", "exact alpha", ".3f"),
                               ("basis", "basis", ">"),
                               ("predicted", "pred. FAR", ".3f")]))
@@ -91,9 +92,13 @@ def _figures(name, figures, log, seconds, folds=False):
     one = _pick(name, part_figures(name, figures), folds)
     flagged = one["flagged"]
     n_good = int(flagged.get("n_good") or 0)
+    rejected = flagged.get("good_rejected")
     return {"auroc": float(one["auroc"]["overall"]), "defective": float(flagged["defective"]),
             "good": float(flagged["good"]), "n_good": n_good,
-            "good_text": f"{round(flagged['good'] * n_good)} of {n_good}", "oracle": float(one["oracle"]),
+            "good_text": f"{round(flagged['good'] * n_good)} of {n_good}",
+            "rejected": np.nan if rejected is None else float(rejected),
+            "rejected_text": "-" if rejected is None else f"{round(rejected * n_good)} of {n_good}",
+            "oracle": float(one["oracle"]),
             "exact_alpha": float(one.get("exact_alpha", np.nan)),
             "basis": (one.get("threshold") or {}).get("basis", ""),
             "predicted": float((one.get("threshold") or {}).get("predicted_far") or np.nan),
@@ -148,6 +153,12 @@ def check_targets(rows):
              + (f": {'; '.join(misses)}" if misses else ""),
              f"runs short of it where a threshold at exactly alpha misses it too: {len(beyond_alpha)}"
              + (f": {'; '.join(beyond_alpha)}" if beyond_alpha else "")]
+    counted = [r for r in rows if np.isfinite(r.get("rejected", np.nan))]
+    if counted:  # the flagged good scans whose verdict was 'defective', not 'uncertain' (rescan)
+        n_rejected = sum(round(r["rejected"] * r["n_good"]) for r in counted)
+        n_flagged = sum(round(r["good"] * r["n_good"]) for r in counted)
+        lines.append(f"good scans flagged: {n_flagged} of {sum(r['n_good'] for r in counted)}, of them with the "
+                     f"verdict 'defective' (the rest 'uncertain', rescan): {n_rejected}")
     return {"mean_far": mean_far, "alpha": alpha, "far_ok": mean_far <= TARGET_FAR_FACTOR * alpha,
             "over_one_in_16": over, "detection_misses": misses, "beyond_alpha": beyond_alpha,
             "expected_over": expected_over,

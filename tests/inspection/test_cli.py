@@ -66,6 +66,10 @@ def test_calibrate_then_score(workdir, tmp_path, capsys):
         expected = "uncertain" if lo <= p <= hi else ("defective" if p <= 0.3 else "good")
         assert 1 / 7 - 1e-6 <= p <= 1 and r["verdict"] == expected
     assert summary["n_uncertain"] == sum(r["verdict"] == "uncertain" for r in rows) > 0
+    # what each labelled scan was told, counted by its label
+    assert summary["metrics"]["verdicts"] == {
+        lab: {v: sum(r["label"] == lab and r["verdict"] == v for r in rows) for v in ("good", "uncertain", "defective")}
+        for lab in ("good", "defective")}
     two = tmp_path / "two"
     assert main(["score", "--model", str(model), "--data", str(workdir / "tree.h5"), "--out", str(two), "--maps",
                  "none", "--two-class", "--quiet"]) == 0
