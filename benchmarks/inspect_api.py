@@ -233,7 +233,8 @@ def read_scores(results_dir):
 def summary_figures(summary):
     """The figures of a summary: ``auroc`` (overall and per defect type), ``point_auroc``, ``flagged`` (fractions
     of defective and good test scans above the threshold; ``good_rejected``, the fraction of good ones whose verdict
-    is 'defective' rather than 'uncertain', None for a summary written before verdicts were counted), ``threshold`` (value, basis, predicted false-alarm rate and its interval;
+    is 'defective' rather than 'uncertain', None for a summary written before verdicts were counted),
+    ``threshold`` (value, basis, predicted false-alarm rate and its interval;
     None for a model of several parts, thresholded per part), ``point_score``, ``aggregate``, ``rays``,
     ``seconds_per_scan``, ``calibration_seconds`` (when timed), ``alpha``."""
     metrics = summary["metrics"]

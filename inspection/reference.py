@@ -132,11 +132,15 @@ class LocalReference:
     term_variances : (v_d, v_s), positive floats
         The variances of the field's term (:meth:`standardized`) and of the good points' term (:meth:`surface_scores`)
         on good scans; (1, 1), equal weights, is the reference of a calibration stored before they were fitted.
+    field_on_unseen_faces : bool
+        Whether the joint score takes the field's term for the good points' where no good scan saw the point's side
+        of the surface (:func:`inspection.scores.reference_terms`); False is the reference of a calibration stored
+        before that rule, which scores as it was calibrated.
     """
 
     def __init__(self, points, values, k=REFERENCE_NEIGHBOURS, quantity=REFERENCE_QUANTITY, variance_scale=0.0, owners=None,
                  grazing_scale=0.0, surface_points=None, surface_owners=None, surface_normals=None,
-                 term_variances=(1.0, 1.0)):
+                 term_variances=(1.0, 1.0), field_on_unseen_faces=True):
         self.points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
         self.values = np.asarray(values, dtype=np.float32).reshape(-1)
         if len(self.points) != len(self.values) or len(self.points) < k:
@@ -151,6 +155,7 @@ class LocalReference:
         self.k = int(k)
         self.quantity = quantity
         self.term_variances = checked_term_variances(term_variances)
+        self.field_on_unseen_faces = bool(field_on_unseen_faces)
         self.variance_scale = float(variance_scale)
         self.grazing_scale = float(grazing_scale)
         self.owners = None if owners is None else np.asarray(owners, dtype=np.int64).reshape(-1)
@@ -198,7 +203,7 @@ class LocalReference:
             surface_normals = None if surface_normals is None else surface_normals[other]
         return LocalReference(self.points[keep], self.values[keep], self.k, self.quantity, self.variance_scale,
                               self.owners[keep], self.grazing_scale, surface, surface_owners, surface_normals,
-                              self.term_variances)
+                              self.term_variances, self.field_on_unseen_faces)
 
     @property
     def tree(self):
@@ -420,7 +425,7 @@ class LocalReference:
         return {"points": torch.from_numpy(self.points.copy()), "values": torch.from_numpy(self.values.copy()),
                 "k": self.k, "quantity": self.quantity, "variance_scale": self.variance_scale,
                 "grazing_scale": self.grazing_scale, "surface_points": surface, "surface_normals": normals,
-                "term_variances": list(self.term_variances)}
+                "term_variances": list(self.term_variances), "field_on_unseen_faces": self.field_on_unseen_faces}
 
     @classmethod
     def from_dict(cls, d):
@@ -430,4 +435,5 @@ class LocalReference:
                    grazing_scale=float(d.get("grazing_scale", 0.0)),
                    surface_points=None if surface is None else np.asarray(surface),
                    surface_normals=None if normals is None else np.asarray(normals),
-                   term_variances=d.get("term_variances", (1.0, 1.0)))
+                   term_variances=d.get("term_variances", (1.0, 1.0)),
+                   field_on_unseen_faces=bool(d.get("field_on_unseen_faces", False)))

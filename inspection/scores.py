@@ -239,10 +239,14 @@ def reference_terms(reference, points, value, variance, noise, grazing=None, nor
     from the wall's other face, a wall's thickness away, and a good scan's points there read as far off as a
     defect's. The good points cannot speak where no good scan looked; the projected field, which saw this scan, can
     (as for a training scan left out of the reference, :func:`inspection.estimator._uncovered`). Measured:
-    docs/results.md, "Faces no good scan saw". Returns two (m,) float64 arrays."""
+    docs/results.md, "Faces no good scan saw". A reference stored before this rule
+    (``reference.field_on_unseen_faces`` False) keeps the good points' term there, as it was calibrated. Returns
+    two (m,) float64 arrays."""
     distance = reference.standardized(points, value, variance, noise, grazing)
     surface, supported = reference.surface_scores(points, noise, grazing, normals, with_support=True)
-    unseen = ~supported if uncovered is None else (np.asarray(uncovered, dtype=bool) | ~supported)
+    unseen = ~supported if reference.field_on_unseen_faces else np.zeros(len(distance), dtype=bool)
+    if uncovered is not None:
+        unseen |= np.asarray(uncovered, dtype=bool)
     return distance, np.where(unseen, distance, surface)
 
 

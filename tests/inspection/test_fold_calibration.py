@@ -190,3 +190,19 @@ def test_a_scan_whose_face_of_a_thin_wall_no_good_scan_saw_takes_the_field_term_
     np.testing.assert_array_equal(z_s, z_d)
     z_d, z_s = terms(bottom_only, new_top, None)
     np.testing.assert_allclose(z_s, bottom_only.surface_scores(new_top, 0.002))
+    # stored and restored, the rule goes with the reference; a reference stored before it keeps the good points'
+    # term on the unseen face, as it was calibrated
+    restored = LocalReference.from_dict(bottom_only.as_dict())
+    assert restored.field_on_unseen_faces
+    z_d, z_s = terms(restored, new_top, up)
+    np.testing.assert_array_equal(z_s, z_d)
+    record = bottom_only.as_dict()
+    del record["field_on_unseen_faces"]
+    older = LocalReference.from_dict(record)
+    assert not older.field_on_unseen_faces
+    z_d, z_s = terms(older, new_top, up)
+    np.testing.assert_allclose(z_s, older.surface_scores(new_top, 0.002, normals=up))
+    assert np.median(z_s) > 3 > np.median(z_d)
+    old_with_owners = LocalReference(points, np.zeros(len(points)), owners=owners, surface_points=points,
+                                     surface_owners=owners, surface_normals=normals, field_on_unseen_faces=False)
+    assert reference.without(0).field_on_unseen_faces and not old_with_owners.without(0).field_on_unseen_faces
