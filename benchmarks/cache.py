@@ -17,7 +17,7 @@ CACHE = "results/cache"
 SHARED = ROOT.parent / "shared"
 MESHES = SHARED / "meshes"
 REAL_SCANS = SHARED / "realscans"
-MESH_FILES = {"fandisk": MESHES / "fandisk.obj", "bunny": MESHES / "stanford-bunny.obj"}
+MESH_FILES = {"fandisk": MESHES / "fandisk.obj", "bunny": MESHES / "stanford-bunny.obj", "ogre": MESHES / "ogre.obj"}
 
 # the collection of a new user's first run: 32 good training scans, 16 good test scans, 16 per defect type, 4,000
 # points, in a fixture (datasets.synth.synthesise's keyword arguments)

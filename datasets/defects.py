@@ -80,8 +80,9 @@ class Defect:
         ----------
         original : trimesh.Trimesh
             The undamaged part (watertight), in the same coordinates as ``self.mesh``.
-        sensor : (3,) array
-            The sensor position, mesh coordinates.
+        sensor : (3,) or (n, 3) array
+            The sensor position, mesh coordinates: one for every point (a pinhole camera), or each point's own ray
+            origin (a line scanner, :attr:`datasets.scanner.ScanResult.ray_origins`).
         points : (n, 3) array
             Points the sensor returned from ``self.mesh``, mesh coordinates (noise-free hits label best).
         step_fraction : float
@@ -98,13 +99,13 @@ class Defect:
         out = np.zeros(len(points), dtype=bool)
         if self.kind != "missing" or len(points) == 0:
             return out
-        sensor = np.asarray(sensor, dtype=np.float64).reshape(3)
+        sensor = np.broadcast_to(np.asarray(sensor, dtype=np.float64).reshape(-1, 3), points.shape)
         offset = points - sensor
         length = np.linalg.norm(offset, axis=1)
         d = offset / np.maximum(length, 1e-300)[:, None]
         # the chord of each ray inside the removed ball, clipped to the segment [sensor, point)
-        b = (sensor - self.center) @ d.T  # (n,)
-        disc = b ** 2 - (np.sum((sensor - self.center) ** 2) - self.radius ** 2)
+        b = np.einsum("ij,ij->i", sensor - self.center, d)  # (n,)
+        disc = b ** 2 - (np.sum((sensor - self.center) ** 2, axis=1) - self.radius ** 2)
         crossing = np.flatnonzero(disc > 0)
         root = np.sqrt(disc[crossing])
         t0 = np.maximum(-b[crossing] - root, 0.0)
@@ -116,7 +117,7 @@ class Defect:
         n_steps = int(np.ceil(2.0 / step_fraction)) + 1
         u = (np.arange(n_steps) + 0.5) / n_steps
         t = t0[:, None] + (t1 - t0)[:, None] * u  # (k, S), chord samples strictly inside the segment
-        x = sensor + t[..., None] * d[crossing, None, :]
+        x = sensor[crossing, None, :] + t[..., None] * d[crossing, None, :]
         scene = o3d.t.geometry.RaycastingScene()
         shift = np.asarray(original.vertices, dtype=np.float64).mean(axis=0)  # open3d is float32: work near 0
         scene.add_triangles(o3d.core.Tensor((np.asarray(original.vertices) - shift).astype(np.float32)),
@@ -175,7 +176,7 @@ def pick_spot(scan, radius, seed=None, max_normal_deg=25.0, min_facing=0.6):
     return points[i].copy(), normals[i] / np.linalg.norm(normals[i])
 
 
-def make_defect(mesh, kind, center, normal, radius=None, height=None, shape=None, seed=None):
+def make_defect(mesh, kind, center, normal, radius=None, height=None, shape=None, seed=None, size=1.0):
     """Make one defect on a copy of a mesh.
 
     Parameters
@@ -196,6 +197,8 @@ def make_defect(mesh, kind, center, normal, radius=None, height=None, shape=None
     shape : {'sphere', 'box', 'cylinder'}, optional
         The foreign object's shape; drawn when omitted.
     seed : int, numpy Generator or None
+    size : float > 0
+        Both sizes, drawn or given, times this (0.5: defects half as wide and half as deep).
 
     Returns
     -------
@@ -207,8 +210,10 @@ def make_defect(mesh, kind, center, normal, radius=None, height=None, shape=None
     diagonal = float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
     # Draw both sizes always so that the stream of draws does not depend on which were given.
     drawn_radius, drawn_height = rng.uniform(*RADIUS_RANGE), rng.uniform(*HEIGHT_RANGE)
-    radius = (drawn_radius if radius is None else float(radius)) * diagonal
-    height = (drawn_height if height is None else float(height)) * diagonal
+    if not float(size) > 0:
+        raise ValueError(f"size must be > 0 (a factor on the defect's sizes), got {size!r}")
+    radius = (drawn_radius if radius is None else float(radius)) * diagonal * size
+    height = (drawn_height if height is None else float(height)) * diagonal * size
     center = np.asarray(center, dtype=np.float64).reshape(3)
     normal = np.asarray(normal, dtype=np.float64).reshape(3)
     normal = normal / np.linalg.norm(normal)
@@ -219,7 +224,8 @@ def make_defect(mesh, kind, center, normal, radius=None, height=None, shape=None
     return _foreign(mesh, center, normal, radius, shape or FOREIGN_SHAPES[rng.integers(len(FOREIGN_SHAPES))], rng)
 
 
-def defect_for_view(mesh, scanner, view, kind, radius=None, height=None, seed=None, fov_deg=40.0):
+def defect_for_view(mesh, scanner, view, kind, radius=None, height=None, seed=None, fov_deg=40.0, sensor="pinhole",
+                    size=1.0):
     """Make a defect at a site that a given camera sees well.
 
     Parameters
@@ -232,6 +238,10 @@ def defect_for_view(mesh, scanner, view, kind, radius=None, height=None, seed=No
     kind, radius, height : see `make_defect`
     seed : int, numpy Generator or None
     fov_deg : float
+    sensor : {'pinhole', 'line'}
+        The scanner's kind (:meth:`datasets.scanner.VirtualScanner.scan`), for the preview that picks the site.
+    size : float > 0
+        The defect's sizes times this (:func:`make_defect`).
 
     Returns
     -------
@@ -240,9 +250,9 @@ def defect_for_view(mesh, scanner, view, kind, radius=None, height=None, seed=No
     rng = np.random.default_rng(seed)
     drawn_radius = rng.uniform(*RADIUS_RANGE)
     radius = drawn_radius if radius is None else radius
-    preview = scanner.scan(view, fov_deg=fov_deg, n_points=2000, seed=rng)
-    center, normal = pick_spot(preview, radius * scanner.diagonal, seed=rng)
-    return make_defect(mesh, kind, center, normal, radius=radius, height=height, seed=rng)
+    preview = scanner.scan(view, fov_deg=fov_deg, n_points=2000, seed=rng, sensor=sensor)
+    center, normal = pick_spot(preview, radius * size * scanner.diagonal, seed=rng)
+    return make_defect(mesh, kind, center, normal, radius=radius, height=height, seed=rng, size=size)
 
 
 # --------------------------------------------------------------------------------------------------------------------

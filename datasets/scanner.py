@@ -1,8 +1,17 @@
-"""Virtual depth scanning: a pinhole depth camera ray-cast over a triangle mesh (open3d RaycastingScene)."""
+"""Virtual depth scanning over a triangle mesh (open3d RaycastingScene): a pinhole depth camera, or a line (profile)
+scanner that sweeps a laser fan across the part.
+
+The two sensors differ in where their rays start, which is what the inspection's free-space test along the sensor's
+rays must live with: a pinhole camera's rays all leave one centre (the ``sensor_origin``); a line scanner's leave a
+head that moves along a sweep, so its rays are parallel along the sweep and fan out only across it, and it has no
+single centre (its ``sensor_origin`` is the head's position at mid-sweep, which is what a user writes in a sidecar:
+the view's axis and a stand-off). ``ScanResult.ray_origins`` holds each point's true ray origin either way.
+"""
 from dataclasses import dataclass
 
 import numpy as np
 
+SENSORS = ("pinhole", "line")
 # Below this many rays the scanner never goes, above this it stops raising the resolution and samples with
 # replacement instead (a part that small in the image is a badly chosen view, not a reason to cast 100M rays).
 _MIN_RAYS = 64 * 48
@@ -24,11 +33,14 @@ class ScanResult:
     triangle_ids : (n,) int64 array
         Index of the hit triangle in the scanned mesh's ``faces``.
     sensor_origin : (3,) float64 array
-        Camera position.
+        Camera position (a line scanner: its head at mid-sweep).
     clean_points : (n, 3) float64 array
         The exact ray hits before noise (ground truth for labelling and tests).
     pose : (4, 4) float64 array
         Rigid transform that was applied to the mesh before scanning (mesh coordinates -> world).
+    ray_origins : (n, 3) float64 array
+        Where each point's ray started (a pinhole camera: ``sensor_origin`` for every point; a line scanner: the
+        head's position when it saw the point).
     """
 
     points: np.ndarray
@@ -37,6 +49,7 @@ class ScanResult:
     sensor_origin: np.ndarray
     clean_points: np.ndarray
     pose: np.ndarray
+    ray_origins: np.ndarray = None
 
     def to_mesh_frame(self, x):
         """(m, 3) world-frame positions -> (m, 3) positions in the scanned mesh's own coordinates."""
@@ -108,6 +121,38 @@ def random_view(center, radius_range, elevation_range_deg=(-20.0, 70.0), size=1.
     return View(center + radius * direction, center.copy(), pose)
 
 
+def written_origin(origin, center, standoff=(1.0, 1.0), tilt_deg=0.0, seed=None):
+    """The sensor origin as a user writes it in a sidecar, not where the sensor was: the view's axis and a nominal
+    stand-off, not a calibrated optical centre.
+
+    Parameters
+    ----------
+    origin : (3,) array
+        Where the sensor was (a line scanner: its head at mid-sweep).
+    center : (3,) array
+        The point the view looks at (the part's centre), same frame.
+    standoff : (2,) floats
+        The written stand-off is the true one times a factor drawn log-uniformly in this range (1, 1: exact).
+    tilt_deg : float
+        The written axis is the true one turned by an angle drawn uniformly in [0, tilt_deg] about a random axis
+        across it.
+    seed : int, numpy Generator or None
+
+    Returns
+    -------
+    (3,) float64 array
+    """
+    rng = np.random.default_rng(seed)
+    origin = np.asarray(origin, dtype=np.float64).reshape(3)
+    center = np.asarray(center, dtype=np.float64).reshape(3)
+    low, high = np.log(np.asarray(standoff, dtype=np.float64))
+    factor = float(np.exp(rng.uniform(low, high)))
+    axis = origin - center
+    across = np.cross(axis, rng.normal(size=3))
+    turn = _axis_angle(across / np.linalg.norm(across), np.radians(tilt_deg) * rng.uniform(0.0, 1.0))
+    return center + factor * (turn @ axis)
+
+
 def _axis_angle(axis, angle):
     """(3,) unit axis, angle in radians -> (3, 3) rotation matrix (Rodrigues)."""
     k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
@@ -147,7 +192,7 @@ class VirtualScanner:
                            jitter_translation=jitter_translation, seed=seed)
 
     def scan(self, camera_position, look_at=None, fov_deg=40.0, resolution=None, noise=0.0, n_points=4000,
-             pose=None, seed=None):
+             pose=None, seed=None, sensor="pinhole"):
         """Scan the mesh from one camera position.
 
         Parameters
@@ -157,10 +202,11 @@ class VirtualScanner:
         look_at : (3,) array, optional
             Point the optical axis goes through; defaults to the mesh's box centre.
         fov_deg : float
-            Horizontal field of view of the pinhole camera.
+            Horizontal field of view of the pinhole camera; a line scanner's fan angle.
         resolution : (W, H) ints, optional
             Image size. Raised automatically (same aspect) when the part covers fewer than ``n_points`` pixels;
-            by default it starts at 4:3 with about ``6 * n_points`` pixels.
+            by default it starts at 4:3 with about ``6 * n_points`` pixels. A line scanner: W rays per line, H
+            lines over the sweep.
         noise : float
             Standard deviation of the Gaussian depth noise, in mesh units, applied along each ray.
         n_points : int
@@ -168,6 +214,11 @@ class VirtualScanner:
         pose : (4, 4) array, optional
             Rigid transform applied to the mesh before scanning (mesh coordinates -> world).
         seed : int, numpy Generator or None
+        sensor : {'pinhole', 'line'}
+            'pinhole': every ray leaves ``camera_position``. 'line': a profile scanner whose head moves along a sweep
+            through ``camera_position``, perpendicular to the optical axis and to the fan, over the part's whole
+            extent (its diagonal); each line is a fan of ``fov_deg`` from the head's position at that moment, so the
+            rays are parallel along the sweep (:func:`_line_rays`).
 
         Returns
         -------
@@ -176,8 +227,10 @@ class VirtualScanner:
         Raises
         ------
         ValueError
-            When no ray hits the part.
+            When no ray hits the part, or an unknown ``sensor``.
         """
+        if sensor not in SENSORS:
+            raise ValueError(f"sensor must be one of {SENSORS}, got {sensor!r}")
         if isinstance(camera_position, View):
             view = camera_position
             camera_position, look_at, pose = view.camera_position, view.look_at, view.pose
@@ -198,8 +251,12 @@ class VirtualScanner:
             resolution = (int(np.ceil(height * 4.0 / 3.0)), height)
         width, height = (max(2, int(r)) for r in resolution)
         while True:
-            directions = _pinhole_directions(eye, target, fov_deg, width, height)
-            t_hit, ray_index, triangle_ids, normals = self._cast(eye, directions)
+            if sensor == "pinhole":
+                directions = _pinhole_directions(eye, target, fov_deg, width, height)
+                origins = np.broadcast_to(eye, directions.shape)
+            else:
+                origins, directions = _line_rays(eye, target, fov_deg, width, height, self.diagonal)
+            t_hit, ray_index, triangle_ids, normals = self._cast(origins, directions)
             n_hits = len(t_hit)
             if n_hits == 0:
                 raise ValueError(f"the part is not visible from camera position {eye_world.tolist()} "
@@ -210,11 +267,12 @@ class VirtualScanner:
             factor = np.sqrt(1.2 * n_points / n_hits)
             factor = min(factor, np.sqrt(_MAX_RAYS / (width * height)))
             width, height = int(np.ceil(width * factor)) + 1, int(np.ceil(height * factor)) + 1
-        hit_directions = directions[ray_index]
+        hit_directions, hit_origins = directions[ray_index], origins[ray_index]
         # Subset first, noise second, so that the same seed picks the same pixels with or without noise.
         chosen = np.sort(rng.choice(n_hits, size=n_points, replace=n_hits < n_points))
         t, d, tri, nrm = t_hit[chosen], hit_directions[chosen], triangle_ids[chosen], normals[chosen]
-        clean = eye + t[:, None] * d
+        start = hit_origins[chosen]
+        clean = start + t[:, None] * d
         depth_noise = rng.normal(0.0, noise, size=n_points) if noise > 0 else np.zeros(n_points)
         noisy = clean + depth_noise[:, None] * d
         # Flip triangle normals that point away from the camera (back-facing hits, inconsistent winding).
@@ -226,14 +284,16 @@ class VirtualScanner:
             sensor_origin=eye_world.copy(),
             clean_points=clean @ rotation.T + translation,
             pose=pose.copy(),
+            ray_origins=start @ rotation.T + translation,
         )
 
-    def _cast(self, eye, directions):
-        """Cast rays from ``eye`` (mesh frame); per hit: t (h,), ray index (h,), triangle id (h,), unit normal (h, 3)."""
+    def _cast(self, origins, directions):
+        """Cast rays from ``origins`` ((3,) or (k, 3), mesh frame) along ``directions`` (k, 3); per hit: t (h,), ray
+        index (h,), triangle id (h,), unit normal (h, 3)."""
         import open3d as o3d
 
         rays = np.empty((len(directions), 6), dtype=np.float32)
-        rays[:, :3] = eye - self.center
+        rays[:, :3] = origins - self.center
         rays[:, 3:] = directions
         hit = self._scene.cast_rays(o3d.core.Tensor(rays))
         t = hit["t_hit"].numpy()
@@ -243,18 +303,37 @@ class VirtualScanner:
         return t[index].astype(np.float64), index, hit["primitive_ids"].numpy()[index].astype(np.int64), normals
 
 
-def _pinhole_directions(eye, target, fov_deg, width, height):
-    """Unit ray directions (width*height, 3) of a pinhole camera at ``eye`` looking at ``target``, row-major."""
+def _camera_axes(eye, target):
+    """Unit forward, right and up vectors (3,) each of a camera at ``eye`` looking at ``target``."""
     forward = target - eye
     norm = np.linalg.norm(forward)
     if norm == 0:
         raise ValueError("camera position and look_at coincide")
-    forward /= norm
+    forward = forward / norm
     # Any up vector not parallel to the optical axis will do: the image is only used as a set of rays.
     up = np.array([0.0, 0.0, 1.0]) if abs(forward[2]) < 0.99 else np.array([1.0, 0.0, 0.0])
     right = np.cross(forward, up)
     right /= np.linalg.norm(right)
-    up = np.cross(right, forward)
+    return forward, right, np.cross(right, forward)
+
+
+def _line_rays(eye, target, fov_deg, width, height, extent):
+    """Ray origins and unit directions (width*height, 3) each of a line scanner: ``height`` lines, the head moved
+    along the camera's up axis from ``eye`` - extent/2 to ``eye`` + extent/2, each line a fan of ``width`` rays over
+    ``fov_deg`` in the plane of the optical axis and the right axis."""
+    forward, right, up = _camera_axes(eye, target)
+    half = np.tan(np.radians(fov_deg) / 2.0)
+    u = ((np.arange(width) + 0.5) / width * 2.0 - 1.0) * half
+    sweep = ((np.arange(height) + 0.5) / height - 0.5) * extent
+    uu, ss = np.meshgrid(u, sweep)
+    directions = forward + uu.reshape(-1, 1) * right
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    return eye + ss.reshape(-1, 1) * up, directions
+
+
+def _pinhole_directions(eye, target, fov_deg, width, height):
+    """Unit ray directions (width*height, 3) of a pinhole camera at ``eye`` looking at ``target``, row-major."""
+    forward, right, up = _camera_axes(eye, target)
     half_w = np.tan(np.radians(fov_deg) / 2.0)
     half_h = half_w * height / width
     u = ((np.arange(width) + 0.5) / width * 2.0 - 1.0) * half_w

@@ -4,13 +4,14 @@ import numpy as np
 from .defects import DEFECT_KINDS, defect_for_view
 from .frame import Frame
 from .scan import Scan
-from .scanner import VirtualScanner
+from .scanner import SENSORS, VirtualScanner, written_origin
 
 
 def synthesise(mesh, n_train=32, n_test_good=16, n_test_defective=16, defects=DEFECT_KINDS, n_points=4000,
                noise=0.002, seed=0, jitter_deg=0.0, n_validation=0, part_id="", jitter_translation=0.0,
                radius_range=(1.5, 2.2), fov_deg=40.0, min_defect_fraction=0.015, min_defect_points=30,
-               max_attempts=12, progress=True):
+               max_attempts=12, progress=True, sensor="pinhole", origin_standoff=None, origin_tilt_deg=0.0,
+               defect_size=1.0):
     """Scan a part from random views, good and with synthetic defects, into scans in the collection frame.
 
     Parameters
@@ -46,6 +47,18 @@ def synthesise(mesh, n_train=32, n_test_good=16, n_test_defective=16, defects=DE
         ``max_attempts`` times.
     progress : bool
         Show a tqdm progress bar over the scans.
+    sensor : {'pinhole', 'line'}
+        The virtual scanner (:meth:`datasets.scanner.VirtualScanner.scan`): a pinhole depth camera, or a line
+        (profile) scanner sweeping a laser fan, whose ``sensor_origin`` is its head at mid-sweep.
+    origin_standoff : (2,) floats, optional
+        The sensor origin each scan records as a user writes it, not where the sensor was
+        (:func:`datasets.scanner.written_origin`): its stand-off from the part's centre times a factor drawn
+        log-uniformly in this range per scan (None: as measured).
+    origin_tilt_deg : float
+        And its axis turned by up to this many degrees (uniform, about a random axis across the view).
+        The scans themselves do not change with either (their draws come after the scan's own).
+    defect_size : float > 0
+        Every defect's width and depth times this (:func:`datasets.defects.make_defect`'s ``size``).
 
     Returns
     -------
@@ -80,6 +93,14 @@ def synthesise(mesh, n_train=32, n_test_good=16, n_test_defective=16, defects=DE
     if not 0 <= jitter_translation < np.inf:
         raise ValueError(f"jitter_translation must be >= 0 (relative to the diagonal), got {jitter_translation!r}")
 
+    if sensor not in SENSORS:
+        raise ValueError(f"sensor must be one of {SENSORS}, got {sensor!r}")
+    if origin_standoff is not None:
+        origin_standoff = tuple(float(f) for f in origin_standoff)
+        if len(origin_standoff) != 2 or not 0 < origin_standoff[0] <= origin_standoff[1] < np.inf:
+            raise ValueError(f"origin_standoff must be two factors 0 < low <= high, got {origin_standoff!r}")
+    if not 0 <= origin_tilt_deg < 90:
+        raise ValueError(f"origin_tilt_deg must be in [0, 90) degrees, got {origin_tilt_deg!r}")
     scanner = VirtualScanner(mesh)
     frame = Frame.fit(mesh.vertices)
     jobs = ([("train", "good", i) for i in range(n_train)]
@@ -88,7 +109,9 @@ def synthesise(mesh, n_train=32, n_test_good=16, n_test_defective=16, defects=DE
             + [("test", kind, i) for kind in defects for i in range(n_test_defective)])
     # One child seed per scan: a scan does not depend on how many retries the scans before it needed.
     children = np.random.SeedSequence(seed).spawn(len(jobs))
-    options = dict(n_points=int(n_points), noise=noise * scanner.diagonal, fov_deg=fov_deg)
+    if not 0 < defect_size < np.inf:
+        raise ValueError(f"defect_size must be > 0 (a factor on the defects' sizes), got {defect_size!r}")
+    options = dict(n_points=int(n_points), noise=noise * scanner.diagonal, fov_deg=fov_deg, sensor=sensor)
     view_options = dict(radius_range=radius_range, jitter_deg=jitter_deg, jitter_translation=jitter_translation)
     scans = []
     for (split, kind, i), child in tqdm(list(zip(jobs, children)), desc="synth scans", unit="scan",
@@ -101,16 +124,22 @@ def synthesise(mesh, n_train=32, n_test_good=16, n_test_defective=16, defects=DE
             extra = {"pose": result.pose}
         else:
             result, labels, defect = _defective_scan(mesh, scanner, kind, rng, view_options, options,
-                                                     min_defect_fraction, min_defect_points, max_attempts, name)
+                                                     min_defect_fraction, min_defect_points, max_attempts, name,
+                                                     defect_size)
             extra = {"pose": result.pose, "defect_center": defect.center, "defect_radius": defect.radius}
+        origin = result.sensor_origin
+        if origin_standoff is not None or origin_tilt_deg > 0:
+            origin = written_origin(origin, result.pose[:3, :3] @ scanner.center + result.pose[:3, 3],
+                                    origin_standoff or (1.0, 1.0), origin_tilt_deg, rng)
         scan = Scan(name=name, points=result.points, normals=result.normals, split=split,
                     label="good" if kind == "good" else "defective", defect="" if kind == "good" else kind,
-                    part_id=part_id, point_labels=labels, sensor_origin=result.sensor_origin, extra=extra)
+                    part_id=part_id, point_labels=labels, sensor_origin=origin, extra=extra)
         scans.append(frame.apply(scan))
     return scans, frame
 
 
-def _defective_scan(mesh, scanner, kind, rng, view_options, options, min_fraction, min_points, max_attempts, name):
+def _defective_scan(mesh, scanner, kind, rng, view_options, options, min_fraction, min_points, max_attempts, name,
+                    size=1.0):
     """Draw views and defect sites until the scan shows the defect. Returns (ScanResult, (n,) uint8, Defect)."""
     # The count floor matters at thousands of points; with few points it would ask for a large share of them.
     share = int(np.ceil(min_fraction * options["n_points"]))
@@ -118,14 +147,15 @@ def _defective_scan(mesh, scanner, kind, rng, view_options, options, min_fractio
     best = 0
     for _ in range(max_attempts):
         view = scanner.random_view(seed=rng, **view_options)
-        defect = defect_for_view(mesh, scanner, view, kind, seed=rng, fov_deg=options["fov_deg"])
+        defect = defect_for_view(mesh, scanner, view, kind, seed=rng, fov_deg=options["fov_deg"],
+                                 sensor=options["sensor"], size=size)
         result = VirtualScanner(defect.mesh).scan(view, seed=rng, **options)
         # Label the noise-free hits, by the triangles they hit: noise must not move a point on or off the defect.
         clean = result.to_mesh_frame(result.clean_points)
         labels = defect.region(clean, result.triangle_ids)
         if kind == "missing":
             # a hole through a thin wall has almost no surface of its own: what the sensor saw through it counts
-            labels |= defect.seen_through(mesh, result.to_mesh_frame(result.sensor_origin[None])[0], clean)
+            labels |= defect.seen_through(mesh, result.to_mesh_frame(result.ray_origins), clean)
         if labels.sum() >= needed:
             return result, labels.astype(np.uint8), defect
         best = max(best, int(labels.sum()))

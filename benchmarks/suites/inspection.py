@@ -49,6 +49,16 @@ def add_arguments(p):
     p.add_argument("--points", type=int, default=4000, help="points per scan (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="synthesis and training seed (default: %(default)s)")
     p.add_argument("--jitter", type=float, default=0.0, help="pose jitter of every scan, degrees (default: none)")
+    p.add_argument("--sensor", choices=("pinhole", "line"), default="pinhole",
+                   help="the virtual scanner: a pinhole depth camera (default) or a line scanner sweeping a laser fan "
+                        "(datasets.scanner; its sidecar origin is the head at mid-sweep)")
+    p.add_argument("--origin-standoff", default=None, metavar="LOW,HIGH",
+                   help="the sensor origins the scans record as a user writes them: the stand-off times a factor "
+                        "drawn log-uniformly in [LOW, HIGH] per scan (datasets.scanner.written_origin; default exact)")
+    p.add_argument("--origin-tilt", type=float, default=0.0, metavar="DEG",
+                   help="and the recorded axis turned by up to DEG degrees per scan (default: none)")
+    p.add_argument("--defect-size", type=float, default=1.0, metavar="F",
+                   help="every defect's width and depth times F (datasets.synth.synthesise's defect_size; default 1)")
     p.add_argument("--family-kind", choices=("stretch", "bend"), default="stretch",
                    help="--family: how the variants differ (default: %(default)s; bend: VALUE in degrees, the family "
                         "bent by 6-12 degrees either way, 0 the nominal part inside, 18 outside)")
@@ -146,6 +156,25 @@ def _grid_settings(text):
         raise SystemExit(f"--grid-mean takes KEY=INTEGER pairs separated by commas, got {text!r}") from None
 
 
+def sensor_options(args):
+    """``synthesise``'s sensor and defect-size options set apart from the defaults (none at the defaults: the collections cached
+    before these options keep their keys)."""
+    options = {}
+    if args.sensor != "pinhole":
+        options["sensor"] = args.sensor
+    if args.origin_standoff:
+        try:
+            low, high = (float(v) for v in args.origin_standoff.split(","))
+        except ValueError:
+            raise SystemExit(f"--origin-standoff takes LOW,HIGH, got {args.origin_standoff!r}") from None
+        options["origin_standoff"] = (low, high)
+    if args.origin_tilt:
+        options["origin_tilt_deg"] = args.origin_tilt
+    if args.defect_size != 1.0:
+        options["defect_size"] = args.defect_size
+    return options
+
+
 def _run_name(args):
     """The scoring run's folder: what sets it apart from the defaults' (``defaults`` alone for the defaults)."""
     return ("defaults" + (f"_e{args.epochs}" if args.epochs else "")
@@ -162,7 +191,7 @@ def _single(part, args):
     """One part at the defaults. Returns (collection path, figures, table rows)."""
     t0 = time.perf_counter()
     sizes = dict(n_train=args.train, n_test_good=args.test_good, n_test_defective=args.per_defect or 16,
-                 n_points=args.points, jitter_deg=args.jitter)
+                 n_points=args.points, jitter_deg=args.jitter, **sensor_options(args))
     if args.family is not None:
         if args.no_origins:
             raise SystemExit("inspection: --family and --no-origins do not go together")

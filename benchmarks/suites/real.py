@@ -65,6 +65,12 @@ def add_arguments(p):
     p.add_argument("--shift", type=float, default=0.0, help="and a shift of up to this fraction of the part's "
                                                             "diagonal, per scan (parts placed by hand; default none)")
     inspect_api.add_align_options(p)
+    p.add_argument("--standoff", type=float, default=SENSOR_DISTANCE,
+                   help="the sensor origin the sidecars record: this many metres along the view's axis from the "
+                        "view's centre, as a user writes a nominal stand-off (default %(default)s: the sweep's "
+                        "near-orthographic rays; the defects are made with that one either way)")
+    p.add_argument("--origin-tilt", type=float, default=0.0, metavar="DEG",
+                   help="and the recorded axis turned by up to DEG degrees per scan (default: none)")
     p.add_argument("--strays", type=int, default=4, help="up to this many spurious returns on half the scans "
                                                          "(default: %(default)s)")
     p.add_argument("--size", type=float, default=1.0, help="defect size factor on datasets.defects' ranges")
@@ -169,7 +175,7 @@ def load_views(root=BUNNY):
         local, grid = read_range_ply(root / name)
         sensor_local = local.mean(0) + np.array([0.0, 0.0, SENSOR_DISTANCE])
         views.append(dict(name=Path(name).stem, points=local @ rot.T + t, sensor=rot @ sensor_local + t,
-                          grid_normals=grid_normals(local, grid) @ rot.T, R=rot, t=t))
+                          grid_normals=grid_normals(local, grid) @ rot.T, R=rot, t=t, local_centre=local.mean(0)))
     return views
 
 
@@ -330,6 +336,8 @@ def real_collection(args):
     params["source"] = str(Path(args.source).resolve())
     if args.shift:  # only when set, so that the trees built before the option keep their cache keys
         params["shift"] = args.shift
+    if args.standoff != SENSOR_DISTANCE or args.origin_tilt:  # likewise
+        params["sidecar_origin"] = [args.standoff, args.origin_tilt]
 
     def build(folder):
         from datasets.importer import import_tree
@@ -382,7 +390,7 @@ def build_tree(tree, args):
             shift = rng.normal(size=3)
             shift *= rng.uniform(0, args.shift) * diagonal / np.linalg.norm(shift)
         merged = (merged - centre) @ rot.T + centre + shift
-        sensor = (v["sensor"] - centre) @ rot.T + centre + shift
+        sensor = (_written_sensor(v, args, rng) - centre) @ rot.T + centre + shift
         stem = f"{n:03d}_{v['name']}"
         folder = tree / split / kind
         write_cloud(folder / f"{stem}.ply", merged)
@@ -395,6 +403,19 @@ def build_tree(tree, args):
             gt = tree / "ground_truth" / kind / f"{stem}.txt"
             _write_text(gt, "\n".join(str(int(x)) for x in lab) + "\n")
     print(f"wrote {len(plan)} scans in {time.perf_counter() - t0:.0f} s")
+
+
+def _written_sensor(view, args, rng):
+    """The sensor origin a sidecar records for ``view`` (world frame): ``--standoff`` metres along the view's axis
+    from its centre, the axis turned by up to ``--origin-tilt`` degrees (the view's own, drawn after every other draw
+    of the scan, so that the scans do not change with it)."""
+    if args.standoff == SENSOR_DISTANCE and not args.origin_tilt:
+        return view["sensor"]
+    from datasets.scanner import written_origin
+
+    centre = view["R"] @ view["local_centre"] + view["t"]
+    factor = args.standoff / SENSOR_DISTANCE
+    return written_origin(view["sensor"], centre, (factor, factor), args.origin_tilt, rng)
 
 
 def _write_text(path, text):

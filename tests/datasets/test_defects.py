@@ -105,3 +105,11 @@ def test_same_seed_same_defect(box):
 def test_unknown_kind_is_rejected(box):
     with pytest.raises(ValueError, match="scratch"):
         make_defect(box, "scratch", TOP, UP)
+
+
+def test_defect_size_scales_width_and_depth(box):
+    whole = make_defect(box, "dent", TOP, UP, seed=3)
+    half = make_defect(box, "dent", TOP, UP, seed=3, size=0.5)
+    assert half.radius == pytest.approx(0.5 * whole.radius) and half.height == pytest.approx(0.5 * whole.height)
+    with pytest.raises(ValueError, match="size"):
+        make_defect(box, "dent", TOP, UP, seed=3, size=0.0)

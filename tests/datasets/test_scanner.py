@@ -93,3 +93,48 @@ def test_jittered_pose_is_rigid_and_scans_the_moved_part(box, scanner):
     assert _surface_distance(moved, result.points).max() < 1e-4
     assert _surface_distance(box, result.to_mesh_frame(result.points)).max() < 1e-4
     assert np.all(np.sum(result.normals * (result.sensor_origin - result.points), axis=1) > 0)
+
+
+def test_pinhole_rays_all_leave_the_sensor_origin(scanner):
+    result = scanner.scan(scanner.random_view(seed=5), n_points=300, seed=6)
+    np.testing.assert_allclose(result.ray_origins, np.broadcast_to(result.sensor_origin, (300, 3)))
+
+
+def test_line_scanner_sweeps_parallel_fans_along_one_axis(box, scanner):
+    """A line scanner's rays leave a head that moves along a line through the recorded origin, perpendicular to the
+    optical axis; each line is a fan in the plane of the axis and the sweep's normal, so its rays are parallel along
+    the sweep, and every return lies on the part where its own ray meets it first."""
+    view = scanner.random_view(seed=7)
+    result = scanner.scan(view, n_points=800, seed=8, sensor="line")
+    assert _surface_distance(box, result.points).max() < 1e-4
+    start = result.ray_origins
+    forward = scanner.center - view.camera_position
+    forward /= np.linalg.norm(forward)
+    sweep = start - result.sensor_origin
+    assert np.abs(sweep @ forward).max() < 1e-9  # the head moves across the optical axis
+    spread = np.linalg.svd(sweep - sweep.mean(0), compute_uv=False)
+    assert spread[0] > 0.1 * scanner.diagonal and spread[1] < 1e-6 * scanner.diagonal  # along one line
+    # every ray lies in the plane of the optical axis and the fan: its direction is square to the sweep
+    axis = np.linalg.svd(sweep - sweep.mean(0))[2][0]
+    rays = result.clean_points - start
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    assert np.abs(rays @ axis).max() < 1e-6
+    # the recorded origin sees the returns from elsewhere than the rays that made them: not one centre
+    from_origin = result.clean_points - result.sensor_origin
+    from_origin /= np.linalg.norm(from_origin, axis=1, keepdims=True)
+    assert np.degrees(np.arccos(np.clip(np.sum(from_origin * rays, axis=1), -1, 1))).max() > 5.0
+    with pytest.raises(ValueError, match="sensor"):
+        scanner.scan(view, n_points=10, sensor="fisheye")
+
+
+def test_written_origin_keeps_to_its_stand_off_and_tilt_ranges():
+    from datasets.scanner import written_origin
+
+    center, origin = np.array([1.0, 2.0, 3.0]), np.array([1.0, 2.0, 13.0])
+    np.testing.assert_allclose(written_origin(origin, center, seed=0), origin)
+    axis = origin - center
+    for seed in range(50):
+        w = written_origin(origin, center, (0.5, 3.0), 5.0, seed=seed) - center
+        factor = np.linalg.norm(w) / np.linalg.norm(axis)
+        angle = np.degrees(np.arccos(np.clip(w @ axis / np.linalg.norm(w) / np.linalg.norm(axis), -1, 1)))
+        assert 0.5 - 1e-9 <= factor <= 3.0 + 1e-9 and angle <= 5.0 + 1e-9

@@ -159,3 +159,22 @@ def test_fandisk_defects_are_visible(shared_meshes):
         noise = 0.002 * np.linalg.norm(np.ptp(mesh.vertices, axis=0)) * frame.scale
         assert np.median(distance[labels]) > 2 * noise and np.quantile(distance[labels], 0.9) > 4 * noise
         assert np.quantile(distance[~labels], 0.99) < 4 * noise
+
+
+def test_written_origins_leave_the_scans_as_they_are(part):
+    """Sidecar origins written as a user writes them (a stand-off off by a factor, an axis off by degrees) change
+    the recorded origin of every scan and nothing else; a line scanner's scans are a scan collection like any."""
+    exact, _ = synthesise(part, seed=2, **SMALL)
+    written, _ = synthesise(part, seed=2, origin_standoff=(0.5, 3.0), origin_tilt_deg=5.0, **SMALL)
+    for x, y in zip(exact, written):
+        np.testing.assert_array_equal(x.points, y.points)
+        np.testing.assert_array_equal(x.point_labels if x.point_labels is not None else 0,
+                                      y.point_labels if y.point_labels is not None else 0)
+        assert not np.allclose(x.sensor_origin, y.sensor_origin)
+    lines, _ = synthesise(part, seed=2, sensor="line", **SMALL)
+    assert [s.name for s in lines] == [s.name for s in exact]
+    assert all(s.point_labels.sum() >= 24 for s in lines if s.label == "defective")
+    with pytest.raises(ValueError, match="origin_standoff"):
+        synthesise(part, seed=2, origin_standoff=(2.0, 1.0), **SMALL)
+    with pytest.raises(ValueError, match="sensor"):
+        synthesise(part, seed=2, sensor="fisheye", **SMALL)
