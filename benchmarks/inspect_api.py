@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 # the lines of the inspection's own output a benchmark repeats: what calibration did and any note on the threshold
-_ECHOED = ("note:", "threshold basis", "calibrated on", "part ")
+_ECHOED = ("note:", "threshold basis", "calibrated on", "part ", "the rays weighed")
 
 
 def model_info(model_path):
@@ -218,13 +218,14 @@ def read_scores(results_dir):
     """The per-scan rows a scored run wrote (``results/scores.csv``), as arrays: ``name``, ``label``, ``defect``,
     ``verdict`` ('good', 'defective', 'uncertain' (within the threshold's own uncertainty) or 'error': a scan that
     could not be scored, score NaN), ``score``, ``flagged`` (bool: the score exceeds the threshold, whatever the
-    verdict) and, with rays, ``score_points``, ``score_rays``."""
+    verdict) and, with rays, ``score_points``, ``score_rays`` (and where the run wrote them ``ray_nats``, the rays'
+    evidence that entered the score, and ``rays_through``)."""
     with open(Path(results_dir) / "scores.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
     out = {k: np.array([r[k] for r in rows]) for k in ("name", "label", "defect")}
     out["verdict"] = np.array([r["verdict"] for r in rows])
     out["flagged"] = np.array([r["flagged"] == "true" for r in rows])
-    for k in ("score", "score_points", "score_rays"):
+    for k in ("score", "score_points", "score_rays", "ray_nats", "rays_through"):
         if rows and k in rows[0]:
             out[k] = np.array([float(r[k]) if r[k] not in ("", None) else np.nan for r in rows])
     return out
@@ -337,54 +338,6 @@ def _inspector(model_path):
 
     handle = load_model(model_path)
     return Inspector.from_calibration(handle.model, handle.calibration)
-
-
-def ray_gate(run_dir, factors, alpha=None):
-    """The ``gated-log`` combination of a scored run with rays, rebuilt with its gate's ceiling at
-    log(1 + MAX_SURPRISAL / F) for each F of ``factors`` (None: no ceiling), the threshold refitted as the
-    Inspector does. Seconds: only the combination changes, the stored point and ray scores are reused.
-
-    Parameters
-    ----------
-    run_dir : str or Path
-        A :func:`calibrate_and_score` folder (``model.pt`` calibrated with rays, ``results/scores.csv``).
-    factors : sequence of float or None
-    alpha : float, optional
-        Default: the calibration's.
-
-    Returns
-    -------
-    list of dict
-        Per factor: ``factor``, ``gate`` (nats), ``scores`` (per test scan), ``threshold``, ``default`` (whether
-        this is the inspection's own ceiling).
-    """
-    from autodecoder.scanning.free_space import MAX_SURPRISAL
-    from inspection.combine import LOG_GATE_CEILING_FACTOR, Combination
-    from inspection.model_io import load_model
-    from inspection.threshold import fit_threshold
-
-    run_dir = Path(run_dir)
-    calibration = load_model(run_dir / "model.pt").calibration
-    rays = ((calibration.extra if calibration is not None else None) or {}).get("rays")
-    if not rays:
-        raise ValueError(f"{run_dir}: not calibrated with the ray score")
-    stored = Combination.from_dict(rays["components"])  # the calibration scans' component scores
-    comps = {name: stored.matrix[:, j] for j, name in enumerate(stored.names)}
-    rows = read_scores(run_dir / "results")
-    alpha = calibration.alpha if alpha is None else alpha
-    out = []
-    for factor in factors:
-        # the rule bounds the gate at log(1 + ceiling / LOG_GATE_CEILING_FACTOR): this ceiling puts it at
-        # log(1 + MAX_SURPRISAL / factor)
-        ceiling = None if factor is None else MAX_SURPRISAL * LOG_GATE_CEILING_FACTOR / factor
-        comb = Combination(comps, names=("points", "rays"), ceiling=ceiling, floor=stored.floor,
-                           top_margin=stored.top_margin)  # all else as calibrated
-        scores = comb.score({"points": rows["score_points"], "rays": rows["score_rays"]})
-        threshold = fit_threshold(comb.calibration_scores(), alpha, calibration.roles)
-        out.append({"factor": factor, "gate": float(np.expm1(comb.mean[1] + comb.sd[1] * comb.gate[1])),
-                    "scores": np.asarray(scores), "threshold": threshold.value,
-                    "default": factor == LOG_GATE_CEILING_FACTOR})
-    return out
 
 
 def fit_inspector(model_path, data_path, progress=False):

@@ -12,7 +12,10 @@ Tree layout (split, label and defect come from the folders)::
 
 A flat folder of clouds (no train/validation/test folder) becomes split 'test', label 'unknown'.
 Sensor origin (optional, file units): an npz key ``sensor_origin`` or a sidecar ``<stem>.json`` holding
-``{"sensor_origin": [x, y, z]}`` beside the cloud.
+``{"sensor_origin": [x, y, z]}`` beside the cloud, or only the direction the sensor looked from,
+``{"view_direction": [x, y, z]}`` (from the part toward the sensor, any length: a line scanner's sweep, a sensor
+whose stand-off nobody wrote down): the origin is then put ``VIEW_DIRECTION_DISTANCE`` bounding-box diagonals from
+the cloud's centre along it, where its rays to the part are parallel within a third of a degree.
 """
 import json
 import logging
@@ -34,6 +37,7 @@ log = logging.getLogger(__name__)
 
 MIN_POINTS = 3  # fewer finite points cannot define a tangent plane, let alone a surface
 _SIDECAR_SUFFIX = ".json"
+VIEW_DIRECTION_DISTANCE = 100.0  # bounding-box diagonals: a sidecar's view direction as a far origin (module doc)
 
 
 @dataclass(frozen=True)
@@ -117,25 +121,36 @@ def _public_layouts():
 
 
 # ---- per-file processing ---------------------------------------------------------------------------------------------
-def _read_sensor_origin(path):
-    """Sensor origin (3,) in file units from an npz key or a ``<stem>.json`` sidecar, or None."""
+def _read_sensor_origin(path, points):
+    """Sensor origin (3,) in file units from an npz key or a ``<stem>.json`` sidecar (a ``view_direction`` becomes
+    a far origin beyond the cloud ``points``: module docstring), or None."""
     if path.suffix.lower() == ".npz":
         with np.load(path, allow_pickle=False) as z:
             if "sensor_origin" in z.files:
                 return _check_origin(z["sensor_origin"], path)
     sidecar = path.with_suffix(_SIDECAR_SUFFIX)
     if sidecar.is_file():
+        expected = '{"sensor_origin": [x, y, z]} or {"view_direction": [x, y, z]}'
         try:
-            return _check_origin(json.loads(sidecar.read_text())["sensor_origin"], sidecar)
-        except (json.JSONDecodeError, KeyError, TypeError) as e:
-            raise ValueError(f"{sidecar}: expected {{\"sensor_origin\": [x, y, z]}} ({e})") from None
+            record = json.loads(sidecar.read_text())
+            if "sensor_origin" in record:
+                return _check_origin(record["sensor_origin"], sidecar)
+            direction = _check_origin(record["view_direction"], sidecar, "view_direction")
+        except (json.JSONDecodeError, KeyError, TypeError, AttributeError) as e:
+            raise ValueError(f"{sidecar}: expected {expected} ({e})") from None
+        length = float(np.linalg.norm(direction))
+        if not length > 0:
+            raise ValueError(f"{sidecar}: view_direction must not be zero")
+        lo, hi = points.min(0), points.max(0)
+        diagonal = max(float(np.linalg.norm(hi - lo)), 1e-12)
+        return (lo + hi) / 2 + VIEW_DIRECTION_DISTANCE * diagonal * direction / length
     return None
 
 
-def _check_origin(value, where):
+def _check_origin(value, where, what="sensor_origin"):
     o = np.asarray(value, dtype=np.float64).reshape(-1)
     if o.shape != (3,) or not np.all(np.isfinite(o)):
-        raise ValueError(f"{where}: sensor_origin must be 3 finite numbers, got {value!r}")
+        raise ValueError(f"{where}: {what} must be 3 finite numbers, got {value!r}")
     return o
 
 
@@ -192,7 +207,7 @@ def load_source(src, voxel=None, n_points=None, seed=0):
         labels = labels[ok] if labels is not None else None
     if np.ptp(points, axis=0).max() == 0:
         raise ValueError(f"{src.path}: all {len(points)} points are identical")
-    origin = _read_sensor_origin(src.path)
+    origin = _read_sensor_origin(src.path, points)
     if normals is None:
         normals = estimate_normals(points, origin)
     else:

@@ -15,7 +15,6 @@ from sklearn.exceptions import NotFittedError
 from datasets.validation import points_and_normals
 
 from .calibration import Calibration
-from .combine import RULE as COMBINATION_RULE
 from .config import DEFAULT_AGGREGATE, DEFAULT_PROJECTION, InspectionConfig
 from .evidence import ScanEvidence, field_for, gather_evidence, scan_name, stage
 from .aggregates import aggregate as aggregate_scores
@@ -75,10 +74,12 @@ class ScanResult:
     ``transform`` (4, 4) is the registration that moved the scan before it was scored (``align=True``; None
     otherwise); ``point_scores`` are in the scan's own point order either way. ``components`` holds the per-scan
     scores that make ``score``: ``{"points": ...}`` (the aggregate of the point
-    scores), plus ``"rays"`` (the ray score) when rays are used; then ``rays`` is the
-    :class:`~inspection.ray_evidence.RayEvidence` (its ``point_map`` is the per-point ray map) and ``score`` the
-    combination (:mod:`inspection.combine`). ``stray`` (m,) bool marks the scan's stray returns, left out of the
-    score's aggregate and of the anomaly map's patches (None: none looked for).
+    scores), plus ``"rays"`` (the ray score: the aggregate of the rays' surprisals, nats) when rays are used; then
+    ``rays`` is the :class:`~inspection.ray_evidence.RayEvidence` (its ``point_map`` is the per-point ray map), and
+    once the calibration weighs the rays (:meth:`Inspector.inspect`) ``components["ray_nats"]`` is their evidence I
+    (:mod:`inspection.ray_calibration`), ``ray_point_nats`` (m,) the same per point (what the anomaly map adds) and
+    ``score`` the combination (:mod:`inspection.combine`). ``stray`` (m,) bool marks the scan's stray returns, left
+    out of the score's aggregate and of the anomaly map's patches (None: none looked for).
     """
 
     score: float
@@ -88,6 +89,7 @@ class ScanResult:
     rays: object = None
     transform: np.ndarray = None
     stray: np.ndarray = None
+    ray_point_nats: np.ndarray = None
 
 
 def _progress(items, verbose, desc):
@@ -263,7 +265,19 @@ class Inspector(BaseEstimator):
         result = self.inspect_components(scan, index, timings)
         if combination is not None:
             with stage(timings, "combine"):
-                result.score = float(combination.score([result.components])[0])
+                self._weigh_rays(result, combination)
+        return result
+
+    @staticmethod
+    def _weigh_rays(result, combination):
+        """``result`` with its rays weighed by the calibration (:mod:`inspection.ray_calibration`): its ray evidence
+        I in ``components['ray_nats']``, per point in ``ray_point_nats``, and the combined ``score``."""
+        rays = combination.rays
+        per_ray = rays.ray_nats(result.rays)
+        n = len(result.rays.ray_surprisal)
+        result.ray_point_nats = result.rays.per_point(per_ray[:n], per_ray[n:])
+        result.components["ray_nats"] = combination.nats(result.rays)
+        result.score = combination.score(result.components["points"], result.rays)
         return result
 
     def inspect_components(self, scan, index=0, timings=None):
@@ -380,7 +394,10 @@ class Inspector(BaseEstimator):
         from .maps import map_values
 
         one = self.for_scan(scan)
-        return map_values(one._settings(), scan, one.inspect_components(scan))[0]
+        result = one.inspect_components(scan)
+        if one._settings().rays and getattr(one, "combination_", None) is not None:
+            one._weigh_rays(result, one.combination_)
+        return map_values(one._settings(), scan, result)[0]
 
     def ray_map(self, scan):
         """Per-point ray scores (m,) in [0, 1] of one scan (with rays; see :mod:`inspection.ray_evidence`)."""
@@ -497,15 +514,15 @@ class Inspector(BaseEstimator):
         terms = [None] * len(goods)
         if settings.point_score in WEIGHED_SCORES:
             terms = self._fit_term_variances(goods, references, uncovered, settings)
-        components = [self._score(good, reference_j, settings, uncovered=out, terms=t).components
-                      for good, reference_j, out, t in zip(goods, references, uncovered, terms)]
+        results = [self._score(good, reference_j, settings, uncovered=out, terms=t)
+                   for good, reference_j, out, t in zip(goods, references, uncovered, terms)]
         roles = ["held-back"] * len(held) + [role] * len(crossed)
         how = selection.how
         if crossed:
             how += (f" and {len(crossed)} training scans scored by fold models that never saw them" if role == "fold"
                     else f" and {len(crossed)} training scans cross-fitted")
         self.calibration_source_ = how
-        return self._calibrate_from(components, names + [g.name for g in crossed], roles)
+        return self._calibrate_from(results, names + [g.name for g in crossed], roles)
 
     def _fit_term_variances(self, goods, references, uncovered, settings):
         """Weigh the joint score's two terms by what the calibration scans show (:func:`fit_term_variances`, on
@@ -624,27 +641,29 @@ class Inspector(BaseEstimator):
                                               np.concatenate(field_var), np.concatenate(noise_var),
                                               np.concatenate(grazing) if with_grazing else None)
 
-    def _calibrate_from(self, components, names, roles=None):
-        """Calibrate from the ``components`` of :meth:`inspect_components` (one dict per good calibration scan);
-        ``roles`` says for each whether it was held back or cross-fitted (default: held back).
+    def _calibrate_from(self, results, names, roles=None):
+        """Calibrate from the :class:`ScanResult` of each good calibration scan (:meth:`inspect_components`'s);
+        ``roles`` says for each whether it was held back, scored by a fold model or cross-fitted (default: held
+        back).
 
-        Without rays the calibration scores are the point scores' aggregates. With rays the components are
-        standardized on these scans (``combination_``) and the calibration scores are their leave-one-out
-        combinations (:meth:`inspection.combine.Combination.calibration_scores`). Returns self.
+        Without rays the calibration scores are the point scores' aggregates. With rays the rays are weighed by these
+        scans' rays (``combination_``: :mod:`inspection.ray_calibration`) and the calibration scores are the
+        combined scores, each scan's ray evidence computed leave-one-out
+        (:meth:`inspection.combine.Combination.calibration_scores`). Returns self.
         """
-        components = list(components)
-        if not components:
+        results = list(results)
+        if not results:
             raise ValueError("calibration needs at least one good scan, got none")
-        roles = ["held-back"] * len(components) if roles is None else list(roles)
+        roles = ["held-back"] * len(results) if roles is None else list(roles)
+        points = [r.components["points"] for r in results]
         if not self.settings_.rays:
             self.combination_ = None
-            return self._set([c["points"] for c in components], names, roles)
-        from autodecoder.scanning.free_space import MAX_SURPRISAL
+            return self._set(points, names, roles)
+        from .combine import Combination
 
-        from .combine import RAY_GATE_FLOOR, Combination
-
-        self.combination_ = Combination(components, names=("points", "rays"), rule=COMBINATION_RULE,
-                                        ceiling=MAX_SURPRISAL, floor=RAY_GATE_FLOOR)
+        scale = getattr(results[0].field, "lengthscale", None) if results[0].field is not None else None
+        self.combination_ = Combination.fit(points, [r.rays for r in results], scale,
+                                            self.settings_.ray_options["aggregate"])
         return self._set(self.combination_.calibration_scores(), names, roles)
 
     def _set(self, scores, names, roles):
@@ -692,18 +711,9 @@ class Inspector(BaseEstimator):
             self.aligner_ = Aligner.from_dict(extra["align"])
         rays = extra.get("rays")
         self.combination_ = None
-        if self.settings_.rays and "skim_cos" not in (self.settings_.ray_options or {}):
-            from .ray_evidence import SKIM_COS_BEFORE
-
-            # calibrated before rays skimming past the good surface were left out: scored as it was calibrated
-            self.settings_ = replace(self.settings_, ray_options={**self.settings_.ray_options,
-                                                                  "skim_cos": SKIM_COS_BEFORE})
-        if rays is not None:
+        if rays is not None:  # (a record whose rays were combined by a retired rule: a ValueError to calibrate again)
             from .combine import Combination
 
-            if rays.get("reference") is not None:
-                raise ValueError("its ray score was calibrated with a ray reference (ray option band=None), a rule "
-                                 "that is retired")
             self.combination_ = Combination.from_dict(rays["components"])
         self.calibration_source_ = calibration.source
         self.data_fingerprint_ = calibration.fingerprint

@@ -85,7 +85,7 @@ def write_html_report(path, rows, summary, scan_views=(), title="Inspection repo
     path : str or Path
     rows : list of dict
         ``scores.csv``'s rows (name, split, label, defect, score, p_value, verdict, flagged, reason; with rays
-        score_points and score_rays).
+        score_points, score_rays, ray_nats and rays_through).
     summary : dict
         ``summary.json``'s content (:func:`inspection.results.summarize_run`).
     scan_views : list of dict
@@ -219,11 +219,11 @@ def _table_html(rows, summary, viewed):
     labelled = any(r.get("label") not in (None, "", "unknown") for r in rows)
     cols = [("name", "scan"), ("score", "score"), ("p_value", "p-value"), ("verdict", "verdict")]
     if rays:
-        cols += [("score_points", "point score"), ("score_rays", "ray score")]
+        cols += [("score_points", "point score"), ("score_rays", "ray score"), ("ray_nats", "ray evidence")]
     if labelled:
         cols += [("truth", "truth")]
     cols += [("reason", "reason"), ("view", "map")]
-    numeric = ("score", "p_value", "score_points", "score_rays")
+    numeric = ("score", "p_value", "score_points", "score_rays", "ray_nats")
     head = "".join(f'<th data-col="{i}" data-type="{"num" if k in numeric else "text"}">{h}</th>'
                    for i, (k, h) in enumerate(cols))
     body = []
@@ -266,6 +266,8 @@ def _settings_html(summary):
                   f"field's {v_d ** 0.5:.2f}, the good points' {v_s ** 0.5:.2f} standard deviations</td></tr>")
     if summary.get("rays"):
         items += f"<tr><th>rays</th><td>{_e(summary['rays'].get('score', 'on'))}</td></tr>"
+        if summary["rays"].get("weighing"):
+            items += f"<tr><th>rays' weight</th><td>{_e(summary['rays']['weighing'])}</td></tr>"
     return (f'<section id="settings"><h2>How the scores were made</h2><table class="kv">{items}</table>'
             '<p class="note">Everything here is also in summary.json and scores.csv beside this page.</p></section>')
 

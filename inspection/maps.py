@@ -90,7 +90,8 @@ def patch_residuals(points, residuals, neighbours=MAP_NEIGHBOURS, excluded=None)
 def map_values(settings, scan, res, neighbours=MAP_NEIGHBOURS, rays=True):
     """What a scan's maps show: the patch residuals of its standardized residuals (:func:`patch_residuals`; its
     point scores when they are standardized, else the field's plain ``'residual'``), with rays sqrt(r^2 + 2 s) with
-    each point's ray surprisal s (module docstring), and its ray map (m,) with rays, else None.
+    each point's ray evidence s (module docstring: its rays' surprisal as the calibration weighs it,
+    ``res.ray_point_nats``, else as the field gives it), and its ray map (m,) with rays, else None.
 
     Parameters
     ----------
@@ -117,7 +118,9 @@ def map_values(settings, scan, res, neighbours=MAP_NEIGHBOURS, rays=True):
     values = patch_residuals(points, resid, neighbours, excluded=res.stray)
     if not settings.rays:
         return values, None
-    return (with_ray_evidence(values, res.rays.point_surprisal) if rays else values), res.rays.point_map
+    weighed = getattr(res, "ray_point_nats", None)  # the rays as the calibration weighs them, where it has
+    return (with_ray_evidence(values, res.rays.point_surprisal if weighed is None else weighed) if rays else values), \
+        res.rays.point_map
 
 
 def with_ray_evidence(values, surprisal):

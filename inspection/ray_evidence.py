@@ -56,9 +56,8 @@ from .aggregates import aggregate as aggregate_values, check_aggregate
 log = logging.getLogger(__name__)
 
 RAY_DEFAULTS = {"n_rays": 384, "n_empty": 128, "gap": 2.0, "aggregate": "top1", "seed": 0, "clearance": None,
-                "own_depth": "auto", "band": 0.5, "min_cos": 0.2, "skim_cos": 0.4}
-# a calibration stored before ``skim_cos`` existed computed its ray scores without it: read as this
-SKIM_COS_BEFORE = 0.0
+                "own_depth": "auto", "band": 0.5, "min_cos": 0.2, "skim_cos": 0.4, "occlusion": 2.0,
+                "empty_to_rim": True}
 
 
 @dataclass
@@ -82,6 +81,16 @@ class RayEvidence:
         Unit directions of the tested missing returns.
     empty_values, empty_surprisal : (E,) float64 arrays
         P(hit) of those rays and -log P(no hit) (nats).
+    ray_block, empty_block : (R, 3), (E, 3) float64 arrays
+        Where each tested ray is most likely blocked (NaN where untested): the place it accuses.
+    through_observed : (R,) bool array
+        The returned rays that passed through the scan's own surface and were not tested
+        (:func:`autodecoder.scanning.free_space.blocked_probability`).
+    nearest : (m,) int array
+        Each point's nearest tested returned ray (an index into ``ray_index``).
+    rim_points, rim_rays : (K,) int arrays
+        Points on the rim of a hole in the image and the missing-return ray (an index into ``empty_directions``)
+        whose value they take where larger (:meth:`per_point`).
     """
 
     score: float
@@ -95,6 +104,18 @@ class RayEvidence:
     empty_surprisal: np.ndarray = field(default_factory=lambda: np.zeros(0))
     ray_block: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     empty_block: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    through_observed: np.ndarray = None
+    nearest: np.ndarray = None
+    rim_points: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    rim_rays: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+    def per_point(self, ray_values, empty_values):
+        """Per-ray values (R,) and (E,) as a per-point map (m,): each point takes its nearest tested returned ray's
+        value, and a hole's rim the larger of that and its missing return's (module docstring)."""
+        out = np.asarray(ray_values, dtype=np.float64).reshape(-1)[self.nearest].copy()
+        if len(self.rim_points):
+            np.maximum.at(out, self.rim_points, np.asarray(empty_values, dtype=np.float64).reshape(-1)[self.rim_rays])
+        return out
 
 
 def check_ray_options(options):
@@ -127,12 +148,26 @@ def check_ray_options(options):
         if not 0 <= float(opts[key]) < 1:
             raise ValueError(f"ray option {key} must be in [0, 1), got {opts[key]!r}")
         opts[key] = float(opts[key])
+    if opts["occlusion"] is not None:
+        if not float(opts["occlusion"]) > 0:
+            raise ValueError(f"ray option occlusion must be None or > 0 (the scan's median point spacings), got "
+                             f"{opts['occlusion']!r}")
+        opts["occlusion"] = float(opts["occlusion"])
+    if not isinstance(opts["empty_to_rim"], (bool, np.bool_)):
+        raise ValueError(f"ray option empty_to_rim must be True or False, got {opts['empty_to_rim']!r}")
+    opts["empty_to_rim"] = bool(opts["empty_to_rim"])
     if opts["own_depth"] not in (None, "auto"):
         if not float(opts["own_depth"]) > 0:
             raise ValueError(f"ray option own_depth must be None, 'auto' or > 0 (world units), got "
                              f"{opts['own_depth']!r}")
         opts["own_depth"] = float(opts["own_depth"])
     check_aggregate(opts["aggregate"])
+    from .ray_calibration import top_count
+
+    try:
+        top_count(opts["aggregate"], 1)
+    except ValueError as exc:
+        raise ValueError(f"ray option aggregate: {exc}") from None
     return opts
 
 
@@ -140,7 +175,8 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
                  gap=RAY_DEFAULTS["gap"], aggregate=RAY_DEFAULTS["aggregate"], seed=RAY_DEFAULTS["seed"],
                  clearance=RAY_DEFAULTS["clearance"], own_depth=RAY_DEFAULTS["own_depth"],
                  band=RAY_DEFAULTS["band"], surface=None, min_cos=RAY_DEFAULTS["min_cos"], grazing=None,
-                 surface_normals=None, skim_cos=RAY_DEFAULTS["skim_cos"], **check_options):
+                 surface_normals=None, skim_cos=RAY_DEFAULTS["skim_cos"], occlusion=RAY_DEFAULTS["occlusion"],
+                 empty_to_rim=RAY_DEFAULTS["empty_to_rim"], **check_options):
     """The ray score of one scan under its projected field.
 
     Parameters
@@ -189,6 +225,16 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
         making |cos| < ``skim_cos`` with that point's normal, is not tested: the ray skims past the good surface
         there, through the field's blurred rim, where nothing can be missing
         (:class:`autodecoder.scanning.free_space.SurfaceBand`; 0: every sample in the band is tested).
+    occlusion : float > 0 or None
+        A returned ray that comes within this many of the scan's median point spacings (and within the clearance) of
+        one of its own points more than ``own_depth`` before its point passed through the scan's own surface: the
+        sensor did not travel it, and it is not tested
+        (:func:`autodecoder.scanning.free_space.blocked_probability`'s ``occlusion_radius``; None: every ray). Not
+        beyond the clearance: a ray through a hole that passes the hole's rim closer than that is untested where it
+        crosses the wall anyway, so the rule costs the holes nothing.
+    empty_to_rim : bool
+        A missing return is tested only up to ``own_depth`` beyond the nearest return around it in the image (its
+        rim; :func:`_rim_depth`); False: through the field's box.
     **check_options
         Passed to :func:`autodecoder.scanning.free_space.blocked_probability` (``outside_sigma``, ``step``, ...).
 
@@ -198,7 +244,7 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
     """
     from scipy.spatial import cKDTree
 
-    from autodecoder.scanning.free_space import blocked_probability, missing_return_probability
+    from autodecoder.scanning.free_space import blocked_probability, median_spacing, missing_return_probability
 
     points = np.asarray(points, dtype=np.float64)
     origin = np.asarray(origin, dtype=np.float64).reshape(3)
@@ -220,14 +266,20 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
     if own_depth == "auto" and surface_band is None:
         own_depth = None
     # one tree over the scan's points for both kinds of rays
-    check_options = dict(check_options, observed=cKDTree(points), clearance=clearance, seed=seed, band=surface_band)
-    check = blocked_probability(field, origin, points[index], own_depth=own_depth, **check_options)
-    values, surprisal = check.p_blocked, -check.log_free
+    observed = cKDTree(points)
+    check_options = dict(check_options, observed=observed, clearance=clearance, seed=seed, band=surface_band)
+    radius = None
+    if occlusion is not None:  # never beyond the clearance: a hole's rays that pass its rim closer are untested there
+        reach = clearance if clearance is not None else field.lengthscale
+        radius = occlusion * median_spacing(observed)
+        radius = radius if reach is None else min(radius, float(reach))
+    check = blocked_probability(field, origin, points[index], own_depth=own_depth,
+                                occlusion_radius=radius if radius else None, **check_options)
+    values, surprisal = check.p_blocked, np.maximum(-check.log_free, 0.0)
     ray_block = _block_points(origin, points[index] - origin, check)
     # every point takes the value of the nearest tested ray: the points seen through a hole lie together
     nearest = cKDTree(points[index]).query(points, k=1)[1]
-    point_map = values[nearest].astype(np.float64)
-    point_surprisal = np.maximum(surprisal[nearest], 0.0).astype(np.float64)
+    rim_points, rim_rays = np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
     e_dirs, e_values, e_surprisal, e_block = np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros((0, 3))
     if n_empty > 0:
         dirs, h_uv, uv, pitch = image_holes(points, origin, gap)
@@ -235,24 +287,48 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
             pick = np.arange(len(dirs)) if len(dirs) <= n_empty else \
                 np.sort(rng.choice(len(dirs), n_empty, replace=False))
             e_dirs, h_uv = dirs[pick], h_uv[pick]
-            t_far = 2.0 * float(np.linalg.norm(points - origin, axis=1).max())
+            depth = np.linalg.norm(points - origin, axis=1)
+            t_far = 2.0 * float(depth.max())
             options = {k: v for k, v in check_options.items() if k != "outside_sigma"}
-            empty = missing_return_probability(field, origin, e_dirs, t_far=t_far, **options)
-            e_values, e_surprisal = empty.p_blocked, -empty.log_free
+            rim = _rim_depth(uv, depth, h_uv, own_depth, field) if empty_to_rim else None
+            empty = missing_return_probability(field, origin, e_dirs, t_far=t_far, t_max=rim, **options)
+            e_values, e_surprisal = empty.p_blocked, np.maximum(-empty.log_free, 0.0)
             e_block = _block_points(origin, e_dirs, empty)
             # the rim of a hole shows what its missing returns say
-            for k, near in enumerate(cKDTree(uv).query_ball_point(h_uv, (gap + 1.5) * pitch)):
-                if near:
-                    point_map[near] = np.maximum(point_map[near], e_values[k])
-                    point_surprisal[near] = np.maximum(point_surprisal[near], e_surprisal[k])
+            rims = cKDTree(uv).query_ball_point(h_uv, (gap + 1.5) * pitch)
+            rim_points = np.array([i for near in rims for i in near], dtype=np.int64)
+            rim_rays = np.repeat(np.arange(len(rims)), [len(near) for near in rims]).astype(np.int64)
     # the surprisal of what the sensor saw, -log P(free): the rays' negative log likelihood. Probabilities near 1
     # all look alike, so a top-k mean of them cannot tell a ray the field is unsure about from one through a wall
     # it is sure of; their surprisals can (P = 0.99: 4.6 nats; a wall 5 sd deep: ~15)
     score = aggregate_values(np.concatenate([surprisal, e_surprisal]), aggregate)
-    return RayEvidence(score=score, point_map=point_map, ray_index=index, ray_values=values, ray_surprisal=surprisal,
-                       point_surprisal=point_surprisal,
-                       empty_directions=e_dirs, empty_values=e_values, empty_surprisal=e_surprisal,
-                       ray_block=ray_block, empty_block=e_block)
+    out = RayEvidence(score=score, point_map=None, ray_index=index, ray_values=values, ray_surprisal=surprisal,
+                      empty_directions=e_dirs, empty_values=e_values, empty_surprisal=e_surprisal,
+                      ray_block=ray_block, empty_block=e_block, through_observed=check.through_observed,
+                      nearest=nearest, rim_points=rim_points, rim_rays=rim_rays)
+    out.point_map = out.per_point(values, e_values)
+    out.point_surprisal = out.per_point(surprisal, e_surprisal)
+    return out
+
+
+RIM_RETURNS = 8  # the returns nearest a hole cell in the image that give its rim's depth
+
+
+def _rim_depth(uv, depth, hole_uv, own_depth, field):
+    """How deep each missing-return ray is tested (world units from the origin): the nearest of the
+    ``RIM_RETURNS`` returns around its cell in the image plus ``own_depth`` ('auto': 3 kernel lengthscales; None:
+    no limit). A hole in a wall is missing where its rim is; material far behind the nearest return around a gap is
+    the shadow of an edge that an approximate origin uncovers (:mod:`autodecoder.scanning.free_space`)."""
+    from scipy.spatial import cKDTree
+
+    from autodecoder.scanning.free_space import OWN_DEPTH_FACTOR
+
+    if own_depth == "auto":
+        own_depth = None if field.lengthscale is None else OWN_DEPTH_FACTOR * field.lengthscale
+    if own_depth is None:
+        return None
+    rows = cKDTree(uv).query(hole_uv, k=min(RIM_RETURNS, len(uv)))[1].reshape(len(hole_uv), -1)
+    return depth[rows].min(axis=1) + float(own_depth)
 
 
 def _block_points(origin, directions, check):

@@ -13,7 +13,11 @@ from datasets.atomic import atomic_path
 # ``flagged``: whether the score exceeds the threshold (true / false; empty for an error); ``reason``: why a scan
 # whose verdict is ``error`` could not be scored (empty for the others)
 CSV_COLUMNS = ("name", "split", "label", "defect", "score", "p_value", "verdict", "flagged", "reason")
-RAY_CSV_COLUMNS = CSV_COLUMNS + ("score_points", "score_rays")  # with rays: the two components of the score
+# with rays: the score's two components (the point score; the rays' surprisal aggregate in nats, as the field gives
+# it), the rays' evidence that entered the score (nats, as good scans weigh it: inspection.ray_calibration) and the
+# share of the scan's returned rays that passed through its own surface (not tested: its sensor origin is off)
+RAY_CSV_COLUMNS = CSV_COLUMNS + ("score_points", "score_rays", "ray_nats", "rays_through")
+_FLOAT_COLUMNS = ("score", "score_points", "score_rays", "ray_nats", "rays_through")
 ERROR_VERDICT = "error"
 UNCERTAIN_VERDICT = "uncertain"  # the score lies within the threshold's own uncertainty: rescan
 
@@ -32,7 +36,7 @@ def write_scores_csv(path, rows, columns=CSV_COLUMNS):
     writer = csv.DictWriter(buf, fieldnames=columns, extrasaction="ignore", lineterminator="\n")
     writer.writeheader()
     for r in rows:
-        floats = {k: "" if r.get(k) is None else f"{r[k]:.9g}" for k in ("score", "score_points", "score_rays")}
+        floats = {k: "" if r.get(k) is None else f"{r[k]:.9g}" for k in _FLOAT_COLUMNS}
         p_value = "" if r.get("p_value") is None else f"{r['p_value']:.6g}"
         flagged = "" if r["verdict"] == ERROR_VERDICT else str(_flagged(r)).lower()
         writer.writerow({**r, **floats, "p_value": p_value, "flagged": flagged, "reason": r.get("reason", "")})

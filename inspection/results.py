@@ -41,7 +41,7 @@ def write_scan_maps(scan, values, rays, maps_dir):
 
 def summarize_run(handle, insp, data, split, align, results):
     """summary.json's content: the verdict metrics (:func:`inspection.report.summarize`) and how they were made."""
-    from .estimator import COMBINATION_RULE
+    from .combine import RULE
     from .report import summarize
 
     settings = insp.settings_
@@ -58,8 +58,9 @@ def summarize_run(handle, insp, data, split, align, results):
              "maps": results["maps"], "higher_score_means": "more anomalous",
              "rays": None if not settings.rays else {
                  "options": settings.ray_options,
-                 "score": "the point score plus what the ray score shows beyond the good calibration scans' "
-                          "(inspection.combine, rule " + COMBINATION_RULE + ")"}}
+                 "score": "sqrt(point score^2 + 2 x the rays' evidence in nats, weighed per ray, per place and as a "
+                          "whole by the good calibration scans' rays) (inspection.combine, rule " + RULE + ")",
+                 "weighing": None if parted else insp.combination_.rays.describe()}}
     # the joint score's two terms' variances on the good calibration scans (field, good points), what weighs them
     extra["term_variances"] = None if parted else insp.term_variances()
     if parted:  # thresholds per part: summary['parts']; scores compare within a part only

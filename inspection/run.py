@@ -6,6 +6,8 @@ is :mod:`inspection.results`'; a user's mistake is an :class:`inspection.errors.
 import time
 from pathlib import Path
 
+import numpy as np
+
 from .errors import InspectionError, about
 from .loading import COLLECTION_SUFFIXES, load_scans, open_collection
 from .results import prepare_out, summarize_run, write_results, write_scan_maps
@@ -70,6 +72,8 @@ def describe_calibration(insp, info):
             t = one.decision_threshold_
             lines.append(f"part {part}: threshold {t.value:.4g} at alpha={t.alpha:g} ({t.basis}) on "
                          f"{one.n_calibration_} scans{_term_spread(one)}")
+            if getattr(one, "combination_", None) is not None:
+                lines.append(f"part {part}: {one.combination_.rays.describe()}")
             if t.note:
                 lines.append(f"note: part {part}: {t.note}")
             if getattr(one, "alignment_note_", ""):
@@ -87,6 +91,8 @@ def describe_calibration(insp, info):
                        "scan is registered onto it before it is scored")
     lines = [f"calibrated on {info['n']} scans ({info['how']}): {what}; threshold {t.value:.4g} at alpha={t.alpha:g} "
              f"({t.basis})"]
+    if getattr(insp, "combination_", None) is not None:  # how much the rays count, as the good scans' rays say
+        lines.append(insp.combination_.rays.describe())
     if t.note:
         lines.append(f"note: {t.note}")
     return lines + aligned
@@ -271,7 +277,10 @@ def _inspect_one(insp, scan, i, maps, maps_dir, uncertain=True):
            "score": res.score, "p_value": float(one.p_values_from_scores([res.score])[0]), "verdict": verdict,
            "reason": "", "flagged": flagged}
     if rays:
-        row.update(score_points=res.components["points"], score_rays=res.components["rays"])
+        through = res.rays.through_observed
+        row.update(score_points=res.components["points"], score_rays=res.components["rays"],
+                   ray_nats=res.components.get("ray_nats"),
+                   rays_through=float(np.mean(through)) if through is not None and len(through) else 0.0)
     out["row"] = row
     mapped = maps == "all" or (maps == "flagged" and verdict != "good")
     if scan.point_labels is not None or mapped:

@@ -426,12 +426,48 @@ def test_a_family_variant_is_bent_as_a_pure_bend():
     assert cache.family_ranges("stretch") is cache.FAMILY_STRETCH
 
 
+def test_ray_targets_are_checked_as_the_issue_states(tmp_path):
+    """benchmarks/suites/rays.py (issue 46): the default against the points alone - 0.005, defective flagged within
+    0.05 of the points-alone oracle where it is >= 0.9 at most 1 of 16 good scans flagged there, missing material
+    >= 0.9 on the thin-walled trees; and a run's row read from its scores.csv."""
+    from benchmarks.suites.rays import check_targets, run_figures
+    from benchmarks.trees import RAY_TREES, THIN_WALLED
+
+    def run(tree, auroc=1.0, points=1.0, defective=1.0, oracle=1.0, good=0, missing=1.0):
+        return dict(tree=tree, seed=0, auroc=auroc, points_alone=points, defective=defective, points_oracle=oracle,
+                    good=good / 16, good_text=f"{good} of 16", missing=missing)
+
+    assert set(THIN_WALLED) <= set(RAY_TREES)
+    fine = [run("bunny-near-origins", auroc=0.996, points=1.0, defective=0.96), run("cup", missing=0.93),
+            run("ogre-line", defective=0.5, oracle=0.6, good=3)]  # an oracle below 0.9 is not judged
+    out = check_targets(fine)
+    assert not (out["ranking"] or out["detection"] or out["false_alarms"] or out["missing"])
+    bad = [run("bunny-near-origins", auroc=0.994), run("cup", defective=0.94, missing=0.89, good=2)]
+    out = check_targets(bad)
+    assert [m.split(" (")[0] for m in out["ranking"]] == ["bunny-near-origins seed 0"]
+    assert [m.split(" (")[0] for m in out["detection"]] == ["cup seed 0"]
+    assert out["false_alarms"] == ["cup seed 0 (2 of 16)"] and out["missing"] == ["cup seed 0 (0.890)"]
+    # a run's row from its scores.csv: the defaults, the two columns alone, the points-alone oracle
+    results = tmp_path / "run" / "results"
+    results.mkdir(parents=True)
+    rows = [("g1", "good", "", 3.0, "good", "false", 3.0, 0.0), ("g2", "good", "", 5.0, "uncertain", "true", 4.0, 9.0),
+            ("d1", "defective", "dent", 6.0, "defective", "true", 6.0, 0.0),
+            ("m1", "defective", "missing", 4.5, "good", "false", 3.5, 80.0)]
+    text = "name,split,label,defect,score,p_value,verdict,flagged,reason,score_points,score_rays,ray_nats,rays_through\n"
+    text += "".join(f"{n},test,{lab},{d},{sc},0.5,{v},{f},,{p},{r},0,0\n" for n, lab, d, sc, v, f, p, r in rows)
+    (results / "scores.csv").write_text(text)
+    one = run_figures("cup", {"parts": {"cup": {"run_nofolds": str(tmp_path / "run")}}}, "log", 1.0)
+    assert one["auroc"] == 0.75 and one["points_alone"] == 0.75 and one["rays_alone"] == 0.625  # a tie counts half
+    assert one["defective"] == 0.5 and one["good_text"] == "1 of 2" and one["rejected_text"] == "0 of 2"
+    assert one["points_oracle"] == 0.5 and one["missing"] == 0.5
+
+
 def test_trees_run_each_tree_and_report_each_as_it_finishes(monkeypatch):
     """benchmarks/trees.py: run_trees runs every (tree, seed) through run_tree and calls back once each."""
     from benchmarks import trees
 
     calls = []
-    monkeypatch.setattr(trees, "run_tree", lambda name, seed, cache_root, work, extra=(): (
+    monkeypatch.setattr(trees, "run_tree", lambda name, seed, cache_root, work, extra=(), table=trees.TREES: (
         {"name": name, "extra": list(extra)}, f"{work}/{name}.log", float(seed)))
     out = trees.run_trees([("fandisk", 0), ("bunny", 1)], "c", "w", at_once=2, extra=["--x"],
                           done=lambda name, seed, result: calls.append((name, seed, result[0]["extra"])))

@@ -36,6 +36,24 @@ Which samples of a ray are tested
   lengthscale) of any of them are left out: material next to a surface the scan saw is that surface, blurred by the
   field's resolution. Rays that graze the rim of a wall on their way to the far wall pass through the field's
   rounded rim, many sd deep, on good scans; a hole's middle is more than a lengthscale from its rim.
+* **Rays that pass through the scan's own surface** (:func:`blocked_probability`, with ``observed``): a returned
+  ray that comes within ``occlusion_radius`` (default twice the observed points' median spacing, at most the
+  clearance) of one of the scan's own points more than ``own_depth`` before its point, that point being the nearest
+  and the ray on the side of it where the surface the scan saw is (beside a hole's rim or a silhouette, only
+  where the surface goes on: :func:`surface_sides`), is not tested at all (``through_observed``). Had the sensor looked
+  along it, that surface would have hidden the point: the ray is not one the sensor travelled, and the sensor origin
+  it was drawn from is wrong (users write a nominal stand-off and axis, not a calibrated optical centre; a line
+  scanner has no single centre). Such a ray runs beside the true one, past the edge of something the scan saw, and
+  through the unseen far side of it that good scans have: on real range scans with approximate origins every
+  accusation of a good scan's returned rays was of this kind (within 0.05-0.4 lengthscales of the scan's own
+  points), while the rays through missing material passed 0.5-3 lengthscales from them (docs/results.md). A ray
+  seen through a hole in a sheet passes the hole's rim, the border of the surface, not through it: where the origin
+  is right the rule costs the holes nothing. The share of such rays says how far off the origin is.
+* **Missing returns end at their rim** (:func:`missing_return_probability`, ``t_max``): a ray that returned nothing
+  is tested only up to a given depth per ray; the inspection gives the nearest return around the gap plus
+  ``own_depth``. A hole in a wall is missing where its rim is; material far behind the nearest return around a gap
+  is what an origin error uncovers beside a depth jump (the shadow of an edge, which the sensor never saw), not a
+  hole.
 * **Where good parts have a surface** (``band``, a :class:`SurfaceBand` of good scans' points): only samples
   within its radius of a good scan's point are tested. A partial scan's Poisson field is one-sided: it is negative
   everywhere behind the surface the scan saw, so on an open or thin-walled part it fills the cavity behind a sheet
@@ -82,6 +100,14 @@ DEFAULT_MAX_SAMPLES = 128
 DEFAULT_SELECT = 8
 DEFAULT_Q_FLOOR = 1e-3
 OWN_DEPTH_FACTOR = 3.0  # default own_depth in kernel lengthscales (see the module docstring)
+SUSPECT_NATS = 1e-3  # rays with less surprisal are not checked for passing through the scan's own surface
+# how close to a scan's own point a ray must come to have passed through its surface, in the points' median spacing:
+# the point nearest to where a ray crosses a randomly sampled surface is within 2 spacings 19 times in 20 (its
+# distance from a random place of a Poisson pattern exceeds r with probability exp(-pi r^2 / (4 s^2)), s the mean
+# spacing; the samples along the ray, half that apart, add little)
+OCCLUSION_SPACINGS = 2.0
+BOUNDARY_NEIGHBOURS = 10  # surface_sides: the neighbours whose directions must surround a point inside a surface
+BOUNDARY_GAP = 0.5 * math.pi  # and the widest gap between those directions there (radians)
 _MIN_VARIANCE = 1e-20
 MAX_SURPRISAL = -math.log(1e-300)  # the largest surprisal -log P(free) a ray can have: 690.8 nats (P(free) is floored)
 _LOG_FLOOR = -MAX_SURPRISAL
@@ -107,6 +133,8 @@ class FreeSpaceCheck:
     t_enter : (B,) float64
         Distance of the first tested sample with P(f <= 0) >= 1/2: where the ray enters the expected material
         (NaN when it never does).
+    through_observed : (B,) bool
+        The ray passes through the scan's own surface before its point (module docstring): not tested, p_blocked 0.
     """
 
     p_blocked: np.ndarray
@@ -117,6 +145,7 @@ class FreeSpaceCheck:
     t_obs: np.ndarray
     t_block: np.ndarray
     t_enter: np.ndarray = None
+    through_observed: np.ndarray = None
 
 
 def box_interval(origin, directions, bounds):
@@ -149,6 +178,15 @@ class _Options:
     clearance: float = None
     own_depth: float = None
     band: object = None
+    occlusion_radius: object = None
+
+    def resolved_occlusion_radius(self, tree):
+        """``occlusion_radius`` in world units: 'auto' is ``OCCLUSION_SPACINGS`` x the median spacing of the
+        observed points in ``tree``, at most the clearance (a ray through a hole that passes the hole's rim closer
+        than that is untested where it crosses the wall anyway)."""
+        if self.occlusion_radius != "auto":
+            return float(self.occlusion_radius)
+        return min(OCCLUSION_SPACINGS * median_spacing(tree), self.clearance)
 
     @property
     def observed_count(self):
@@ -180,9 +218,22 @@ class _Options:
                 raise ValueError(f"clearance must be >= 0 (world units), got {self.clearance}")
         if self.own_depth == "auto":
             self.own_depth = None if scale is None else OWN_DEPTH_FACTOR * scale
+        if self.occlusion_radius not in (None, "auto") and not float(self.occlusion_radius) > 0:
+            raise ValueError(f"occlusion_radius must be None, 'auto' or > 0 (world units), got "
+                             f"{self.occlusion_radius!r}")
         if self.own_depth is not None and not float(self.own_depth) > 0:
             raise ValueError(f"own_depth must be None, 'auto' or > 0 (world units), got {self.own_depth!r}")
         return self
+
+
+def median_spacing(tree, sample=2048, seed=0):
+    """The median distance of a point to its nearest other point, over a seeded sample of the points of a
+    scipy.spatial.cKDTree (world units; 0 for fewer than 2 points)."""
+    n = int(tree.n)
+    if n < 2:
+        return 0.0
+    rows = np.arange(n) if n <= sample else np.random.default_rng(seed).choice(n, sample, replace=False)
+    return float(np.median(tree.query(tree.data[rows], k=2)[0][:, 1]))
 
 
 def _check_origin(origin):
@@ -194,7 +245,8 @@ def _check_origin(origin):
 
 def blocked_probability(field, origin, points, outside_sigma=DEFAULT_OUTSIDE_SIGMA, observed=None, clearance=None,
                         step=None, max_samples=DEFAULT_MAX_SAMPLES, n_select=DEFAULT_SELECT,
-                        q_floor=DEFAULT_Q_FLOOR, qmc_samples=256, seed=0, chunk=256, own_depth="auto", band=None):
+                        q_floor=DEFAULT_Q_FLOOR, qmc_samples=256, seed=0, chunk=256, own_depth="auto", band=None,
+                        occlusion_radius="auto"):
     """Probability that the field puts solid material on the sensor's rays to observed points, apart from the
     surface the points lie on (see the module docstring for which part of each ray is tested).
 
@@ -234,6 +286,11 @@ def blocked_probability(field, origin, points, outside_sigma=DEFAULT_OUTSIDE_SIG
         the point by a clearly outside sample is tested).
     band : SurfaceBand, optional
         Where good parts have a surface (field frame): only samples inside it are tested. None: every sample.
+    occlusion_radius : float, 'auto' or None
+        With ``observed``: a ray that comes this close to an observed point more than ``own_depth`` (without a depth
+        limit, ``OWN_DEPTH_FACTOR`` kernel lengthscales) before its point passed through the scan's own surface and
+        is not tested (module docstring; world units). 'auto': ``OCCLUSION_SPACINGS`` (2) x the observed points'
+        median spacing, at most the clearance; None: every ray is tested.
 
     Returns
     -------
@@ -249,7 +306,7 @@ def blocked_probability(field, origin, points, outside_sigma=DEFAULT_OUTSIDE_SIG
     if not outside_sigma >= 0:
         raise ValueError(f"outside_sigma must be >= 0, got {outside_sigma}")
     opts = _Options(step, max_samples, n_select, q_floor, qmc_samples, seed, chunk, observed, clearance,
-                    own_depth, band).check(field)
+                    own_depth, band, occlusion_radius).check(field)
     offsets = points - origin
     t_obs = np.linalg.norm(offsets, axis=1)
     if (t_obs <= 0).any():
@@ -263,7 +320,7 @@ def blocked_probability(field, origin, points, outside_sigma=DEFAULT_OUTSIDE_SIG
 
 def missing_return_probability(field, origin, directions, t_far=None, observed=None, clearance=None, step=None,
                                max_samples=DEFAULT_MAX_SAMPLES, n_select=DEFAULT_SELECT, q_floor=DEFAULT_Q_FLOOR,
-                               qmc_samples=256, seed=0, chunk=256, band=None):
+                               qmc_samples=256, seed=0, chunk=256, band=None, t_max=None):
     """Probability that rays which returned nothing should have hit solid material under the field.
 
     Parameters
@@ -279,11 +336,14 @@ def missing_return_probability(field, origin, directions, t_far=None, observed=N
         its own to leave out.
     observed, clearance, step, max_samples, n_select, q_floor, qmc_samples, seed, chunk, band
         As in :func:`blocked_probability`.
+    t_max : (B,) array, optional
+        Each ray is tested no farther than this (world units from ``origin``; module docstring, "Missing returns
+        end at their rim"). None: through the box (or to ``t_far``).
 
     Returns
     -------
     FreeSpaceCheck
-        ``t_obs`` holds the end of each ray's range (the box exit, or ``t_far``).
+        ``t_obs`` holds the end of each ray's range (the box exit, or ``t_far``, or ``t_max`` where nearer).
     """
     d = check_points(directions, "directions")
     origin = _check_origin(origin)
@@ -300,6 +360,11 @@ def missing_return_probability(field, origin, directions, t_far=None, observed=N
         t_near, t_stop = np.zeros(len(d)), np.full(len(d), float(t_far))
     else:
         raise ValueError("the field has no bounds: give t_far (> 0), where the rays end")
+    if t_max is not None:
+        t_max = np.asarray(t_max, dtype=np.float64).reshape(-1)
+        if t_max.shape != (len(d),) or np.isnan(t_max).any():
+            raise ValueError(f"t_max: one number per ray ({len(d)}), got shape {t_max.shape}")
+        t_stop = np.minimum(t_stop, np.maximum(t_max, t_near))
     return _segments(field, origin, d, t_near, t_stop, None, opts)
 
 
@@ -324,9 +389,122 @@ def _segments(field, origin, d, t_near, t_stop, q_out, opts):
             res = _check_segments(field, origin, d[sl], t_near[sl], t_stop[sl], step, q_out, tree, opts)
             for k in keys:
                 out[k][sl] = res[k]
+    through = np.zeros(len(d), dtype=bool)
+    if q_out is not None and opts.observed_count and opts.occlusion_radius is not None:
+        # only a ray with something to clear is checked: below SUSPECT_NATS its surprisal changes nothing
+        suspect = np.flatnonzero(out["log_free"] < -SUSPECT_NATS)
+        if len(suspect):
+            if tree is None:
+                from scipy.spatial import cKDTree
+
+                tree = opts.observed if isinstance(opts.observed, cKDTree) else cKDTree(opts.observed)
+            # the point's own surface: within own_depth before it (without a depth limit, OWN_DEPTH_FACTOR kernel
+            # lengthscales: a ray that meets its surface at |cos| >= 0.2 is then a spacing above it and more)
+            scale = field.lengthscale
+            depth = opts.own_depth if opts.own_depth is not None else \
+                (OWN_DEPTH_FACTOR * scale if scale else opts.clearance)
+            radius = opts.resolved_occlusion_radius(tree)
+            if radius > 0:
+                through[suspect] = passes_through(tree, origin, d[suspect], t_near[suspect],
+                                                  t_stop[suspect] - depth, radius)
+            out["log_free"][through] = 0.0
+            out["max_marginal"][through] = 0.0
+            out["t_block"][through] = np.nan
     return FreeSpaceCheck(p_blocked=-np.expm1(out["log_free"]), log_free=out["log_free"],
                           max_marginal=out["max_marginal"], t_near=t_near, t_end=out["t_end"], t_obs=t_stop,
-                          t_block=out["t_block"], t_enter=out["t_enter"])
+                          t_block=out["t_block"], t_enter=out["t_enter"], through_observed=through)
+
+
+def surface_sides(observed, rows=None, k=BOUNDARY_NEIGHBOURS, max_gap=BOUNDARY_GAP):
+    """The surface the scan saw around each observed point: its unit normal (either sign) and where it stops.
+
+    A point is on the surface's border (a hole's rim, a silhouette, the edge of the view) when the directions to its
+    ``k`` nearest neighbours, in their principal plane, leave a gap wider than ``max_gap`` radians (the usual angle
+    criterion of point-cloud boundary detection); the surface stops in the direction of that gap's middle.
+
+    Parameters
+    ----------
+    observed : scipy.spatial.cKDTree
+        Over the scan's points.
+    rows : (r,) int array, optional
+        Only these points (default all n); the arrays returned have one row per point asked for.
+
+    Returns
+    -------
+    sides : (n, 3) float64 array
+        Zero for a point inside the surface; for one on its border, the unit direction in its tangent plane in which
+        the surface stops.
+    normals : (n, 3) float64 array
+        The least direction of its neighbours (zero with fewer than 4 points).
+    """
+    data = np.asarray(observed.data, dtype=np.float64)
+    pts = data if rows is None else data[np.asarray(rows, dtype=np.int64)]
+    n = len(pts)
+    k = min(int(k), len(data) - 1)
+    out = np.zeros((n, 3))
+    if k < 3 or n == 0:
+        return out, np.zeros((n, 3))
+    idx = observed.query(pts, k=k + 1)[1][:, 1:]
+    offsets = data[idx] - pts[:, None, :]  # (n, k, 3)
+    centred = offsets - offsets.mean(1, keepdims=True)
+    _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))
+    u, v = vectors[:, :, 2], vectors[:, :, 1]  # the principal plane (the normal is the least direction)
+    angles = np.sort(np.arctan2(np.einsum("nkj,nj->nk", offsets, v), np.einsum("nkj,nj->nk", offsets, u)), axis=1)
+    gaps = np.diff(np.concatenate([angles, angles[:, :1] + 2 * np.pi], axis=1), axis=1)
+    widest = gaps.argmax(axis=1)
+    border = gaps[np.arange(n), widest] > max_gap
+    middle = angles[np.arange(n), widest] + 0.5 * gaps[np.arange(n), widest]
+    out[border] = (np.cos(middle)[:, None] * u + np.sin(middle)[:, None] * v)[border]
+    return out, vectors[:, :, 0]
+
+
+def passes_through(observed, origin, directions, t_from, t_to, radius, sides=True, max_samples=4096):
+    """Whether rays pass through the scan's own surface between ``t_from`` and ``t_to`` (the module docstring's
+    "rays that pass through the scan's own surface"): between a sample and the next the ray crosses the tangent
+    plane of the sample's nearest observed point, within ``radius`` of that point and on the side of it where the
+    surface the scan saw goes on (``sides``: a ray that passes a hole's rim or a silhouette beside it passes the
+    surface's border, not through it; one that runs along a surface without crossing it does not count).
+
+    Parameters
+    ----------
+    observed : scipy.spatial.cKDTree
+        Over the scan's points (world frame).
+    origin : (3,) array
+    directions : (B, 3) array
+        Unit directions.
+    t_from, t_to : (B,) arrays
+        The part of each ray checked (world units from ``origin``; nothing where t_to <= t_from).
+    radius : float
+        World units (> 0); the samples are spaced at most ``radius`` / 2 apart (at most ``max_samples`` per ray).
+    sides : bool
+        Whether the side of a border point matters (:func:`surface_sides`, computed for the points met only); False:
+        every sample within ``radius`` of an observed point counts.
+
+    Returns
+    -------
+    (B,) bool
+    """
+    directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    t_from, t_to = np.asarray(t_from, dtype=np.float64).reshape(-1), np.asarray(t_to, dtype=np.float64).reshape(-1)
+    out = np.zeros(len(directions), dtype=bool)
+    rays = np.flatnonzero(t_to > t_from)
+    if len(rays) == 0:
+        return out
+    counts = np.minimum(max_samples, np.ceil(2.0 * (t_to[rays] - t_from[rays]) / radius).astype(int) + 1)
+    owner = np.repeat(np.arange(len(rays)), counts)
+    start = np.cumsum(counts) - counts
+    u = (np.arange(counts.sum()) - start[owner]) / np.maximum(counts[owner] - 1, 1)  # 0 .. 1 along each ray
+    t = t_from[rays][owner] + u * (t_to[rays] - t_from[rays])[owner]
+    x = origin + t[:, None] * directions[rays][owner]
+    distance, nearest = observed.query(x, k=1, distance_upper_bound=radius)
+    near = np.isfinite(distance)
+    if sides and near.any():  # beside a border point, only on the side where the surface goes on
+        rows = np.flatnonzero(near)
+        met, which = np.unique(nearest[rows], return_inverse=True)
+        border = surface_sides(observed, met)[0][which]
+        near[rows] = np.einsum("ij,ij->i", x[rows] - observed.data[nearest[rows]], border) <= 0.0
+    out[rays] = np.logical_or.reduceat(near, start)
+    return out
 
 
 def _check_segments(field, origin, d, t_near, t_stop, step, q_out, tree, opts):

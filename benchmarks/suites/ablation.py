@@ -16,22 +16,19 @@ score of ``--point-scores`` alone (no ray score, one calibration each): the defa
 point AUROC. Then the issue's targets per tree: field alone >= points alone; the default >= both; with 8 training
 scans the default >= 0.90 and >= the baseline + 0.1; point AUROC >= 0.92.
 
-``--ray-gate``: the ``gated-log`` combination of the point and ray scores re-evaluated offline on a scored run with
-rays, with its gate's ceiling at log(1 + MAX_SURPRISAL / F) for F = 2, 4 (the default) and 8, and without the
-ceiling (the rule before it); the threshold refitted as the Inspector does. Run folders may be given (any
-``calibrate_and_score`` folder calibrated with rays); without them each part is scored with rays first.
+(``--ray-gate``, the ``gated-log`` combination's gate re-evaluated offline, is retired with the rule: the rays are
+judged by the ``rays`` suite, issue 46.)
 """
 from pathlib import Path
 
-from benchmarks import cache, inspect_api, metrics
+from benchmarks import cache, inspect_api
 from benchmarks.table import format_table, verdicts_table
 from benchmarks.trees import TREES, check_names, part_figures, run_trees
 
 DESCRIPTION = ("the same trained model rescored with each point score and aggregate of the inspection package "
-               "(--grid: every pair); --ray-gate: the rays' combination gate with and without its ceiling")
+               "(--grid: every pair); --trees: issue 28's table")
 WORK = "results/ablation"
 AGGREGATES = "top1,top2,top5,mean,q99"
-GATE_FACTORS = (None, 2.0, 4.0, 8.0)
 # --trees: the terms of the default taken apart (issue 28): the field alone, the good points alone, the paper's NLL
 TREE_POINT_SCORES = "distance,surface,nll:mean"
 TREE_TARGETS = {"point_auroc": 0.92, "few_scans_auroc": 0.90, "few_scans_margin": 0.1}
@@ -46,9 +43,6 @@ def add_arguments(p):
     p.add_argument("--aggregates", default=AGGREGATES, help="comma-separated aggregates (default: %(default)s)")
     p.add_argument("--grid", action="store_true", help="every point score with every aggregate")
     p.add_argument("--rays", action="store_true", help="calibrate every setting with the ray score too")
-    p.add_argument("--ray-gate", nargs="*", type=Path, default=None, metavar="RUN",
-                   help="only the rays' combination gate, re-evaluated on these scored runs (none given: each part "
-                        "scored with rays at the defaults first)")
     p.add_argument("--trees", default=None, metavar="NAMES",
                    help="issue 28's table on these trees of the verdicts suite ('all': every one but the template "
                         "trees; see the module docstring) instead of --parts")
@@ -73,8 +67,6 @@ def settings(point_scores, aggregates, default_score, default_aggregate, grid=Fa
 def run(args):
     if args.trees:
         return _trees(args)
-    if args.ray_gate is not None:
-        return {"ray_gate": _ray_gates(args)}
     defaults = inspect_api.defaults()
     scores = args.point_scores.split(",") if args.point_scores else inspect_api.point_score_names()
     pairs = settings(scores, args.aggregates.split(","), defaults["point_score"], defaults["aggregate"], args.grid)
@@ -102,39 +94,6 @@ def _inputs(part, args):
     return data, cache.trained_model(data, root=args.cache, seed=args.seed)
 
 
-def _ray_gates(args):
-    """The gate tables of the given runs, else of each part scored with rays at the defaults."""
-    runs = list(args.ray_gate)
-    if not runs:
-        for part in args.parts.split(","):
-            data, model = _inputs(part, args)
-            runs.append(Path(args.work) / data.parent.name / "defaults_rays")
-            inspect_api.calibrate_and_score(model, data, runs[-1], rays=True, maps="none", progress=args.progress,
-                                            echo=None)
-    return {str(r): _ray_gate(r) for r in runs}
-
-
-def _ray_gate(run_dir):
-    """The gate table of one scored run with rays; returns its figures per F."""
-    scored = inspect_api.read_scores(Path(run_dir) / "results")
-    out, rows = {}, []
-    for g in inspect_api.ray_gate(run_dir, GATE_FACTORS):
-        name = "no bound" if g["factor"] is None else f"F = {g['factor']:g}" + (" (default)" if g["default"] else "")
-        one = {"gate": g["gate"], "auroc": metrics.auroc_per_defect(g["scores"], scored["label"], scored["defect"]),
-               "flagged": metrics.flagged(g["scores"], scored["label"], g["threshold"])}
-        out[name] = one
-        rows.append({"rule": name, "gate": g["gate"], **one["auroc"], "def": one["flagged"]["defective"],
-                     "good": f"{round(one['flagged']['good'] * one['flagged']['n_good'])} of "
-                             f"{one['flagged']['n_good']}"})
-    kinds = sorted(k for k in rows[0] if k not in ("rule", "gate", "overall", "def", "good"))
-    print(f"\n{run_dir}: the gated-log gate with and without its ceiling")
-    print(format_table(rows, [("rule", "gate", ""), ("gate", "nats", ".1f"), ("overall", "AUROC", ".3f"),
-                              *[(k, k, ".3f") for k in kinds], ("def", "def flagged", ".3f"),
-                              ("good", "good flagged", ">")]))
-    return out
-
-
-# --- --trees: whether the model earns its keep (issue 28) ---------------------------------------------------------
 def _trees(args):
     names = [n for n in TREES if "--templates" not in TREES[n][1]] if args.trees == "all" else \
         [t.strip() for t in args.trees.split(",") if t.strip()]

@@ -173,6 +173,34 @@ def test_estimated_normals_face_the_sensor(tmp_path, how):
         assert (np.einsum("ij,ij->i", scan.normals, facing) > 0).mean() > 0.98
 
 
+def test_a_sidecar_with_the_view_direction_alone_puts_the_origin_far_along_it(tmp_path):
+    """{"view_direction": [x, y, z]} (a line scanner's sweep, a stand-off nobody wrote down): the origin lies
+    VIEW_DIRECTION_DISTANCE bounding-box diagonals from the cloud's centre along the direction, so its rays to the
+    part are parallel within a third of a degree, and the normals face it; a zero or malformed direction is one error
+    naming the sidecar."""
+    from datasets.importer import VIEW_DIRECTION_DISTANCE
+
+    p, n = sphere(3000)
+    cap = p[:, 2] > CENTER[2] + 0.3  # the top of a ball, seen from above
+    p, outward = p[cap], n[cap]
+    write_any(tmp_path / "in" / "top.xyz", p)
+    (tmp_path / "in" / "top.json").write_text(json.dumps({"view_direction": [0.0, 0.0, 5.0]}))
+    import_tree(tmp_path / "in", tmp_path / "c.h5", progress=False)
+    with ScanCollection(tmp_path / "c.h5") as c:
+        scan = c[0]
+        origin = c.frame.to_file(scan.sensor_origin)
+    lo, hi = p.min(0), p.max(0)
+    expected = (lo + hi) / 2 + [0.0, 0.0, VIEW_DIRECTION_DISTANCE * np.linalg.norm(hi - lo)]
+    np.testing.assert_allclose(origin, expected, rtol=1e-5)
+    rays = (origin - p) / np.linalg.norm(origin - p, axis=1, keepdims=True)
+    assert np.degrees(np.arccos(rays[:, 2].min())) < 0.35
+    assert (np.einsum("ij,ij->i", scan.normals, outward) > 0).mean() > 0.98
+    for bad in ({"view_direction": [0, 0, 0]}, {"view_direction": [1, 2]}, {"view": 1}):
+        (tmp_path / "in" / "top.json").write_text(json.dumps(bad))
+        with pytest.raises(ValueError, match="top.json"):
+            import_tree(tmp_path / "in", tmp_path / "d.h5", progress=False)
+
+
 def test_import_tree(tmp_path):
     root = make_tree(tmp_path / "tree")
     out = tmp_path / "c.h5"

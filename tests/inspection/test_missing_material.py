@@ -12,7 +12,6 @@ from autodecoder.scanning.free_space import blocked_probability, box_interval, m
 from autodecoder.scanning.rays import monte_carlo_survival
 from inspection import Inspector, NotFittedError
 from inspection.calibration import Calibration
-from inspection.combine import Combination
 from inspection.ray_evidence import check_ray_options, image_holes, ray_evidence
 from autodecoder.field.protocol import Field
 
@@ -120,7 +119,9 @@ def test_material_next_to_an_observed_surface_is_left_out():
     seen = blocked_probability(field, SENSOR, target, observed=end_face)
     assert (blind.p_blocked > 0.99).all()
     assert seen.p_blocked[0] < 0.05 and seen.p_blocked[1] > 0.99
-    assert blocked_probability(field, SENSOR, target, observed=end_face, clearance=0.0).p_blocked[0] > 0.99
+    # without the clearance (and without leaving out rays that pass that close to the scan's own points) it is
+    assert blocked_probability(field, SENSOR, target, observed=end_face, clearance=0.0,
+                               occlusion_radius=None).p_blocked[0] > 0.99
 
 
 def test_blocked_probability_matches_monte_carlo_on_its_samples():
@@ -227,23 +228,14 @@ def test_ray_options_validated():
     for bad in (1.0, -0.1):
         with pytest.raises(ValueError, match="skim_cos"):
             check_ray_options({"skim_cos": bad})
-
-
-# ---------------------------------------------------------------------------------------------- combination
-def test_combination_validates_and_retires_the_rules_before():
-    cal = {"points": [1.0, 2.0, 3.0, 4.0], "rays": [0.0, 0.0, 0.0, 0.4]}
-    comb = Combination(cal)
-    assert comb.rule == "gated-log"
-    assert Combination.from_dict(comb.as_dict()).score(cal).tolist() == comb.score(cal).tolist()
-    with pytest.raises(ValueError, match="at least 3"):
-        Combination({"points": [1.0, 2.0], "rays": [0.0, 0.0]})
-    for retired in ("gated", "max", "sum"):
-        with pytest.raises(ValueError, match="retired"):
-            Combination(cal, rule=retired)
-    record = comb.as_dict()
-    del record["rule"]  # a record of the rule before, 'gated'
-    with pytest.raises(ValueError, match="retired"):
-        Combination.from_dict(record)
+    for bad in ("q99", "median"):  # no chance level of those (inspection.ray_calibration.top_count)
+        with pytest.raises(ValueError, match="ray option aggregate"):
+            check_ray_options({"aggregate": bad})
+    with pytest.raises(ValueError, match="occlusion"):
+        check_ray_options({"occlusion": 0.0})
+    with pytest.raises(ValueError, match="empty_to_rim"):
+        check_ray_options({"empty_to_rim": "yes"})
+    assert check_ray_options({"occlusion": None})["occlusion"] is None
 
 
 # ---------------------------------------------------------------------------------------------- Inspector
@@ -272,14 +264,18 @@ def _scans(kind, seeds):
 def test_inspector_with_rays_flags_the_hole_and_round_trips():
     good = _scans("good", range(6))
     insp = Inspector(WallModel(), alpha=0.2, rays=True, ray_options={"n_rays": 256}).fit(good)
-    assert insp.combination_.names == ["points", "rays"] and len(insp.calibration_scores_) == 6
+    assert insp.combination_.rule == "likelihood" and len(insp.calibration_scores_) == 6
+    assert (insp.combination_.calibration_nats == 0).all()  # the good scans' rays: nothing beyond chance
     tests = _scans("good", [50, 51]) + _scans("hole", [60, 61])
     res = [insp.inspect(s) for s in tests]
     assert [r.components["rays"] > 0.5 for r in res] == [False, False, True, True]
+    assert [r.components["ray_nats"] > 10 for r in res] == [False, False, True, True]
     assert insp.predict(tests[2:]).tolist() == [-1, -1]
-    # below the gate the rays change nothing: a good scan is judged by its point score alone, at the threshold the
-    # point score alone would have
+    # rays with nothing beyond chance change nothing: a good scan is judged by its point score alone, at the threshold
+    # the point score alone would have; a hole's by both, sqrt(z^2 + 2 I)
     assert [r.score for r in res[:2]] == [r.components["points"] for r in res[:2]]
+    for r in res[2:]:
+        assert r.score == pytest.approx(math.sqrt(r.components["points"] ** 2 + 2 * r.components["ray_nats"]))
     # the point score alone cannot tell: the points seen through the hole lie on a good surface
     plain = Inspector(WallModel(), alpha=0.2).fit(good)
     assert plain.predict(tests[2:]).tolist() == [1, 1]
@@ -290,10 +286,12 @@ def test_inspector_with_rays_flags_the_hole_and_round_trips():
 
     from inspection.maps import patch_residuals, with_ray_evidence
 
-    comps = insp.inspect_components(tests[2])
+    comps = insp.inspect(tests[2])
     patch = patch_residuals(tests[2].points, comps.point_scores, excluded=comps.stray)
     amap = insp.anomaly_map(tests[2])
-    np.testing.assert_allclose(amap ** 2 - patch ** 2, 2 * comps.rays.point_surprisal, rtol=1e-9, atol=1e-9)
+    # the map's ray evidence is the rays' as the calibration weighs them (here clean good rays: their own surprisal)
+    np.testing.assert_allclose(amap ** 2 - patch ** 2, 2 * comps.ray_point_nats, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(comps.ray_point_nats, comps.rays.point_surprisal, rtol=1e-9)
     through = tests[2].point_labels == 1
     assert roc_auc_score(through, amap) > 0.95 and roc_auc_score(through, patch) < 0.8
     good_comps = insp.inspect_components(tests[0])  # no ray evidence on a good scan: the patch residual itself
@@ -313,11 +311,12 @@ def test_inspector_with_rays_flags_the_hole_and_round_trips():
     np.testing.assert_allclose(again.anomaly_scores(tests), insp.anomaly_scores(tests))
     assert again.threshold_ == insp.threshold_
     assert again.settings_.ray_options["skim_cos"] == check_ray_options(None)["skim_cos"] > 0
-    # a calibration stored before skim_cos existed is scored as it was calibrated: every sample in the band tested
+    # a calibration whose rays were combined by a retired rule (gated-log, before) cannot score: calibrate again
     record = cal.as_dict()
-    del record["extra"]["config"]["ray_options"]["skim_cos"]
-    older = Inspector.from_calibration(WallModel(), Calibration.from_dict(record), alpha=0.2)
-    assert older.settings_.ray_options["skim_cos"] == 0.0
+    record["extra"]["rays"]["components"] = {"points": [1.0, 2.0, 3.0], "rays": [0.0, 0.0, 1.0],
+                                             "rule": "gated-log", "ceiling": 690.8}
+    with pytest.raises(ValueError, match="retired rule 'gated-log'.*calibrate again"):
+        Inspector.from_calibration(WallModel(), Calibration.from_dict(record), alpha=0.2)
 
 
 def test_inspector_rays_errors():
@@ -334,8 +333,6 @@ def test_inspector_rays_errors():
         Inspector(WallModel(), rays=True, ray_options={"bogus": 1}).fit(good)
     with pytest.raises(ValueError, match="rays must be"):
         Inspector(WallModel(), rays="yes").fit(good)
-    with pytest.raises(ValueError, match="at least 3"):
-        Inspector(WallModel(), rays=True).fit(good[1:])
 
 
 # ---------------------------------------------------------------------------------------------- command line
@@ -380,13 +377,14 @@ def test_cli_calibrate_and_score_with_rays(tmp_path, capsys):
     assert "+ ray score" in capsys.readouterr().out
     cal = read_calibration(model)
     # 4 held-back scans and the 2 training scans, cross-fitted
-    assert cal.config().ray_options["aggregate"] == "top5" and len(cal.extra["rays"]["components"]["rays"]) == 6
+    assert cal.config().ray_options["aggregate"] == "top5" and len(cal.extra["rays"]["components"]["nats"]) == 6
     out = tmp_path / "res"
     assert main(["score", "--model", str(model), "--data", str(data), "--out", str(out), "--maps", "all",
                  "--quiet"]) == 0
     rows = list(csv.DictReader(open(out / "scores.csv")))
     assert tuple(rows[0]) == RAY_CSV_COLUMNS and len(rows) == 3
-    assert all(float(r["score_rays"]) >= 0 for r in rows)  # nats
+    assert all(float(r["score_rays"]) >= 0 and float(r["ray_nats"]) >= 0 for r in rows)  # nats
+    assert all(0 <= float(r["rays_through"]) <= 1 for r in rows)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["rays"]["options"]["n_rays"] == 64 and "ray_point_auroc" in summary["metrics"]
     pts, _ = read_cloud(out / "maps" / "rays" / "test__hole__020.ply")
@@ -619,121 +617,6 @@ def test_a_ray_skimming_past_a_good_surface_is_not_accused_but_one_through_its_m
     assert scores[1] < -math.log(1 - 0.15) < -math.log(1 - 0.35) < scores[0]
 
 
-def test_log_gated_combination_by_hand():
-    from autodecoder.scanning.free_space import MAX_SURPRISAL
-    from inspection.combine import (LOG_GATE_CEILING_FACTOR, LOG_GATE_MARGIN, LOG_GATE_QUANTILE,
-                                    LOG_GATE_TOP_MARGIN, LOG_GATE_WEIGHT as w)
-
-    rays = np.array([0.0, 0.01, 0.02, 0.3, 1.5, 0.0, 0.05, 280.0, 0.1, 2.0])  # one heavy-tailed good scan
-    points = np.linspace(1.0, 2.0, len(rays))
-    cal = {"points": points, "rays": rays}
-    comb = Combination(cal, rule="gated-log", ceiling=MAX_SURPRISAL)  # as the inspection builds it
-
-    def gate(lr):
-        """The gate of log ray scores ``lr``, by hand: the quantile's, at least just beyond the largest of them
-        (up to the ceiling's bound), never above the bound."""
-        m, sd = lr.mean(), lr.std(ddof=1)
-        bound = (np.log1p(MAX_SURPRISAL / LOG_GATE_CEILING_FACTOR) - m) / sd
-        quantile = np.quantile((lr - m) / sd, LOG_GATE_QUANTILE) + LOG_GATE_MARGIN
-        return min(max(quantile, min((lr.max() - m) / sd + LOG_GATE_TOP_MARGIN, bound)), bound)
-
-    lr = np.log1p(rays)
-    m_r, sd_r = lr.mean(), lr.std(ddof=1)
-    tau = gate(lr)
-    assert comb.gate[1] == pytest.approx(tau)
-    m_p, sd_p = points.mean(), points.std(ddof=1)
-    new = {"points": np.array([1.5, 1.5, 1.5]), "rays": np.array([0.0, 3.0, 200.0])}
-    z_r = (np.log1p(new["rays"]) - m_r) / sd_r
-    np.testing.assert_allclose(comb.score(new), 1.5 + sd_p * w * np.maximum(z_r - tau, 0.0))
-    # a scan whose rays go beyond what a scan can be sure to show counts, although one good scan went farther still
-    # (the ceiling's bound, 173 nats, caps the gate); one below the good scans' largest does not
-    assert comb.score(new)[2] > 1.5 and comb.score(new)[:2] == pytest.approx([1.5, 1.5])
-    # without a ceiling the gate lies beyond the largest good scan's score
-    free = Combination(cal, rule="gated-log")
-    assert free.gate[1] >= (lr.max() - m_r) / sd_r + LOG_GATE_TOP_MARGIN - 1e-12
-    assert free.score({"points": np.array([1.5]), "rays": np.array([280.0])})[0] == pytest.approx(1.5)
-    # leave-one-out, scan 7 (the outlier) against the other nine by hand: beyond all of them, and counted
-    k = np.arange(len(rays)) != 7
-    m9, sd9 = lr[k].mean(), lr[k].std(ddof=1)
-    tau9 = gate(lr[k])
-    p9 = points[k]
-    expected = p9.mean() + p9.std(ddof=1) * ((points[7] - p9.mean()) / p9.std(ddof=1)
-                                            + w * max(0.0, (lr[7] - m9) / sd9 - tau9))
-    assert comb.calibration_scores()[7] == pytest.approx(expected) and expected > points[7]
-    again = Combination.from_dict(comb.as_dict())
-    assert again.rule == "gated-log" and again.score(new).tolist() == comb.score(new).tolist()
-    # a combination stored before the top margin existed gates as it was calibrated: the quantile alone
-    older = comb.as_dict()
-    del older["top_margin"]
-    before = Combination.from_dict(older)
-    assert before.top_margin is None and before.gate[1] == pytest.approx(min(
-        np.quantile((lr - m_r) / sd_r, LOG_GATE_QUANTILE) + LOG_GATE_MARGIN,
-        (np.log1p(MAX_SURPRISAL / LOG_GATE_CEILING_FACTOR) - m_r) / sd_r))
-    with pytest.raises(ValueError, match="top_margin"):
-        Combination(cal, rule="gated-log", top_margin=-1.0)
-    with pytest.raises(ValueError, match=">= 0"):
-        Combination({"points": points, "rays": rays - 1.0}, rule="gated-log")
-
-
-def test_the_gate_lies_beyond_every_good_calibration_scan():
-    """Good scans' ray scores mostly 0 and a few single rays of tens of nats (the thin cup once rays that skim
-    past the good surface are left out): the quantile gate falls to the floor (40 nats), below two good scans; the
-    gate lies LOG_GATE_TOP_MARGIN standard deviations beyond the largest of them instead (here capped at the
-    ceiling's bound), so a new good scan like them is not accused, while missing material's hundreds of nats still
-    count."""
-    from autodecoder.scanning.free_space import MAX_SURPRISAL
-    from inspection.combine import (LOG_GATE_CEILING_FACTOR, LOG_GATE_MARGIN, LOG_GATE_QUANTILE, LOG_GATE_TOP_MARGIN,
-                                    RAY_GATE_FLOOR)
-
-    rays = np.array([0.0] * 29 + [9.3, 74.9, 112.7])
-    points = np.linspace(2.0, 2.6, len(rays))
-    comb = Combination({"points": points, "rays": rays}, rule="gated-log", ceiling=MAX_SURPRISAL,
-                       floor=RAY_GATE_FLOOR)
-    lr = np.log1p(rays)
-    m, sd = lr.mean(), lr.std(ddof=1)
-    quantile = np.quantile((lr - m) / sd, LOG_GATE_QUANTILE) + LOG_GATE_MARGIN
-    assert np.expm1(m + sd * quantile) < RAY_GATE_FLOOR < 112.7  # the quantile's gate: at the floor
-    beyond = np.expm1(lr.max() + LOG_GATE_TOP_MARGIN * sd)  # 273 nats: above the ceiling's bound, 173
-    assert np.expm1(m + sd * comb.gate[1]) == pytest.approx(min(beyond, MAX_SURPRISAL / LOG_GATE_CEILING_FACTOR))
-    scores = comb.score({"points": np.full(3, 2.3), "rays": np.array([49.2, 112.0, 535.0])})
-    assert scores[:2] == pytest.approx([2.3, 2.3]) and scores[2] > 2.3 + 10
-
-
-def test_log_gate_stays_below_the_ceiling():
-    """Good scans whose log ray scores spread widely (many 0, a few tens of nats) put the quantile gate above what
-    a ray score can reach; with the ceiling given the gate is log(1 + ceiling / factor) instead, by hand."""
-    from autodecoder.scanning.free_space import MAX_SURPRISAL
-    from inspection.combine import LOG_GATE_CEILING_FACTOR as f, LOG_GATE_MARGIN, LOG_GATE_QUANTILE, LOG_GATE_WEIGHT as w
-
-    assert MAX_SURPRISAL == pytest.approx(-np.log(1e-300))
-    rays = np.array([0.0] * 14 + [3.0, 12.0, 22.0, 31.0, 49.0, 110.0])  # shaped like the held-out cup's
-    points = np.linspace(1.0, 2.0, len(rays))
-    cal = {"points": points, "rays": rays}
-    free, bounded = Combination(cal, rule="gated-log"), Combination(cal, rule="gated-log", ceiling=MAX_SURPRISAL)
-    lr = np.log1p(rays)
-    m_r, sd_r = lr.mean(), lr.std(ddof=1)
-    quantile_gate = np.quantile((lr - m_r) / sd_r, LOG_GATE_QUANTILE) + LOG_GATE_MARGIN
-    assert np.expm1(m_r + sd_r * quantile_gate) > MAX_SURPRISAL  # unreachable: no scan could pass it
-    bound = (np.log1p(MAX_SURPRISAL / f) - m_r) / sd_r
-    assert bounded.gate[1] == pytest.approx(bound) and free.gate[1] == pytest.approx(quantile_gate)
-    m_p, sd_p = points.mean(), points.std(ddof=1)
-    new = {"points": np.full(3, 1.5), "rays": np.array([90.0, 300.0, MAX_SURPRISAL])}
-    z_r = (np.log1p(new["rays"]) - m_r) / sd_r
-    np.testing.assert_allclose(bounded.score(new), 1.5 + sd_p * w * np.maximum(z_r - bound, 0.0))
-    combined = bounded.score(new)
-    assert combined[0] == pytest.approx(1.5) and 1.5 < combined[1] < combined[2]
-    np.testing.assert_allclose(free.score(new), 1.5)  # without the bound the rays add nothing, even at the ceiling
-    # a gate already below the bound is left alone, and the ceiling survives the round trip
-    low = {"points": points, "rays": np.linspace(0.0, 2.0, len(rays))}
-    assert Combination(low, rule="gated-log", ceiling=MAX_SURPRISAL).gate[1] == pytest.approx(
-        Combination(low, rule="gated-log").gate[1])
-    again = Combination.from_dict(bounded.as_dict())
-    assert again.ceiling == MAX_SURPRISAL and again.score(new).tolist() == bounded.score(new).tolist()
-    assert "ceiling" not in free.as_dict() and Combination.from_dict(free.as_dict()).ceiling is None
-    with pytest.raises(ValueError, match="ceiling"):
-        Combination(cal, rule="gated-log", ceiling=0.0)
-
-
 def test_grazing_rays_are_not_tested():
     """Rays to points whose |cos| of incidence is below min_cos are left out (grazing = 1 / cos^2 - 1)."""
     field = WallField()
@@ -748,31 +631,3 @@ def test_grazing_rays_are_not_tested():
                             min_cos=0.0).ray_index) == len(points)
     with pytest.raises(ValueError, match="min_cos"):
         check_ray_options({"min_cos": 1.0})
-
-
-def test_log_gate_stays_above_the_floor():
-    """Calibration scans whose rays are all near 0 (few training scans on a solid part) would put the quantile gate
-    at a nat or two, where a good scan's grazing rays pass it; with the floor given the gate is log(1 + floor), by
-    hand, so a few nats change nothing while missing material's hundreds still count."""
-    from autodecoder.scanning.free_space import MAX_SURPRISAL
-    from inspection.combine import LOG_GATE_WEIGHT as w, RAY_GATE_FLOOR
-
-    rays = np.array([0.0, 0.0, 0.1, 0.1, 0.1, 0.2, 0.3, 0.4, 0.0, 0.7])  # fandisk, 8 training scans + 2 held back
-    points = np.linspace(1.0, 2.0, len(rays))
-    cal = {"points": points, "rays": rays}
-    plain = Combination(cal, ceiling=MAX_SURPRISAL)
-    floored = Combination(cal, ceiling=MAX_SURPRISAL, floor=RAY_GATE_FLOOR)
-    lr = np.log1p(rays)
-    m_r, sd_r = lr.mean(), lr.std(ddof=1)
-    assert np.expm1(m_r + sd_r * plain.gate[1]) < 2.0  # the gate without the floor: under 2 nats
-    assert floored.gate[1] == pytest.approx((np.log1p(RAY_GATE_FLOOR) - m_r) / sd_r)
-    new = {"points": np.full(3, 1.5), "rays": np.array([3.0, 30.0, 400.0])}
-    z_r = (np.log1p(new["rays"]) - m_r) / sd_r
-    m_p, sd_p = points.mean(), points.std(ddof=1)
-    np.testing.assert_allclose(floored.score(new), 1.5 + sd_p * w * np.maximum(z_r - floored.gate[1], 0.0))
-    assert floored.score(new)[:2].tolist() == [1.5, 1.5] and floored.score(new)[2] > 1.5
-    assert plain.score(new)[0] > 10  # without it 3 nats of grazing rays would outrank most defects
-    again = Combination.from_dict(floored.as_dict())
-    assert again.floor == RAY_GATE_FLOOR and again.score(new).tolist() == floored.score(new).tolist()
-    with pytest.raises(ValueError, match="floor"):
-        Combination(cal, floor=-1.0)
