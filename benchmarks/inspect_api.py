@@ -332,6 +332,19 @@ def calibration_scores(model_path):
     return {role: scores[roles == role] for role in ("held-back", "fold", "cross-fitted")}
 
 
+def points_alone_threshold(model_path):
+    """The threshold the calibrated model's point score alone would have: the same calibration scans' point scores
+    (those its combination with the rays stored; the calibration scores themselves without rays) through the same
+    threshold rule at the same alpha, what ``calibrate --no-rays`` gives on the same scans. A float."""
+    from inspection import read_calibration
+    from inspection.threshold import fit_threshold
+
+    cal = read_calibration(model_path)
+    rays = (cal.extra or {}).get("rays")
+    points = cal.scores if not rays else rays["components"]["points"]
+    return float(fit_threshold(points, cal.alpha, cal.roles or None).value)
+
+
 def _inspector(model_path):
     """The Inspector of a calibrated model, with its stored calibration."""
     from inspection import Inspector, load_model

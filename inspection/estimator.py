@@ -342,11 +342,19 @@ class Inspector(BaseEstimator):
         return gather_evidence(self.model, scan, index, quantity=quantity, projection=settings.projection,
                                need_origin=settings.rays, exclude_own_code=exclude_own_code, timings=timings)
 
-    def _score(self, evidence: ScanEvidence, reference, settings, timings=None, uncovered=None, terms=None):
+    def _score(self, evidence: ScanEvidence, reference, settings, timings=None, uncovered=None, terms=None,
+               surface=None):
         """A :class:`ScanResult` of a scan's evidence against ``reference`` (components: points, rays);
         ``timings`` as in :meth:`inspect`; ``uncovered`` (m,) bool: a training scan's points where no other good scan
         has a surface (:func:`_uncovered`), where the joint score takes the field's term for the good points' term;
-        ``terms``: the joint score's two terms of these points, already computed (:meth:`_fit_term_variances`)."""
+        ``terms``: the joint score's two terms of these points, already computed (:meth:`_fit_term_variances`);
+        ``surface``: the reference whose good scans' surface the rays are tested against (default ``reference``).
+
+        The rays' surface is where good parts have one, whoever scanned it: a training scan scored without its own
+        points in the point score's reference (cross-fitted) keeps them in the rays' band and skim normals, as a new
+        scan of its view meets them there. Without them, a face of a thin wall that only it saw borrows the other
+        face's points and normals, and its rays there were accused (on the benchmarks' enclosure and cup every
+        accused calibration ray belonged to such a scan, none to a held-back one: docs/results.md)."""
         noise = _noise(evidence, settings)
         with stage(timings, "reference"):
             if POINT_SCORES[settings.point_score].reference:
@@ -366,9 +374,10 @@ class Inspector(BaseEstimator):
             from .ray_evidence import ray_evidence
 
             with stage(timings, "rays"):
+                band = reference if surface is None else surface
                 result.rays = ray_evidence(evidence.field, evidence.points, evidence.origin,
-                                           surface=None if reference is None else reference.tree,
-                                           surface_normals=None if reference is None else reference.oriented_surface(),
+                                           surface=None if band is None else band.tree,
+                                           surface_normals=None if band is None else band.oriented_surface(),
                                            grazing=evidence.grazing, **settings.ray_options)
             result.components["rays"] = result.rays.score
         return result
@@ -514,7 +523,7 @@ class Inspector(BaseEstimator):
         terms = [None] * len(goods)
         if settings.point_score in WEIGHED_SCORES:
             terms = self._fit_term_variances(goods, references, uncovered, settings)
-        results = [self._score(good, reference_j, settings, uncovered=out, terms=t)
+        results = [self._score(good, reference_j, settings, uncovered=out, terms=t, surface=self.reference_)
                    for good, reference_j, out, t in zip(goods, references, uncovered, terms)]
         roles = ["held-back"] * len(held) + [role] * len(crossed)
         how = selection.how

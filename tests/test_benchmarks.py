@@ -426,7 +426,7 @@ def test_a_family_variant_is_bent_as_a_pure_bend():
     assert cache.family_ranges("stretch") is cache.FAMILY_STRETCH
 
 
-def test_ray_targets_are_checked_as_the_issue_states(tmp_path):
+def test_ray_targets_are_checked_as_the_issue_states(tmp_path, monkeypatch):
     """benchmarks/suites/rays.py (issue 46): the default against the points alone - 0.005, defective flagged within
     0.05 of the points-alone oracle where it is >= 0.9 at most 1 of 16 good scans flagged there, missing material
     >= 0.9 on the thin-walled trees; and a run's row read from its scores.csv."""
@@ -442,10 +442,12 @@ def test_ray_targets_are_checked_as_the_issue_states(tmp_path):
             run("ogre-line", defective=0.5, oracle=0.6, good=3)]  # an oracle below 0.9 is not judged
     out = check_targets(fine)
     assert not (out["ranking"] or out["detection"] or out["false_alarms"] or out["missing"])
-    bad = [run("bunny-near-origins", auroc=0.994), run("cup", defective=0.94, missing=0.89, good=2)]
+    bad = [run("bunny-near-origins", auroc=0.994), run("cup", defective=0.94, missing=0.89, good=2),
+           dict(run("enclosure", defective=0.8), points_flagged=0.8)]
     out = check_targets(bad)
     assert [m.split(" (")[0] for m in out["ranking"]] == ["bunny-near-origins seed 0"]
-    assert [m.split(" (")[0] for m in out["detection"]] == ["cup seed 0"]
+    assert [m.split(" (")[0] for m in out["detection"]] == ["cup seed 0", "enclosure seed 0"]
+    assert [m.split(" (")[0] for m in out["calibration"]] == ["enclosure seed 0"]  # the points alone miss as much
     assert out["false_alarms"] == ["cup seed 0 (2 of 16)"] and out["missing"] == ["cup seed 0 (0.890)"]
     # a run's row from its scores.csv: the defaults, the two columns alone, the points-alone oracle
     results = tmp_path / "run" / "results"
@@ -456,7 +458,10 @@ def test_ray_targets_are_checked_as_the_issue_states(tmp_path):
     text = "name,split,label,defect,score,p_value,verdict,flagged,reason,score_points,score_rays,ray_nats,rays_through\n"
     text += "".join(f"{n},test,{lab},{d},{sc},0.5,{v},{f},,{p},{r},0,0\n" for n, lab, d, sc, v, f, p, r in rows)
     (results / "scores.csv").write_text(text)
+    # the calibration's own threshold for the point score alone (inspect_api.points_alone_threshold reads the model)
+    monkeypatch.setattr("benchmarks.inspect_api.points_alone_threshold", lambda model: 3.9)
     one = run_figures("cup", {"parts": {"cup": {"run_nofolds": str(tmp_path / "run")}}}, "log", 1.0)
+    assert one["points_flagged"] == 0.5 and one["points_good"] == 1
     assert one["auroc"] == 0.75 and one["points_alone"] == 0.75 and one["rays_alone"] == 0.625  # a tie counts half
     assert one["defective"] == 0.5 and one["good_text"] == "1 of 2" and one["rejected_text"] == "0 of 2"
     assert one["points_oracle"] == 0.5 and one["missing"] == 0.5

@@ -374,7 +374,8 @@ def test_cli_calibrate_and_score_with_rays(tmp_path, capsys):
                          heldback_names=names[2:6])
     assert main(["calibrate", "--model", str(model), "--data", str(data), "--alpha", "0.3", "--rays",
                  "--ray-options", "n_rays=64,n_empty=16,aggregate=top5", "--quiet"]) == 0
-    assert "+ ray score" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "+ ray score" in printed and "the rays weighed by the good scans'" in printed
     cal = read_calibration(model)
     # 4 held-back scans and the 2 training scans, cross-fitted
     assert cal.config().ray_options["aggregate"] == "top5" and len(cal.extra["rays"]["components"]["nats"]) == 6
@@ -387,6 +388,7 @@ def test_cli_calibrate_and_score_with_rays(tmp_path, capsys):
     assert all(0 <= float(r["rays_through"]) <= 1 for r in rows)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["rays"]["options"]["n_rays"] == 64 and "ray_point_auroc" in summary["metrics"]
+    assert summary["rays"]["weighing"].startswith("the rays weighed by the good scans'")
     pts, _ = read_cloud(out / "maps" / "rays" / "test__hole__020.ply")
     with ScanCollection(data) as c:
         assert len(pts) == len(c[c.index_of("test/hole/020")].points)
