@@ -57,6 +57,19 @@ RAY_TREES = {
 THIN_WALLED = ("cup", "enclosure", "enclosure-approx")  # where missing material must be found (issue 46, item 3)
 
 
+def add_tree_arguments(parser, trees, work):
+    """A trees suite's options: ``--trees`` (names of ``trees``, default all), ``--seeds``, ``--jobs``, ``--cache``
+    and ``--work`` (default ``work``)."""
+    from benchmarks import cache
+
+    parser.add_argument("--trees", default=",".join(trees), help="comma-separated tree names (default: all: "
+                                                                 "%(default)s)")
+    parser.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (default: %(default)s)")
+    parser.add_argument("--jobs", type=int, default=1, help="(tree, seed) runs at once, each a process (default 1)")
+    parser.add_argument("--cache", default=cache.CACHE, help="collections and models (default: %(default)s)")
+    parser.add_argument("--work", default=work, help="scored runs and logs (default: %(default)s)")
+
+
 def check_names(names, who, trees=TREES):
     """``names`` (list of str) all known ``trees``, else SystemExit naming ``who`` (the suite) and the known ones."""
     unknown = [n for n in names if n not in trees]

@@ -23,9 +23,9 @@ About 3-5 minutes a run on 2 shared cores when the tree and model are not cached
 """
 import numpy as np
 
-from benchmarks import cache, inspect_api, metrics
+from benchmarks import inspect_api, metrics
 from benchmarks.table import format_table
-from benchmarks.trees import RAY_TREES, THIN_WALLED, check_names, part_figures, run_trees
+from benchmarks.trees import RAY_TREES, THIN_WALLED, add_tree_arguments, check_names, part_figures, run_trees
 
 DESCRIPTION = ("whether the sensor's rays ever cost a verdict (issue 46): the defaults next to the point score "
                "alone and the rays alone, on real and virtual trees with approximate sensor origins, a line scanner "
@@ -40,12 +40,7 @@ TARGET_MISSING = 0.9  # missing material's AUROC on the thin-walled trees
 
 
 def add_arguments(p):
-    p.add_argument("--trees", default=",".join(RAY_TREES),
-                   help="comma-separated tree names (default: all: %(default)s)")
-    p.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (default: %(default)s)")
-    p.add_argument("--jobs", type=int, default=1, help="(tree, seed) runs at once, each a process (default 1)")
-    p.add_argument("--cache", default=cache.CACHE, help="collections and models (default: %(default)s)")
-    p.add_argument("--work", default=WORK, help="scored runs and logs (default: %(default)s)")
+    add_tree_arguments(p, RAY_TREES, WORK)
     p.add_argument("--from-record", default=None, metavar="RECORD",
                    help="no runs: the table of a recorded run of this suite, read again from its run folders")
 

@@ -23,9 +23,8 @@ import math
 
 import numpy as np
 
-from benchmarks import cache
 from benchmarks.table import format_table
-from benchmarks.trees import TREES, check_names, part_figures, run_trees
+from benchmarks.trees import TREES, add_tree_arguments, check_names, part_figures, run_trees
 
 DESCRIPTION = ("the defaults' verdicts on many trees x seeds (issue 27): AUROC, defective and good flagged, oracle, "
                "predicted rate; whether the stated false-alarm rate holds")
@@ -39,12 +38,7 @@ TARGET_ORACLE_GAP = 0.05  # elsewhere within this of the oracle
 
 
 def add_arguments(p):
-    p.add_argument("--trees", default=",".join(TREES),
-                   help="comma-separated tree names (default: all: %(default)s)")
-    p.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (default: %(default)s)")
-    p.add_argument("--jobs", type=int, default=1, help="(tree, seed) runs at once, each a process (default 1)")
-    p.add_argument("--cache", default=cache.CACHE, help="collections and models (default: %(default)s)")
-    p.add_argument("--work", default=WORK, help="scored runs and logs (default: %(default)s)")
+    add_tree_arguments(p, TREES, WORK)
     p.add_argument("--folds", choices=("off", "on"), default="off",
                    help="calibrate with 2 fold models trained into each model (default: %(default)s, the defaults')")
     p.add_argument("--representation", choices=("siren", "grid"), default=None,
