@@ -7,6 +7,7 @@ The command line only: arguments are parsed and checked here, the training is
 """
 import os
 import sys
+import time
 
 from datasets.cli import OneLineParser
 
@@ -137,8 +138,25 @@ def run(args):
     from autodecoder.latent.distributed import training_threads
     from autodecoder.latent.folds import train_collection_with_folds
 
+    options = options_from_args(args)
+    if not args.quiet and int(os.environ.get("RANK", "0")) == 0:
+        options["announce"] = _outlook(options.get("calibration_folds") or 0)
     with training_threads(args.threads):
-        return train_collection_with_folds(args.data, args.out, **options_from_args(args))
+        return train_collection_with_folds(args.data, args.out, **options)
+
+
+def _outlook(folds):
+    """The ``announce`` of a training (:func:`autodecoder.latent.train.train_collection`): one line, before the long
+    work, when the good scans are few for the inspection threshold that follows
+    (:func:`inspection.threshold.calibration_outlook`: how many will calibrate, what that means for the threshold,
+    what ``--calibration-folds`` or more scans would give)."""
+    def say(train_names, calibration_names):
+        from inspection.threshold import calibration_outlook
+
+        line = calibration_outlook(len(calibration_names), len(train_names), folds=folds)
+        if line:
+            print(f"note: {line}", flush=True)
+    return say
 
 
 def main(argv=None):
@@ -147,6 +165,7 @@ def main(argv=None):
     # (docs/results.md#threads); passive waiting costs nothing when the machine is idle. Only effective before
     # torch is first imported.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    started = time.perf_counter()
     try:
         args = _parse(argv)
     except SystemExit as exc:  # --help, or a usage error already printed as one line (datasets.cli)
@@ -170,7 +189,8 @@ def main(argv=None):
         last = h[-1]["loss"] if h else float("nan")
         print(f"wrote {args.out}: {len(model.train_names)} training scans, {len(model.calibration_names)} held back "
               f"for calibration, epoch {model.epoch}, final loss {last:.4g}, noise {model.noise:.3g} "
-              f"(collection units), {model.info.get('train_seconds', 0):.1f} s training")
+              f"(collection units); {time.perf_counter() - started:.1f} s in all (the training epochs "
+              f"{model.info.get('train_seconds', 0):.1f} s{' over every run of it' if args.resume else ''})")
     return 0
 
 

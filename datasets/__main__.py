@@ -7,14 +7,17 @@ from .cli import OneLineParser, one_line
 
 
 def _cmd_import(args):
-    from .importer import import_tree
+    from .importer import import_tree, skipped_line
 
     # options of the public layouts (datasets.layouts), passed only when given: a 'tree' import refuses them
     public = {k: v for k, v in (("views", args.views), ("validation_views", args.validation_views),
                                 ("keep_plane", args.keep_plane or None), ("max_points", args.max_points))
               if v is not None}
     s = import_tree(args.root, args.out, voxel=args.voxel, n_points=args.points, seed=args.seed,
-                    overwrite=args.overwrite, drop_strays=args.drop_strays, layout=args.layout, **public)
+                    overwrite=args.overwrite, drop_strays=args.drop_strays, layout=args.layout, split=args.split,
+                    label=args.label, **public)
+    if s.get("skipped"):
+        print(skipped_line(s["skipped"], args.root))
     print(f"wrote {s['out']}: {s['n_scans']} scans, points per scan min {s['points_min']} / median "
           f"{s['points_median']:g} / max {s['points_max']}, {s.get('n_dropped', 0)} non-finite points dropped, "
           f"{s['n_stray']} stray points {'removed' if s['strays_dropped'] else 'found (kept; see info)'}")
@@ -28,6 +31,9 @@ def _cmd_import(args):
     for (split, label, defect), n in s["groups"].items():
         print(f"  {split:<11}{label:<11}{defect or '-':<16}{n:>6}")
     print(f"  frame: {json.dumps(s['frame'])}")
+    if not any(split == "train" and label in ("good", "unknown") for split, label, _ in s["groups"]):
+        print(f"  no good scans in split 'train' to train a model on: a folder of good scans is imported for that "
+              f"with `--split train --label good` (or laid out as train/good/*.ply beside test/<defect>/)")
     return 0
 
 
@@ -55,8 +61,15 @@ def build_parser():
     p = sub.add_parser("import", help="scanner files (tree or flat folder) -> HDF5 scan collection",
                        description="Import a train/validation/test tree (MVTec-3D-AD / Real3D-AD style) or a flat "
                                    "folder of PLY/PCD/XYZ/PTS/TXT/NPY/NPZ clouds into a scan collection.")
-    p.add_argument("root", help="folder to import")
+    p.add_argument("root", help="folder to import (files that are not point clouds, e.g. a README or a scanner's "
+                                "alignment .conf, are skipped and named in one line)")
     p.add_argument("--out", required=True, help="collection file to write (.h5)")
+    p.add_argument("--split", choices=("train", "validation", "test"), default=None,
+                   help="a flat folder's scans go to this split (default test): `--split train --label good` makes "
+                        "a folder of good scans a collection to train on; a tree's folders say it themselves")
+    p.add_argument("--label", choices=("good", "defective", "unknown"), default=None,
+                   help="a flat folder's scans get this label (default: unknown in test, good in train and "
+                        "validation)")
     size = p.add_mutually_exclusive_group()
     size.add_argument("--voxel", type=float, metavar="SIZE", help="voxel downsampling, side in file units")
     size.add_argument("--points", type=int, metavar="N", help="keep a seeded random subset of N points per scan")

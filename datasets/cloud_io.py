@@ -12,6 +12,15 @@ CLOUD_SUFFIXES = (".ply", ".pcd", ".xyz", ".pts", ".txt", ".npy", ".npz")
 _TEXT_SUFFIXES = (".xyz", ".pts", ".txt")
 
 
+def is_cloud_file(path):
+    """Whether a folder's entry is read as a point cloud: a visible name (not starting with a dot: a scanner's
+    temporary file, a desktop's metadata) with one of :data:`CLOUD_SUFFIXES`. The one rule every command that takes
+    a folder of scans (``import``, ``score`` / ``calibrate --data FOLDER``, ``watch``) sorts its files by; whether
+    the file is a regular file is left to the caller (it may vanish between a listing and a look)."""
+    path = Path(path)
+    return not path.name.startswith(".") and path.suffix.lower() in CLOUD_SUFFIXES
+
+
 def read_cloud(path):
     """Points and (if the file has them) normals of a point-cloud file, in the file's own units.
 

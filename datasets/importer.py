@@ -10,7 +10,9 @@ Tree layout (split, label and defect come from the folders)::
                                             columns (Real3D-AD: x y z label) the last one is the label
     ROOT/<split>/*.{ply,...}          files directly in a split folder: 'good' for train/validation, 'unknown' in test
 
-A flat folder of clouds (no train/validation/test folder) becomes split 'test', label 'unknown'.
+A flat folder of clouds (no train/validation/test folder) becomes split 'test', label 'unknown', or the split and
+label given (``split='train'``: a folder of good scans to train on). Files that are not point clouds (a README, a
+scanner's ``.conf``, hidden files) are skipped and listed (:func:`list_folder`), never read.
 Sensor origin (optional, file units): an npz key ``sensor_origin`` or a sidecar ``<stem>.json`` holding
 ``{"sensor_origin": [x, y, z]}`` beside the cloud, or only the direction the sensor looked from,
 ``{"view_direction": [x, y, z]}`` (from the part toward the sensor, any length: a line scanner's sweep, a sensor
@@ -27,11 +29,11 @@ from typing import Optional
 import numpy as np
 
 from .atomic import check_writable
-from .cloud_io import CLOUD_SUFFIXES, read_cloud, write_cloud
+from .cloud_io import CLOUD_SUFFIXES, is_cloud_file, read_cloud, write_cloud
 from .ingest import group_counts, voxel_downsample, write_scans
 from .layouts import LAYOUT_SIGNS, import_public, resolve_layout
 from .normals import estimate_normals
-from .scan import SPLITS, Scan
+from .scan import LABELS, SPLITS, Scan
 
 log = logging.getLogger(__name__)
 
@@ -54,32 +56,55 @@ class ScanSource:
 
 
 # ---- finding files ---------------------------------------------------------------------------------------------------
-def _cloud_files(folder, exclude=None):
-    """Cloud files in ``folder`` (sorted); any other visible file is an error (sidecars, sub-folders and ``exclude``,
-    the collection being written, excepted)."""
-    files = []
-    for p in sorted(folder.iterdir()):
-        if p.name.startswith(".") or p.is_dir() or (exclude is not None and p.resolve() == exclude):
+@dataclass(frozen=True)
+class FolderListing:
+    """What a folder of scanner files holds: the clouds to read and the files that are not clouds."""
+
+    sources: list  # ScanSource, in a fixed order (split, class folder, file name)
+    skipped: list  # Path of every file skipped as not a point cloud (README, .conf, hidden files...), sorted
+
+
+def cloud_files(folder, exclude=None):
+    """(cloud files, skipped files) of ``folder``, each sorted by name: the clouds are the files
+    :func:`datasets.cloud_io.is_cloud_file` accepts; skipped are all other files but the clouds' ``<stem>.json``
+    sidecars and ``exclude`` (the collection being written). Sub-folders are neither."""
+    clouds, others = [], []
+    for p in sorted(Path(folder).iterdir()):
+        if p.is_dir() or (exclude is not None and p.resolve() == exclude):
             continue
-        if p.suffix.lower() in CLOUD_SUFFIXES:
-            files.append(p)
-        elif p.suffix.lower() != _SIDECAR_SUFFIX:
-            raise ValueError(f"{p}: unknown point-cloud extension {p.suffix!r} (known: {', '.join(CLOUD_SUFFIXES)})")
-    return files
+        (clouds if is_cloud_file(p) else others).append(p)
+    stems = {p.stem for p in clouds}
+    return clouds, [p for p in others if not (p.suffix.lower() == _SIDECAR_SUFFIX and p.stem in stems)]
 
 
-def find_sources(root, exclude=None):
-    """The scanner files of a tree or flat folder, in a fixed order (split, class folder, file name).
+def list_folder(root, exclude=None, split=None, label=None):
+    """The scanner files of a tree or flat folder, and the files in it that are not point clouds.
+
+    A folder as a scanner or a colleague leaves it holds more than clouds (a README, the scanner's alignment
+    ``.conf``, a desktop's hidden files): those are skipped, never read and never an error, and listed so that a
+    command can say in one line which (:func:`skipped_line`). A file with a cloud's suffix that cannot be read stays
+    an error naming it (:func:`load_source`).
 
     Parameters
     ----------
     root : str or Path
     exclude : Path, optional
         A file to skip (the output collection, when it is written into the folder being imported).
+    split : {'train', 'validation', 'test'}, optional
+        A flat folder's scans go to this split (default 'test'), as the files directly in a tree's ``<split>/``
+        folder do: a flat folder of good scans imported with ``split='train'`` is a training collection.
+    label : {'good', 'defective', 'unknown'}, optional
+        A flat folder's scans get this label (default: 'unknown' in split 'test', else 'good').
 
     Returns
     -------
-    list of ScanSource
+    FolderListing
+
+    Raises
+    ------
+    ValueError
+        ``root`` is not a folder, holds no cloud, holds two clouds of one name, or is a tree and ``split`` /
+        ``label`` are given (its folders say them).
     """
     root = Path(root)
     if not root.exists():
@@ -88,32 +113,67 @@ def find_sources(root, exclude=None):
         raise ValueError(f"{root}: not a folder")
     exclude = None if exclude is None else Path(exclude).resolve()
     split_dirs = [root / s for s in SPLITS if (root / s).is_dir()]
-    sources = []
+    sources, skipped = [], []
+    if split is not None or label is not None:
+        if split_dirs:
+            raise ValueError(f"{root}: a split and label are given for a flat folder's scans, but this folder is a "
+                             f"tree ({', '.join(d.name + '/' for d in split_dirs)}) whose folders say them")
+        split = "test" if split is None else split
+        if split not in SPLITS:
+            raise ValueError(f"split must be one of {', '.join(SPLITS)}, got {split!r}")
+        label = ("unknown" if split == "test" else "good") if label is None else label
+        if label not in LABELS:
+            raise ValueError(f"label must be one of {', '.join(LABELS)}, got {label!r}")
     if not split_dirs:
-        sources = [ScanSource(p, p.stem, "test", "unknown", "") for p in _cloud_files(root, exclude)]
+        clouds, skipped = cloud_files(root, exclude)
+        sources = [ScanSource(p, p.stem, split or "test", label or "unknown", "") for p in clouds]
     for sdir in split_dirs:
-        split = sdir.name
-        for p in _cloud_files(sdir):
-            label = "unknown" if split == "test" else "good"
-            sources.append(ScanSource(p, f"{split}/{p.stem}", split, label, ""))
+        split_here = sdir.name
+        clouds, other = cloud_files(sdir)
+        skipped += other
+        for p in clouds:
+            label_here = "unknown" if split_here == "test" else "good"
+            sources.append(ScanSource(p, f"{split_here}/{p.stem}", split_here, label_here, ""))
         for cdir in sorted(d for d in sdir.iterdir() if d.is_dir() and not d.name.startswith(".")):
             good = cdir.name == "good"
             defect = "" if good else cdir.name
-            for p in _cloud_files(cdir):
+            clouds, other = cloud_files(cdir)
+            skipped += other
+            for p in clouds:
                 gt = root / "ground_truth" / cdir.name / f"{p.stem}.txt"
-                all_good = good and split == "test" and (root / "ground_truth").is_dir()
-                sources.append(ScanSource(p, f"{split}/{cdir.name}/{p.stem}", split, "good" if good else "defective",
-                                          defect, gt if gt.is_file() else None, all_good))
+                all_good = good and split_here == "test" and (root / "ground_truth").is_dir()
+                sources.append(ScanSource(p, f"{split_here}/{cdir.name}/{p.stem}", split_here,
+                                          "good" if good else "defective", defect, gt if gt.is_file() else None,
+                                          all_good))
     if not sources:
+        also = f" (skipped {len(skipped)} other files)" if skipped else ""
         raise ValueError(f"{root}: no point-cloud files found (looked for {', '.join(CLOUD_SUFFIXES)} "
-                         f"in {'train/ validation/ test/' if split_dirs else 'the folder itself'}; nor is it a class "
-                         f"folder of a known layout: {', '.join(_public_layouts())})")
+                         f"in {'train/ validation/ test/' if split_dirs else 'the folder itself'}{also}; nor is it a "
+                         f"class folder of a known layout: {', '.join(_public_layouts())})")
     seen = {}
     for s in sources:
         if s.name in seen:
             raise ValueError(f"{s.path}: same scan name {s.name!r} as {seen[s.name]} (one cloud per file stem)")
         seen[s.name] = s.path
-    return sources
+    return FolderListing(sources, sorted(skipped))
+
+
+def find_sources(root, exclude=None, split=None, label=None):
+    """The scanner files of a tree or flat folder (list of ScanSource), in a fixed order (split, class folder, file
+    name); files that are not point clouds are skipped (:func:`list_folder`, which also lists those)."""
+    return list_folder(root, exclude, split, label).sources
+
+
+def skipped_line(skipped, root=None, shown=8):
+    """The one line a command says about the files of a folder it skipped as not point clouds ('' when none):
+    ``skipped 3 files that are not point clouds: README, bun.conf, .DS_Store``, each named relative to ``root``."""
+    if not skipped:
+        return ""
+    names = [str(Path(p).relative_to(root)) if root is not None and Path(root) in Path(p).parents else str(p)
+             for p in skipped]
+    more = f" and {len(names) - shown} more" if len(names) > shown else ""
+    what = "1 file that is not a point cloud" if len(names) == 1 else f"{len(names)} files that are not point clouds"
+    return f"skipped {what}: {', '.join(names[:shown])}{more}"
 
 
 def _public_layouts():
@@ -229,7 +289,7 @@ def load_source(src, voxel=None, n_points=None, seed=0):
 
 # ---- whole folders ---------------------------------------------------------------------------------------------------
 def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, progress=None, drop_strays=False,
-                layout="auto", **public_options):
+                layout="auto", split=None, label=None, **public_options):
     """Import a tree or flat folder of scanner files into a new collection at ``out``.
 
     A class folder of a public benchmark (Real3D-AD, Anomaly-ShapeNet, MVTec 3D-AD) is recognised (``layout='auto'``)
@@ -258,12 +318,15 @@ def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, p
         Remove the stray points from the scans (default: keep them; they are only counted).
     layout : {'auto', 'tree', 'real3d-ad', 'anomaly-shapenet', 'mvtec3d'}
         'tree': this module's own layout (above); 'auto': detected from the folder.
+    split, label : str, optional
+        The split and label of a flat folder's scans (:func:`list_folder`): ``split='train'`` makes a folder of
+        good scans a training collection. A tree's folders and a public layout say them: an error there.
 
     Returns
     -------
     dict
         Summary: out, n_scans, counts per split/label/defect, n_dropped, n_stray, frame, points per scan
-        min/median/max.
+        min/median/max, ``skipped`` (the files that are not point clouds, :func:`list_folder`).
     """
     from tqdm import tqdm
 
@@ -279,11 +342,15 @@ def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, p
     check_writable(out)  # say so now, not after reading every file
     layout = resolve_layout(root, layout)
     if layout != "tree":
+        if split is not None or label is not None:
+            raise ValueError(f"{root}: a split and label apply to a flat folder of scans, not to a {layout} class "
+                             f"folder, whose files say them")
         return import_public(root, out, layout, voxel=voxel, n_points=n_points, seed=seed, overwrite=overwrite,
                              progress=progress, **public_options)
     if public_options:
         raise ValueError(f"{root}: options {sorted(public_options)} apply to the public layouts only, not 'tree'")
-    sources = find_sources(root, exclude=out)
+    listing = list_folder(root, exclude=out, split=split, label=label)
+    sources = listing.sources
     scans, n_dropped = [], 0
     for src in tqdm(sources, desc="import", unit="file", disable=None if progress is None else not progress):
         scan, dropped = load_source(src, voxel=voxel, n_points=n_points, seed=seed)
@@ -292,7 +359,7 @@ def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, p
     provenance = {"source": "import", "root": str(root.resolve()), "files": len(sources), "voxel": voxel,
                   "points": n_points, "seed": seed, "dropped_nonfinite": n_dropped}
     summary = write_scans(scans, out, provenance, overwrite, drop_strays=drop_strays)
-    summary["n_dropped"] = n_dropped
+    summary.update(n_dropped=n_dropped, skipped=[str(p) for p in listing.skipped])
     log.info("imported %d scans from %s into %s", len(scans), root, out)
     return summary
 

@@ -32,6 +32,8 @@ calibration scans included, onto :meth:`Aligner.from_scans` of the good training
 the calibration, so a scan is moved the same way whenever and wherever it is scored (:mod:`inspection.align` decides
 when to).
 """
+from contextlib import contextmanager
+
 import numpy as np
 
 DEFAULT_LEVELS = (4.0, 2.0, 1.0)  # ICP voxel sizes in multiples of the target's point spacing, coarse to fine
@@ -395,11 +397,25 @@ def _voxel_subsample(points, voxel):
     return points[np.sort(first)]
 
 
+@contextmanager
+def registration_ticks(desc, show=True):
+    """A progress bar counting registrations, for work made of them whose number depends on how soon rounds settle
+    (:func:`register_group`, :func:`pose_spread`: no total; seconds each on scans of tens of thousands of points).
+    Yields the ``tick`` those take (None when not ``show``)."""
+    if not show:
+        yield None
+        return
+    from tqdm.auto import tqdm
+
+    with tqdm(desc=desc, unit=" registrations", dynamic_ncols=True) as bar:
+        yield lambda: bar.update(1)
+
+
 GROUP_ROUNDS = 6  # at most this many rounds of registering each training scan onto the others (register_group)
 GROUP_SETTLED = 0.05  # ... stopping once a round moves the median scan by less than this many point spacings
 
 
-def register_group(scans, rounds=GROUP_ROUNDS, seed=0, motion="rigid", return_transforms=False):
+def register_group(scans, rounds=GROUP_ROUNDS, seed=0, motion="rigid", return_transforms=False, tick=None):
     """Good scans moved into one common pose (``motion`` 'rigid': parts placed by hand) or one common pose and size
     ('scaled': the members of a product family): in each round every scan is registered onto all the others (as
     they stand after the previous round), until a round moves the median scan by less than ``GROUP_SETTLED`` point
@@ -410,7 +426,8 @@ def register_group(scans, rounds=GROUP_ROUNDS, seed=0, motion="rigid", return_tr
     the previous round (the first from the size its extent suggests) and is held by the prior to the scan's own
     size, so that the common size is the scans' typical size and does not drift (:func:`_scaled_group`). Returns copies of ``scans`` (the same order; :meth:`Aligner.align_scan`'s, the
     transform of all rounds in ``extra['align']`` for a :class:`datasets.Scan`), and with ``return_transforms``
-    also each scan's transform (4, 4). Fewer than 3 scans: returned as they are (identity transforms)."""
+    also each scan's transform (4, 4). Fewer than 3 scans: returned as they are (identity transforms). ``tick``
+    (optional) is called once per registration of a scan, for a progress bar over work of unknown length."""
     from datasets.validation import points_and_normals
 
     scans = list(scans)
@@ -418,24 +435,28 @@ def register_group(scans, rounds=GROUP_ROUNDS, seed=0, motion="rigid", return_tr
         return (scans, [np.eye(4) for _ in scans]) if return_transforms else scans
     names = [str(getattr(s, "name", "") or f"scan {i}") for i, s in enumerate(scans)]
     points = [np.asarray(points_and_normals(s)[0], dtype=np.float64).reshape(-1, 3) for s in scans]
+    tick = tick or (lambda: None)
     if motion == "scaled":
-        total = _scaled_group(points, names, rounds, seed)
+        total = _scaled_group(points, names, rounds, seed, tick)
     else:
-        total = _rigid_group(points, names, rounds, seed)
+        total = _rigid_group(points, names, rounds, seed, tick)
     moved = [np.asarray(scan, dtype=np.float64).reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
              if isinstance(scan, np.ndarray) or not hasattr(scan, "points") else moved_by(scan, T)
              for scan, T in zip(scans, total)]
     return (moved, total) if return_transforms else moved
 
 
-def _rigid_group(points, names, rounds, seed):
+def _rigid_group(points, names, rounds, seed, tick):
     """:func:`register_group`'s rounds for the rigid motion; returns each scan's total transform (4, 4)."""
     points = list(points)
     total = [np.eye(4) for _ in points]
     for _ in range(int(rounds)):
         owners = np.concatenate([np.full(len(p), n) for p, n in zip(points, names)])
         target = Aligner(np.concatenate(points), owners=owners, seed=seed)
-        steps = [target.without(n).transform(p) for p, n in zip(points, names)]  # all onto the same round's poses
+        steps = []  # all onto the same round's poses
+        for p, n in zip(points, names):
+            steps.append(target.without(n).transform(p))
+            tick()
         motion_sizes = []
         for i, T in enumerate(steps):
             moved = points[i] @ T[:3, :3].T + T[:3, 3]
@@ -446,7 +467,7 @@ def _rigid_group(points, names, rounds, seed):
     return total
 
 
-def _scaled_group(points, names, rounds, seed):
+def _scaled_group(points, names, rounds, seed, tick):
     """:func:`register_group`'s rounds for the scaled motion; returns each scan's total transform (4, 4).
 
     The union of all members' scans fits every scan as it is (its own member's other scans are in it), so
@@ -475,6 +496,7 @@ def _scaled_group(points, names, rounds, seed):
                 start = (np.eye(3), (np.eye(3) - S) @ (centre - aligner.centre), np.log(factors[i]))
             state = aligner.scaled_state(p, start)
             steps.append((state, aligner.scaled_matrix(*state)))
+            tick()
         motion_sizes = []
         for i, (state, T) in enumerate(steps):
             now = raw[i] @ T[:3, :3].T + T[:3, 3]
@@ -530,7 +552,7 @@ def moved_by(scan, T):
     return replace(scan, **changes)
 
 
-def pose_spread(scans, max_scans=AUTO_SCANS, seed=0):
+def pose_spread(scans, max_scans=AUTO_SCANS, seed=0, tick=None):
     """How far good scans' poses spread: each of up to ``max_scans`` of them (evenly chosen) registered onto the
     others (:meth:`Aligner.from_scans` without it), the ratio of its median point-to-plane residual before and after
     the registration; returns the median ratio over those scans (1.0: registration changes nothing).
@@ -538,7 +560,7 @@ def pose_spread(scans, max_scans=AUTO_SCANS, seed=0):
     Why this statistic: a residual ratio is free of the part's size and of the sensor's noise (both scale the
     residuals before and after alike), and a part in a fixture gives 1.0 within 1 % whatever its shape, while a
     few degrees of hand placement give 1.3 and more (docs/results.md#parts-placed-by-hand-alignment-in-the-calibration-issue-27).
-    Fewer than 3 scans: 1.0 (nothing to compare).
+    Fewer than 3 scans: 1.0 (nothing to compare). ``tick`` (optional) is called once per registered scan.
     """
     from datasets.validation import points_and_normals
 
@@ -553,6 +575,8 @@ def pose_spread(scans, max_scans=AUTO_SCANS, seed=0):
         others = aligner.without(str(getattr(scan, "name", "") or f"scan {i}"))
         pts = np.asarray(points_and_normals(scan)[0], dtype=np.float64).reshape(-1, 3)
         T = others.transform(pts)
+        if tick is not None:
+            tick()
         residuals = []
         for p in (pts, pts @ T[:3, :3].T + T[:3, 3]):
             ok, distances = others.plane_distances(p, 12.0 * others.spacing)

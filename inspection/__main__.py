@@ -3,6 +3,7 @@
     python -m inspection calibrate --model model.pt --data good.h5 [--alpha 0.02] [--no-rays] [--[no-]align]
     python -m inspection score --model model.pt --data tree.h5 --out results/ [--split test] [--align] [--jobs 4]
     python -m inspection watch --model model.pt --data drop_folder/ --out results/ [--once] [--settle 1]
+                               [--report-every 10] [--report-seconds 60]
     python -m inspection demo --out demo_output
 
 Heavy libraries are imported inside the commands, so --help is fast.
@@ -19,6 +20,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 def _parser():
     from .config import DEFAULT_AGGREGATE, DEFAULT_PROJECTION, InspectionConfig
     from .scores import POINT_SCORES
+    from .watch import REPORT_EVERY, REPORT_SECONDS
 
     defaults = InspectionConfig()
     from datasets.cli import OneLineParser
@@ -92,12 +94,13 @@ def _parser():
     s.add_argument("--quiet", action="store_true")
 
     w = sub.add_parser("watch", help="score each scan file as it lands in a folder (a scanner's drop folder), once; "
-                                     "verdicts appended to OUT/verdicts.jsonl and OUT/verdicts.csv, maps to OUT/maps")
+                                     "verdicts appended to OUT/verdicts.jsonl and OUT/verdicts.csv, maps to OUT/maps, "
+                                     "the page of `score` kept in OUT/report.html")
     w.add_argument("--model", required=True, help="a calibrated model")
     w.add_argument("--data", required=True, help="the folder the scanner writes cloud files into (not recursive; "
                                                  "hidden files and other suffixes, e.g. .part, are ignored)")
     w.add_argument("--out", required=True, help="results folder: verdicts.jsonl (the journal: a restarted watcher "
-                                                "skips what it records), verdicts.csv, maps/")
+                                                "skips what it records), verdicts.csv, maps/, report.html")
     w.add_argument("--once", action="store_true", help="score the files present (waiting for any still being "
                                                        "written) and exit; default: keep watching until Ctrl-C")
     w.add_argument("--settle", type=_seconds, default=1.0,
@@ -108,6 +111,12 @@ def _parser():
     w.add_argument("--maps", choices=("all", "flagged", "none"), default="all",
                    help="which scans get a coloured PLY in OUT/maps (default all)")
     w.add_argument("--two-class", action="store_true", help="good or defective only (no 'uncertain')")
+    w.add_argument("--report-every", type=_whole, default=REPORT_EVERY, metavar="N",
+                   help="rewrite OUT/report.html after every N scans (default %(default)s; 0: only by time and at "
+                        "the end) ...")
+    w.add_argument("--report-seconds", type=_seconds, default=REPORT_SECONDS, metavar="S",
+                   help="... or S seconds after it was last written, whichever comes first, and when the watcher "
+                        "stops (default %(default)s)")
     w.add_argument("--quiet", action="store_true", help="no line per scan (the summary line stays)")
 
     d = sub.add_parser("demo", help="the whole pipeline on the built-in part: synthesise, train, calibrate, score")
@@ -127,6 +136,18 @@ def _positive_int(text):
         value = 0
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
+    return value
+
+
+def _whole(text):
+    import argparse
+
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
     return value
 
 
@@ -172,7 +193,8 @@ def main(argv=None):
             from .run import calibrate, describe_calibration
 
             config = config_from_args(args)
-            insp, info = calibrate(args.model, args.data, config, split=args.split, progress=not args.quiet)
+            insp, info = calibrate(args.model, args.data, config, split=args.split, progress=not args.quiet,
+                                   echo=print)
             print(f"{args.model}: " + "\n".join(describe_calibration(insp, info)))
         elif args.command == "score":
             from .run import score
@@ -209,7 +231,8 @@ def _watch(args):
     previous = signal.signal(signal.SIGTERM, stop)  # a service manager's stop: a clean exit like Ctrl-C
     try:
         watcher = watch(args.model, args.data, args.out, once=args.once, settle=args.settle, interval=args.interval,
-                        maps=args.maps, alpha=args.alpha, uncertain=not args.two_class, quiet=args.quiet)
+                        maps=args.maps, alpha=args.alpha, uncertain=not args.two_class, quiet=args.quiet,
+                        report_every=args.report_every, report_seconds=args.report_seconds)
     except KeyboardInterrupt:
         return 0
     finally:

@@ -558,9 +558,12 @@ class Inspector(BaseEstimator):
         self.alignment_note_, self.aligner_ = "", None
         reference = selection.reference
         if settings.align == "auto":
+            from datasets.registration import registration_ticks
+
             from .align import AUTO_RATIO, pose_spread
 
-            spread = pose_spread(reference) if reference else 1.0
+            with registration_ticks("pose: placed by hand?", self.verbose and bool(reference)) as tick:
+                spread = pose_spread(reference, tick=tick) if reference else 1.0
             settings = replace(settings, align=bool(spread > AUTO_RATIO))
             if settings.align is True:
                 self.alignment_note_ = (f"the training scans' poses spread (registered onto the others, their "
@@ -571,10 +574,13 @@ class Inspector(BaseEstimator):
         if not reference:
             raise ValueError("align=True registers every scan onto the model's good training scans: include them "
                              "among the good scans (calibrate on the model's training collection)")
+        from datasets.registration import registration_ticks
+
         from .align import Aligner, register_group
 
         surface = selection.surface or reference
-        moved = dict(zip(map(id, surface), register_group(surface)))
+        with registration_ticks("common pose", self.verbose) as tick:
+            moved = dict(zip(map(id, surface), register_group(surface, tick=tick)))
         selection = replace(selection, reference=[moved.get(id(s), s) for s in reference],
                             surface=[moved[id(s)] for s in surface])
         self.aligner_ = Aligner.from_scans(selection.surface)
@@ -820,8 +826,47 @@ class Inspector(BaseEstimator):
             verdicts[np.asarray(unsure, dtype=bool)] = "uncertain"
         return verdicts.astype(str)
 
+    def reasons_from_scores(self, anomaly_scores, scans=None, uncertain=True):
+        """Each verdict of :meth:`verdicts_from_scores` in words (list of str): the score against its threshold,
+        its p-value and, for ``'uncertain'``, that a rescan says more (:meth:`inspection.threshold.Threshold.reason`):
+        what ``nsspr-inspect score``'s report.html shows beside each verdict and ``watch`` journals as ``why``."""
+        scores = np.asarray(anomaly_scores, dtype=np.float64).reshape(-1)
+        verdicts = self.verdicts_from_scores(scores, scans, uncertain)
+        ones = [self.for_scan(s) for s in scans] if getattr(self, "parts_", None) else [self] * len(scores)
+        return [one.decision_threshold_.reason(float(s), str(v)) for one, s, v in zip(ones, scores, verdicts)]
+
+    def predict_verdict(self, scans, uncertain=True, return_reasons=False):
+        """The command line's verdict of each scan: ``'good'``, ``'uncertain'`` (its score lies within the
+        threshold's own uncertainty: rescan it) or ``'defective'``, exactly what ``nsspr-inspect score`` writes for
+        the same scans and calibration (each scan registered first as the calibration says, as ``score`` does).
+
+        Parameters
+        ----------
+        scans : sequence of Scan
+            In the model's frame (:func:`inspection.loading.load_scans` reads scanner files as ``score`` does).
+        uncertain : bool
+            False: the two classes of :meth:`predict` ('good' / 'defective'), as ``score --two-class``.
+        return_reasons : bool
+            Also return each verdict in words (:meth:`reasons_from_scores`), from the same scores.
+
+        Returns
+        -------
+        verdicts : (n,) array of str
+        reasons : list of str
+            With ``return_reasons``.
+        """
+        scans = list(scans)
+        scores = self.anomaly_scores(scans)
+        verdicts = self.verdicts_from_scores(scores, scans, uncertain)
+        if return_reasons:
+            return verdicts, self.reasons_from_scores(scores, scans, uncertain)
+        return verdicts
+
     def predict(self, scans):
-        """+1 for good scans, -1 for defective ones (score > ``threshold_``, i.e. decision_function < 0)."""
+        """+1 for good scans, -1 for defective ones (score > ``threshold_``, i.e. decision_function < 0): the
+        two-class view of scikit-learn's outlier detectors. A scan the command line calls ``'uncertain'`` (its score
+        within the threshold's own uncertainty) gets -1 or +1 here by the side of the threshold its score lies on;
+        :meth:`predict_verdict` gives the command line's three verdicts."""
         scans = list(scans)
         return self.predict_from_scores(self.anomaly_scores(scans), scans)
 

@@ -19,6 +19,7 @@ from datetime import datetime, timezone
 import numpy as np
 
 from .maps import MAP_CMAP, MAP_LABEL, MAP_RANGE, RAY_MAP_LABEL, RAY_MAP_RANGE
+from .report import VERDICTS, verdict_counts
 
 VIEW_POINTS = 3000  # points shown per scan in the 3D view
 EMPHASIS = 3.0  # patch residual above which a point is drawn larger (3 standard deviations)
@@ -124,7 +125,7 @@ def report_html(rows, summary, scan_views=(), title="Inspection report"):
 
 # ----------------------------------------------------------------------------------------------- page sections
 def _header_html(rows, summary, title):
-    counts = _verdict_counts(rows)
+    counts = verdict_counts(rows)
     n = len(rows)
     parts = [f'<span class="pill" style="background:{VERDICT_COLOURS[v]}">{counts[v]} {v}</span>'
              for v in ("defective", "uncertain", "good", "error") if counts[v] or v in ("defective", "good")]
@@ -145,9 +146,9 @@ def _decision_html(rows, summary):
                                                              one.get("n_calibration")))
     if not lines:
         lines.append("no threshold: nothing is flagged")
-    counts = _verdict_counts(rows)
+    counts = verdict_counts(rows)
     items = "".join(f"<li>{li}</li>" for li in lines)
-    verdicts = ", ".join(f"<b>{counts[v]}</b> {v}" for v in ("good", "defective", "uncertain", "error"))
+    verdicts = ", ".join(f"<b>{counts[v]}</b> {v}" for v in VERDICTS)
     metrics = summary.get("metrics") or {}
     known = []
     for key, what in (("auroc", "AUROC"), ("detection_rate", "detection rate"),
@@ -163,24 +164,17 @@ def _decision_html(rows, summary):
 
 
 def _threshold_line(value, decision, n_calibration=None):
-    out = [f"threshold <b>{_num(value)}</b> (score above it: defective)"]
+    """The threshold in plain words first (:func:`inspection.threshold.describe_decision`), its statistics after."""
+    from .threshold import describe_decision
+
+    line = f"threshold <b>{_num(value)}</b> (score above it: defective)"
+    if decision.get("far_interval") and decision.get("predicted_far") is not None and decision.get("basis"):
+        plain, stats = describe_decision(decision)
+        return f'{line}: {_e(plain)}<br><span class="note">{_e(stats)}</span>'
     if decision.get("alpha") is not None:
-        out.append(f"at alpha = {decision['alpha']:g}")
-    if decision.get("basis"):
-        out.append(f"basis <b>{_e(decision['basis'])}</b>" + (f" on {decision['n']} calibration scores"
-                                                               if decision.get("n") else ""))
-    if decision.get("predicted_far") is not None:
-        far = f"predicted false-alarm rate <b>{_pct(decision['predicted_far'])}</b>"
-        if decision.get("far_interval"):
-            lo, hi = decision["far_interval"]
-            level = decision.get("far_interval_level")
-            far += f" ({_pct(level) + ' ' if level else ''}interval {_pct(lo)} to {_pct(hi)})"
-        out.append(far)
-    if n_calibration and not decision.get("n"):
-        out.append(f"{n_calibration} calibration scans")
-    line = ", ".join(out)
-    if decision.get("note"):
-        line += f'<br><span class="note">note: {_e(decision["note"])}</span>'
+        line += f", at alpha = {decision['alpha']:g}"
+    if n_calibration:
+        line += f", {n_calibration} calibration scans"
     return line
 
 
@@ -245,7 +239,7 @@ def _table_html(rows, summary, viewed):
                 cells.append(f'<td><a href="#maps" class="show3d" data-name="{_e(r["name"])}">3D</a></td>'
                              if r["name"] in viewed else "<td></td>")
             elif k == "reason":
-                cells.append(f"<td>{_e(r.get('reason', '') or '')}</td>")
+                cells.append(f"<td>{_e(r.get('reason') or r.get('why') or '')}</td>")  # an error's, or the verdict's
             else:
                 x = r.get(k)
                 sort = "" if x is None else f' data-sort="{float(x):.9g}"'
@@ -381,13 +375,6 @@ def _b64(a):
 
 
 # ---------------------------------------------------------------------------------------------------- helpers
-def _verdict_counts(rows):
-    counts = {v: 0 for v in ("good", "defective", "uncertain", "error")}
-    for r in rows:
-        counts[r.get("verdict", "error")] = counts.get(r.get("verdict", "error"), 0) + 1
-    return counts
-
-
 def _row_of(rows, name):
     return next((r for r in rows if r["name"] == name), {})
 
@@ -405,12 +392,6 @@ def _num(x, digits=5):
     if x is None or (isinstance(x, float) and not math.isfinite(x)):
         return "&ndash;"
     return f"{x:.{digits}g}"
-
-
-def _pct(x):
-    if x is None:
-        return "&ndash;"
-    return "<0.001 %" if 0 < x < 1e-5 else f"{100 * x:.2g} %"
 
 
 def _short(x):

@@ -11,7 +11,9 @@ from datasets.atomic import atomic_path
 
 # ``verdict``: good, defective, uncertain (the score lies within the threshold's own uncertainty: rescan) or error;
 # ``flagged``: whether the score exceeds the threshold (true / false; empty for an error); ``reason``: why a scan
-# whose verdict is ``error`` could not be scored (empty for the others)
+# whose verdict is ``error`` could not be scored (empty for the others, whose rows carry their verdict in words as
+# ``why``, :meth:`inspection.Inspector.reasons_from_scores`: not a column here, it is derived from the score and the
+# threshold; report.html shows it, the ``watch`` journal keeps it)
 CSV_COLUMNS = ("name", "split", "label", "defect", "score", "p_value", "verdict", "flagged", "reason")
 # with rays: the score's two components (the point score; the rays' surprisal aggregate in nats, as the field gives
 # it), the rays' evidence that entered the score (nats, as good scans weigh it: inspection.ray_calibration) and the
@@ -20,6 +22,7 @@ RAY_CSV_COLUMNS = CSV_COLUMNS + ("score_points", "score_rays", "ray_nats", "rays
 _FLOAT_COLUMNS = ("score", "score_points", "score_rays", "ray_nats", "rays_through")
 ERROR_VERDICT = "error"
 UNCERTAIN_VERDICT = "uncertain"  # the score lies within the threshold's own uncertainty: rescan
+VERDICTS = ("defective", UNCERTAIN_VERDICT, "good", ERROR_VERDICT)  # in the order a quality engineer reads them
 
 
 def atomic_write_text(path, text):
@@ -81,6 +84,7 @@ def summarize(rows, threshold, alpha, point_labels=None, point_scores=None, extr
         "counts_by_defect": {},
         "n_flagged": sum(_flagged(r) for r in rows),
         "n_uncertain": sum(r["verdict"] == UNCERTAIN_VERDICT for r in rows),
+        "verdict_counts": verdict_counts(rows + errors),
         "alpha": float(alpha),
         "threshold": _finite(threshold),
         "threshold_note": "a scan is defective when its score > threshold; 'decision' says how the threshold was "
@@ -112,12 +116,13 @@ def summarize(rows, threshold, alpha, point_labels=None, point_scores=None, extr
                 sel = np.array([r["label"] == "good" or r["defect"] == d for r in known])
                 per[d] = float(roc_auc_score(y[sel], s[sel]))
             metrics["auroc_per_defect"] = per
-        p, rc, f1, _ = precision_recall_fscore_support(y, pred, average="binary", pos_label=1, zero_division=0)
+        if 0 < y.sum() < len(y):  # precision and recall mean nothing without both good and defective scans
+            p, rc, f1, _ = precision_recall_fscore_support(y, pred, average="binary", pos_label=1, zero_division=0)
+            metrics.update(precision=float(p), recall=float(rc), f1=float(f1))
         tn, fp, fn, tp = confusion_matrix(y, pred, labels=[0, 1]).ravel()
-        metrics.update(precision=float(p), recall=float(rc), f1=float(f1),
-                       confusion_matrix={"tn": int(tn), "fp": int(fp), "fn": int(fn), "tp": int(tp),
-                                         "rows": "true label (good, defective)",
-                                         "matrix": [[int(tn), int(fp)], [int(fn), int(tp)]]})
+        metrics["confusion_matrix"] = {"tn": int(tn), "fp": int(fp), "fn": int(fn), "tp": int(tp),
+                                       "rows": "true label (good, defective)",
+                                       "matrix": [[int(tn), int(fp)], [int(fn), int(tp)]]}
     if point_labels:
         yl = np.concatenate([np.asarray(v).reshape(-1) for v in point_labels]).astype(int)
         sl = np.concatenate([np.asarray(v).reshape(-1) for v in point_scores])
@@ -131,6 +136,22 @@ def summarize(rows, threshold, alpha, point_labels=None, point_scores=None, extr
 
 def _flagged(row):
     return bool(row.get("flagged", row["verdict"] == "defective"))
+
+
+def verdict_counts(rows):
+    """{verdict: scans} over :data:`VERDICTS`, in that order (zeros included), of rows with a 'verdict'."""
+    counts = dict.fromkeys(VERDICTS, 0)
+    for r in rows:
+        counts[r.get("verdict", ERROR_VERDICT)] = counts.get(r.get("verdict", ERROR_VERDICT), 0) + 1
+    return counts
+
+
+def format_verdict_counts(counts):
+    """'1 defective (flagged), 1 uncertain (rescan), 1 good': the scans by verdict, an 'uncertain' never counted as
+    flagged; errors only when there are some."""
+    words = {"defective": "defective (flagged)", UNCERTAIN_VERDICT: "uncertain (rescan)", "good": "good",
+             ERROR_VERDICT: "could not be scored (error)"}
+    return ", ".join(f"{counts.get(v, 0)} {words[v]}" for v in VERDICTS if v != ERROR_VERDICT or counts.get(v))
 
 
 def write_json(path, obj):
@@ -166,23 +187,19 @@ def format_table(rows, summary, max_rows=60):
     parts = summary.get("parts")  # a model of several part types: a threshold per part
     where = ("thresholds per part: " + ", ".join(f"{p} {v['threshold']:.4g}" for p, v in parts.items())) if parts \
         else f"threshold {'none' if t is None else f'{t:.4g}'}"
-    lines.append(f"{summary['n_flagged']} of {summary['n_scans']} scans flagged at alpha={summary['alpha']:g} "
-                 f"({where})")
+    lines.append(f"{summary['n_scans']} scans: {format_verdict_counts(verdict_counts(rows))} at "
+                 f"alpha={summary['alpha']:g} ({where})")
     if summary.get("n_uncertain"):
         lines.append(f"{summary['n_uncertain']} scan(s) uncertain: their scores lie within the threshold's own "
                      f"uncertainty (verdict 'uncertain'): rescan them")
     if summary.get("n_errors"):
         lines.append(f"{summary['n_errors']} scan(s) could not be scored (verdict 'error', reason in scores.csv)")
     decision = summary.get("decision")
-    if decision:
-        from .threshold import format_rate
+    if decision:  # the threshold in plain words first, its statistics after
+        from .threshold import describe_decision
 
-        lo, hi = decision["far_interval"]
-        lines.append(f"threshold basis: {decision['basis']} on {decision['n']} good scans; predicted false-alarm "
-                     f"rate {format_rate(decision['predicted_far'])} ({100 * decision['far_interval_level']:.0f} % "
-                     f"interval {format_rate(lo)} to {format_rate(hi)})")
-        if decision.get("note"):
-            lines.append(f"note: {decision['note']}")
+        plain, stats = describe_decision(decision)
+        lines += [f"threshold {'none' if t is None else f'{t:.4g}'}: {plain}", stats]
     m = summary.get("metrics", {})
     bits = []
     for key in ("auroc", "aupr", "point_auroc", "ray_point_auroc", "precision", "recall", "f1", "false_alarm_rate"):

@@ -13,7 +13,7 @@ from .loading import COLLECTION_SUFFIXES, load_scans, open_collection
 from .results import prepare_out, summarize_run, write_results, write_scan_maps
 
 
-def calibrate(model, data, config=None, split=None, progress=True, write=True):
+def calibrate(model, data, config=None, split=None, progress=True, write=True, echo=None):
     """Calibrate ``model`` on the good scans of ``data`` and store the calibration in the model file:
     ``Inspector.from_config(model, config).fit(good scans of data, split=split)``, the Python API's one pipeline
     (:mod:`inspection.selection` chooses the calibration and reference scans). Returns (Inspector, info).
@@ -29,6 +29,8 @@ def calibrate(model, data, config=None, split=None, progress=True, write=True):
         The settings (None: the defaults); validated before any file is read.
     split : str, optional
         Calibrate on this split's good scans.
+    echo : callable, optional
+        Told, before the work, which files of a folder ``data`` were skipped as not point clouds (one line).
     """
     from .calibration import write_calibration
     from .config import InspectionConfig
@@ -47,6 +49,9 @@ def calibrate(model, data, config=None, split=None, progress=True, write=True):
                 raise about(data, exc) from None
     else:
         scans, info = load_scans(data, handle.frame, split=split, label="good")
+        skipped = skipped_files_line(data)
+        if echo is not None and skipped:
+            echo(skipped)
         try:
             insp.fit(scans, split=split)
         except ValueError as exc:
@@ -61,9 +66,27 @@ def calibrate(model, data, config=None, split=None, progress=True, write=True):
     return insp, info
 
 
+def skipped_files_line(data):
+    """The one line naming the files of a folder ``data`` skipped as not point clouds
+    (:func:`datasets.importer.list_folder`); '' for a collection, a cloud file or a folder without such files."""
+    from datasets.importer import list_folder, skipped_line
+
+    data = Path(data)
+    if not data.is_dir():
+        return ""
+    try:
+        return skipped_line(list_folder(data).skipped, data)
+    except (OSError, ValueError):  # reading the folder says what is wrong with it
+        return ""
+
+
 def describe_calibration(insp, info):
-    """The lines the command line prints after calibrating: what it did and, when the threshold is extrapolated or
-    coarser than asked, the one line that says so."""
+    """The lines the command line prints after calibrating: the threshold in plain words first (its false-alarm
+    rate, that rate's interval, what set it: :func:`inspection.threshold.describe_decision`), then what was done and
+    the threshold's statistics, then how the rays are weighed and how scans are registered (a model of several part
+    types: a threshold line and its note per part)."""
+    from .threshold import describe_decision
+
     settings = insp.settings_
     what = f"aggregate {settings.aggregate}, point score {settings.point_score}{' + ray score' if settings.rays else ''}"
     if insp.parts_:
@@ -89,12 +112,11 @@ def describe_calibration(insp, info):
     elif frame is not None:
         aligned.append("note: the model was trained on scans moved into one common pose (their poses spread): every "
                        "scan is registered onto it before it is scored")
-    lines = [f"calibrated on {info['n']} scans ({info['how']}): {what}; threshold {t.value:.4g} at alpha={t.alpha:g} "
-             f"({t.basis})"]
+    plain, stats = describe_decision(t.as_dict())  # the threshold in plain words first, the statistics after
+    lines = [f"threshold {t.value:.4g} at alpha={t.alpha:g}: {plain}",
+             f"calibrated on {info['n']} scans ({info['how']}): {what}", stats]
     if getattr(insp, "combination_", None) is not None:  # how much the rays count, as the good scans' rays say
         lines.append(insp.combination_.rays.describe())
-    if t.note:
-        lines.append(f"note: {t.note}")
     return lines + aligned
 
 
@@ -166,13 +188,16 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
         raise InspectionError(f"--jobs must be a whole number >= 1, got {jobs!r}")
     handle = load_model(model)
     insp = _calibrated_inspector(handle, data, alpha, progress, echo, True if align else "auto")
-    calibrated_aligned = any(one.settings_.align is True for one in (insp.parts_ or {"": insp}).values())
-    if align and not calibrated_aligned:
+    aligned = calibrated_aligned(insp)
+    if align and not aligned:
         raise InspectionError(f"{handle.path}: --align, but the model was calibrated without it: its threshold was "
                               f"drawn from scans scored where they lay, not registered ones; calibrate it again with "
                               f"`python -m inspection calibrate --model {handle.path} --data TRAINING_COLLECTION "
                               f"--align` (scoring then registers every scan by itself)")
     scans, info = load_scans(data, handle.frame, split=split, model_fingerprint=handle.fingerprint, errors="collect")
+    skipped = skipped_files_line(data)
+    if skipped:
+        echo(skipped)
     if not scans:  # nothing to score: one line, the first scan's reason when there was one
         raise InspectionError(info["failed"][0][1] if info["failed"] else
                               f"{data}: no scans" + (f" in split {split!r}" if split else ""))
@@ -181,13 +206,18 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
     spec = (handle.path, calibration, alpha)  # what a worker process builds its inspector from
     results = _inspect_scans(insp, scans, maps, out / "maps", progress, uncertain, jobs, spec)
     results["rows"] += [_error_row(name, reason) for name, reason in info["failed"]]
-    summary = summarize_run(handle, insp, data, split, calibrated_aligned, results)
+    summary = summarize_run(handle, insp, data, split, aligned, results)
     write_results(out, insp, results, summary)
     write_html_report(out / "report.html", results["rows"], summary, results["views"])  # the page of it all
     echo(format_table(results["rows"], summary))
     echo(f"results in {out}/: report.html, scores.csv, summary.json, roc.png, scores.png"
          + (f", maps/ ({results['maps']} coloured PLY + legend.png)" if results["maps"] else ""))
     return summary
+
+
+def calibrated_aligned(insp):
+    """Whether the calibration of ``insp`` (of any of its part types) registers every scan before scoring it."""
+    return any(one.settings_.align is True for one in (insp.parts_ or {"": insp}).values())
 
 
 def _calibrated_inspector(handle, data, alpha, progress, echo, align="auto"):
@@ -275,7 +305,7 @@ def _inspect_one(insp, scan, i, maps, maps_dir, uncertain=True):
     verdict = str(one.verdicts_from_scores([res.score], uncertain=uncertain)[0])
     row = {"name": scan.name, "split": scan.split, "label": scan.label, "defect": scan.defect,
            "score": res.score, "p_value": float(one.p_values_from_scores([res.score])[0]), "verdict": verdict,
-           "reason": "", "flagged": flagged}
+           "reason": "", "flagged": flagged, "why": one.reasons_from_scores([res.score], uncertain=uncertain)[0]}
     if rays:
         through = res.rays.through_observed
         row.update(score_points=res.components["points"], score_rays=res.components["rays"],

@@ -266,6 +266,21 @@ class Threshold:
         lo, hi = self.far_interval
         return (p >= lo) & (p <= hi)
 
+    def reason(self, score, verdict):
+        """A scan's verdict in words, for the report and the API: its score against this threshold, its p-value, and
+        what an ``'uncertain'`` verdict means (``verdict`` as :meth:`inspection.Inspector.verdicts_from_scores`
+        gave it for ``score``)."""
+        p = float(self.p_values([score])[0])
+        lo, hi = self.far_interval
+        where = f"score {score:.4g}, threshold {self.value:.4g}, p-value {p:.3g}"
+        if verdict == "uncertain":
+            return (f"{where}: within the threshold's own uncertainty (the p-value lies in its "
+                    f"{100 * FAR_INTERVAL_LEVEL:.0f} % false-alarm interval {format_rate(lo)} to {format_rate(hi)}): "
+                    f"rescan")
+        if verdict == "defective":
+            return f"{where}: above the threshold (good scans score this high {format_rate(p)} of the time)"
+        return f"{where}: below the threshold"
+
     def as_dict(self):
         d = asdict(self)
         d["value"] = None if not math.isfinite(self.value) else float(self.value)
@@ -276,13 +291,76 @@ class Threshold:
 
 
 def format_rate(rate):
-    """A rate as a short percentage for one-line notes: '1 %', '0.072 %', '<0.001 %'."""
-    return "<0.001 %" if 0 < rate < 1e-5 else f"{100 * rate:.2g} %"
+    """A rate as a short percentage for one-line notes: '11 %', '1 %', '0.072 %', '<0.001 %', '100 %'."""
+    if 0 < rate < 1e-5:
+        return "<0.001 %"
+    return f"{100 * rate:.0f} %" if rate >= 0.095 else f"{100 * rate:.2g} %"
+
+
+def describe_decision(decision):
+    """A threshold (:meth:`Threshold.as_dict`, as summary.json holds it) as a quality engineer reads it: (the plain
+    words first: the false-alarm rate, its interval, what set it and, when it is not exact, what would narrow it;
+    then the statistics). The command lines, the report page and the calibration print these two."""
+    lo, hi = decision["far_interval"]
+    plain = decision.get("note") or (
+        f"{_rate_and_interval(decision['predicted_far'], (lo, hi))}: set exactly (split-conformal) by "
+        f"{_scans(decision['n'], 'good scan')}' scores the model never trained on")
+    stats = [f"basis {decision['basis']} on {decision['n']} calibration scores", f"alpha {decision['alpha']:g}"]
+    if decision.get("alpha_used") not in (None, decision["alpha"]):
+        stats.append(f"reachable rate {decision['alpha_used']:.3g}")
+    stats.append(f"predicted false-alarm rate {format_rate(decision['predicted_far'])}, "
+                 f"{100 * decision.get('far_interval_level', FAR_INTERVAL_LEVEL):.0f} % interval {format_rate(lo)} to "
+                 f"{format_rate(hi)}")
+    fit = decision.get("fit") or {}
+    if "mean" in fit:
+        stats.append(f"log-normal level from {_scans(fit['n_level'], 'score')} (mean log score {fit['mean']:.4g}, "
+                     f"sd {fit['sd']:.3g}, {fit['df']} degrees of freedom)")
+    for key, what in (("cross_fit_shift", "cross-fit shift"), ("fold_shift", "fold shift")):
+        if key in fit:
+            stats.append(f"{what} {fit[key]:+.3g} in log score")
+    return plain, "statistics: " + "; ".join(stats)
 
 
 ROLES = ("held-back", "fold", "cross-fitted")
 # roles whose scores are out of sample: scored by a model that never trained on the scan
 OUT_OF_SAMPLE = ("held-back", "fold")
+
+
+def _plan(n_out, n_crossed, alpha, positive=True):
+    """How :func:`fit_threshold` draws a threshold from ``n_out`` out-of-sample and ``n_crossed`` cross-fitted
+    scores at ``alpha`` (``positive``: every score > 0, which the log-normal tail needs): (basis, the rate its
+    p-values are compared with, the ``FAR_INTERVAL_LEVEL`` interval of its false-alarm rate, the log-normal fit's
+    degrees of freedom or None). The one rule, also for saying before any score exists what a calibration on so
+    many scans will give (:func:`calibration_outlook`)."""
+    if allowed_exceedances(n_out, alpha) >= 0:
+        return "conformal", alpha, conformal_far_interval(n_out, alpha), None
+    df = n_out - 1 + (n_crossed - 1 if n_crossed else 0)
+    if positive and n_out >= 1 and df >= MIN_TAIL_SCANS - 1:
+        return "log-normal", alpha, lognormal_far_interval(n_out, alpha, df=df), df
+    reach = 1 / (n_out + 1)
+    return "too few", reach, conformal_far_interval(n_out, reach), None
+
+
+def _scans(n, what="held-back scan"):
+    """'1 held-back scan', '6 held-back scans'."""
+    return f"{n} {what}{'' if n == 1 else 's'}"
+
+
+def _rate_and_interval(rate, interval):
+    lo, hi = interval
+    return (f"a good scan is flagged {format_rate(rate)} of the time on average, and this threshold's own rate lies "
+            f"between {format_rate(lo)} and {format_rate(hi)} ({100 * FAR_INTERVAL_LEVEL:.0f} % interval)")
+
+
+def _shift_words(shift):
+    """How the cross-fitted scans scored against the held-back ones, from ``cross_fit_shift`` (mean log score of the
+    held-back minus the cross-fitted): '60 % lower' or '25 % higher', never a negative 'lower'."""
+    ratio = math.exp(-shift)  # the cross-fitted scans' geometric mean over the held-back scans'
+    return f"{100 * (1 - ratio):.0f} % lower" if ratio <= 1 else f"{100 * (ratio - 1):.0f} % higher"
+
+
+FOLDS_HINT = ("`nsspr-train --calibration-folds 2` scores the training scans by models that never saw them (more "
+              "scans set the threshold), and more good scans narrow the interval")
 
 
 def fit_threshold(calibration_scores, alpha, roles=None):
@@ -306,7 +384,9 @@ def fit_threshold(calibration_scores, alpha, roles=None):
         Split-conformal (CV+ with fold scores) on the n_o out-of-sample scores when n_o >= 1 / alpha - 1 (it can
         reach alpha exactly); else the log-normal tail, its level the out-of-sample scores' mean log score and its
         spread pooled within the out-of-sample and cross-fitted groups (needs positive scores and >= 2 degrees of
-        freedom); else conformal at its smallest reachable rate, 1 / (n_o + 1).
+        freedom); else conformal at its smallest reachable rate, 1 / (n_o + 1). Its ``note`` says in plain words,
+        first, what a quality engineer needs (the rate, its interval, what set it, what would narrow it), the
+        statistics after.
     """
     alpha = check_alpha(alpha)
     cal = _scores(calibration_scores)
@@ -320,38 +400,96 @@ def fit_threshold(calibration_scores, alpha, roles=None):
         raise ValueError("fit_threshold needs at least one out-of-sample score (a good scan the model or a fold "
                          "model did not train on)")
     n_h, n = len(held), len(cal)
-    what = (f"out-of-sample scores ({n_h - len(folds)} held-back, {len(folds)} by fold models)" if len(folds)
-            else "held-back scans")
+    what = (f"{n_h} out-of-sample scores ({n_h - len(folds)} held-back, {len(folds)} by fold models)" if len(folds)
+            else _scans(n_h))
     need = math.ceil(1 / alpha - 1 - _TOL)
-    k = allowed_exceedances(n_h, alpha)
     fit = {}
     if len(folds) and n_h > len(folds) and np.all(cal > 0):
         # how much higher the fold models' scores lie than the held-back ones' (a fold model trains on fewer scans)
         fit["fold_shift"] = float(np.log(folds).mean() - np.log(held[roles[out_of_sample] == "held-back"]).mean())
-    if k >= 0:
-        note = "" if not len(folds) else f"exact conformal (CV+) on {n_h} {what}"
-        return Threshold(conformal_threshold(held, alpha), alpha, "conformal", n_h, min(1.0, (k + 1) / (n_h + 1)),
-                         conformal_far_interval(n_h, alpha), note, fit={**fit, "scores": held.tolist()})
-    df = n_h - 1 + (len(crossed) - 1 if len(crossed) else 0)
-    if np.all(cal > 0) and df >= MIN_TAIL_SCANS - 1:
+    hint = "" if len(folds) else f"; {FOLDS_HINT}" if len(crossed) else "; more good scans narrow the interval"
+    basis, alpha_used, interval, df = _plan(n_h, len(crossed), alpha, bool(np.all(cal > 0)))
+    if basis == "conformal":
+        k = allowed_exceedances(n_h, alpha)
+        predicted = min(1.0, (k + 1) / (n_h + 1))
+        note = "" if not len(folds) else f"{_rate_and_interval(predicted, interval)}: exact conformal (CV+) on {what}"
+        return Threshold(conformal_threshold(held, alpha), alpha, "conformal", n_h, predicted, interval, note,
+                         fit={**fit, "scores": held.tolist()})
+    if basis == "log-normal":
         m, sd, _, df = _log_fit(held, crossed)
-        lo, hi = lognormal_far_interval(n_h, alpha, df=df)
         fit.update(mean=m, sd=sd, n_level=n_h, df=df)
         how = f"{n} good scans' scores" if not len(folds) else "their scores"
         if len(crossed):
             fit["cross_fit_shift"] = float(np.log(held).mean() - np.log(crossed).mean())
-            how = (f"the {n_h} held-back scans' level and the spread of all {n} (cross-fitted scans scored "
-                   f"{100 * (1 - math.exp(-fit['cross_fit_shift'])):.0f} % lower)")
-        note = (f"{n_h} {what} are fewer than the {need} an exact conformal threshold at alpha={alpha:g} "
-                f"needs: threshold extrapolated from a log-normal fit of {how} (predicted false-alarm rate "
-                f"{format_rate(alpha)}, {100 * FAR_INTERVAL_LEVEL:.0f} % interval {format_rate(lo)} to "
-                f"{format_rate(hi)})")
+            how = (f"the held-back scans' level and the spread of all {n} good scans' scores (the {len(crossed)} "
+                   f"cross-fitted training scans scored {_shift_words(fit['cross_fit_shift'])})")
+        note = (f"{_rate_and_interval(alpha, interval)}: it rests on {what}, fewer than the {need} an exact "
+                f"conformal threshold at alpha={alpha:g} needs, so it is extrapolated from a log-normal fit of "
+                f"{how}{hint}")
         value = float(math.exp(m + _tail_factor(n_h, df, alpha) * sd))
-        return Threshold(value, alpha, "log-normal", n, alpha, (lo, hi), note, fit=fit)
-    reach = 1 / (n_h + 1)
+        return Threshold(value, alpha, "log-normal", n, alpha, interval, note, fit=fit)
     why = ("the log-normal tail needs positive scores" if not np.all(cal > 0) else
            f"calibrate on at least {MIN_TAIL_SCANS} good scans")
-    note = (f"{n_h} {what} are too few for alpha={alpha:g}: using the smallest reachable rate, "
-            f"{reach:.3g} (the largest of them); {why}")
-    return Threshold(float(held.max()), alpha, "conformal", n_h, reach, conformal_far_interval(n_h, reach), note,
-                     alpha_used=reach, fit={**fit, "scores": held.tolist()})
+    note = (f"{_rate_and_interval(alpha_used, interval)}: {what} are too few for alpha={alpha:g}, so the threshold "
+            f"is the largest of their scores, at the smallest reachable rate {alpha_used:.3g}; {why}")
+    return Threshold(float(held.max()), alpha, "conformal", n_h, alpha_used, interval, note,
+                     alpha_used=alpha_used, fit={**fit, "scores": held.tolist()})
+
+
+def calibration_outlook(n_heldback, n_training, alpha=DEFAULT_ALPHA, folds=0):
+    """What calibrating on a model's good scans will give, said before the model is trained: '' when the threshold
+    will be exact, else one line in plain words (how many scans calibrate, what that means for the threshold, what
+    ``--calibration-folds`` or more scans would give). ``train_latent.py`` says it at the start of a training.
+
+    Parameters
+    ----------
+    n_heldback : int
+        Good scans held back from training (or the validation split's), the calibration's out-of-sample scans.
+    n_training : int
+        Good scans the model trains on: cross-fitted for the spread of the threshold's tail, or scored out of sample
+        by fold models.
+    alpha : float
+        The false-alarm rate the threshold will be drawn at.
+    folds : int
+        Fold models the training adds (``--calibration-folds``; 0: none).
+
+    Returns
+    -------
+    str
+    """
+    alpha = check_alpha(alpha)
+    n_out, n_crossed = (n_heldback + n_training, 0) if folds else (n_heldback, n_training)
+    if n_out == 0:
+        return (f"no good scan is held back from the {n_training} the model trains on: it cannot calibrate a "
+                f"threshold on scans it saw; hold some back (--calibration-fraction), add fold models "
+                f"(--calibration-folds 2) or calibrate later on other good scans (`nsspr-inspect calibrate --data "
+                f"GOOD_SCANS`)")
+    basis, _, interval, _ = _plan(n_out, n_crossed, alpha)
+    if basis == "conformal":
+        return ""
+    need = math.ceil(1 / alpha - 1 - _TOL)
+    total = n_heldback + n_training
+    lo, hi = (format_rate(v) for v in interval)
+    line = (f"few good scans for the threshold: of the {total} good scans {n_training} train the model and "
+            f"{n_heldback} {'is' if n_heldback == 1 else 'are'} held back to calibrate it")
+    if folds:
+        line += f", and {folds} fold models score the {n_training} training scans as new"
+    line += (f"; an exact threshold at alpha={alpha:g} needs {need} scans no model trained on, so with {n_out} it "
+             + ("will be extrapolated from a log-normal fit of their scores" if basis == "log-normal" else
+                "can only be the largest of their scores, at a false-alarm rate far above alpha")
+             + f": its own false-alarm rate will lie anywhere between {lo} and {hi} ({100 * FAR_INTERVAL_LEVEL:.0f} "
+             f"% interval), and scans scoring near it will be told 'uncertain' (rescan)")
+    if not folds and n_training >= 2:
+        k = min(2, n_training)
+        f_basis, _, f_interval, _ = _plan(total, 0, alpha)
+        if f_basis == "conformal":
+            gives = "make it exact"
+        else:
+            gives = (f"narrow that to {format_rate(f_interval[0])} to {format_rate(f_interval[1])} (all {total} "
+                     f"scored out of sample)")
+        line += f". --calibration-folds {k} would {gives}, at the cost of training {k} fold models"
+    more = max(0, need - n_out)
+    if more:
+        line += (f"; {more} more good scans {'scored by fold models' if folds else 'held back'} would make it "
+                 f"exact")
+    return line

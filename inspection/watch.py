@@ -3,18 +3,26 @@
 The results folder ``OUT`` holds:
 
 * ``verdicts.jsonl``, the journal: one JSON object per line and per scored file (``name``, ``file``, ``size``,
-  ``mtime_ns``, the columns of ``scores.csv``, ``time``, ``seconds``, ``map``). A line is appended whole with one
-  ``write`` and made durable (``fsync``) before the next file is read. The journal is also the record of what was
-  done: on start it is read back, a torn last line (a crash mid-write) is cut off, and every file it records by
-  name, size and modification time is skipped, so a watcher killed at any moment (kill -9) and restarted scores each
-  file exactly once. A file that changes afterwards (same name, new size or time: a rescan) is scored again.
+  ``mtime_ns``, the columns of ``scores.csv``, ``why``: the verdict in words, ``time``, ``seconds``, ``map``). A
+  line is appended whole with one ``write`` and made durable (``fsync``) before the next file is read. The journal
+  is also the record of what was done: on start it is read back, a torn last line (a crash mid-write) is cut off,
+  and every file it records by name, size and modification time is skipped, so a watcher killed at any moment
+  (kill -9) and restarted scores each file exactly once. A file that changes afterwards (same name, new size or
+  time: a rescan) is scored again.
 * ``verdicts.csv``: the same verdicts as a table, rewritten atomically from the journal after each line (never torn).
 * ``maps/<name>.ply``: each scan's anomaly map (``--maps``), written atomically before its journal line.
+* ``report.html``: the page ``score`` writes (:mod:`inspection.html_report`: the decision, the verdict table of every
+  file in the journal, the score histogram, the 3D maps of the ``REPORT_VIEWS`` most anomalous scans scored since the
+  watcher started), rewritten atomically every ``report_every`` scans or ``report_seconds`` seconds, whichever comes
+  first, and when the watcher stops. A page that lags the journal by a few scans is the price of not rewriting a
+  page of megabytes for every scan; the journal and ``verdicts.csv`` are always up to date.
 
-A file is read once it has *landed*: a visible cloud file (:data:`datasets.cloud_io.CLOUD_SUFFIXES`, not starting
-with a dot) whose size and modification time have not changed for ``settle`` seconds (and the same for its
-``<stem>.json`` sensor-origin sidecar, when there is one). Scanners that write under a temporary name (a leading
-dot, or another suffix such as ``.part``) and rename when done need no settling at all. Other files are ignored.
+A file is read once it has *landed*: a visible cloud file (:func:`datasets.cloud_io.is_cloud_file`: a suffix of
+:data:`datasets.cloud_io.CLOUD_SUFFIXES`, not starting with a dot) whose size and modification time have not changed
+for ``settle`` seconds (and the same for its ``<stem>.json`` sensor-origin sidecar, when there is one). Scanners
+that write under a temporary name (a leading dot, or another suffix such as ``.part``) and rename when done need no
+settling at all. Other files are ignored (the rule of every command that reads a folder of scans); one line at the
+start names those already there.
 A file that cannot be read or scored gets one ``error`` line with its reason, and the watcher goes on.
 """
 import fcntl
@@ -29,8 +37,12 @@ from .errors import InspectionError
 
 JOURNAL = "verdicts.jsonl"
 TABLE = "verdicts.csv"
+REPORT = "report.html"
 LOCK = ".watch.lock"
 _SIDECAR = ".json"
+REPORT_EVERY = 10  # scans between two rewrites of report.html ...
+REPORT_SECONDS = 60.0  # ... or seconds, whichever comes first
+REPORT_VIEWS = 50  # the most anomalous scans whose 3D maps the page holds (each up to VIEW_POINTS points)
 
 
 def read_journal(path, repair=True):
@@ -74,12 +86,12 @@ def landed_files(folder, settle, now=None):
     """The files of ``folder`` ready to be read, sorted by name, as (path, os.stat_result), and how many candidates
     are still settling: visible cloud files whose (and whose sidecar's) modification time is at least ``settle``
     seconds old."""
-    from datasets.cloud_io import CLOUD_SUFFIXES
+    from datasets.cloud_io import is_cloud_file
 
     now = time.time() if now is None else now
     ready, settling = [], 0
     for p in sorted(Path(folder).iterdir()):
-        if p.name.startswith(".") or p.suffix.lower() not in CLOUD_SUFFIXES:
+        if not is_cloud_file(p):
             continue
         try:
             st = p.stat()
@@ -116,13 +128,22 @@ class Watcher:
         The 'uncertain' verdict (False: good or defective only).
     echo : callable
         Where the one line per scan goes (None: nowhere).
+    report_every : int
+        Rewrite report.html after this many scans (0: only every ``report_seconds`` and when the watcher stops).
+    report_seconds : float
+        ... or once this many seconds have passed since it was last written and a scan was scored since (checked
+        at each verdict and each look, :meth:`poll`).
     """
 
-    def __init__(self, model, folder, out, settle=1.0, maps="all", alpha=None, uncertain=True, echo=print):
+    def __init__(self, model, folder, out, settle=1.0, maps="all", alpha=None, uncertain=True, echo=print,
+                 report_every=REPORT_EVERY, report_seconds=REPORT_SECONDS):
         self.model, self.folder, self.out = Path(model), Path(folder), Path(out)
         self.settle, self.maps, self.alpha, self.uncertain = float(settle), maps, alpha, uncertain
+        self.report_every, self.report_seconds = report_every, report_seconds
         self.echo = echo or (lambda line: None)
         self.counts = {}  # verdict -> scans scored by this watcher
+        self.views = {}  # file name -> (score, its 3D view for report.html): the REPORT_VIEWS most anomalous
+        self._unreported, self._reported_at = 0, time.monotonic()
         self._lock = self._journal = None
 
     # ------------------------------------------------------------------------------------------------ set up
@@ -130,6 +151,7 @@ class Watcher:
         """Check the options and folders, take the results folder's lock, read the journal back and load the model.
         Returns self."""
         from datasets.atomic import check_writable
+        from datasets.importer import cloud_files, skipped_line
 
         from .model_io import load_model
         from .report import CSV_COLUMNS, RAY_CSV_COLUMNS
@@ -139,6 +161,10 @@ class Watcher:
             raise InspectionError(f"--maps must be flagged, all or none, got {self.maps!r}")
         if not (self.settle >= 0 and math.isfinite(self.settle)):
             raise InspectionError(f"--settle must be a number of seconds >= 0, got {self.settle!r}")
+        if not (isinstance(self.report_every, int) and self.report_every >= 0):
+            raise InspectionError(f"--report-every must be a whole number of scans >= 0, got {self.report_every!r}")
+        if not (self.report_seconds > 0 and math.isfinite(self.report_seconds)):
+            raise InspectionError(f"--report-seconds must be a number of seconds > 0, got {self.report_seconds!r}")
         if not self.folder.is_dir():
             raise InspectionError(f"{self.folder}: no such folder" if not self.folder.exists() else
                                   f"{self.folder}: not a folder (watch needs the folder the scanner writes into)")
@@ -159,12 +185,16 @@ class Watcher:
             if handle.frame is None:
                 raise InspectionError(f"{self.model}: scanner files need the model's frame, and this model records "
                                       f"none")
-            self.frame = handle.frame
+            self.frame, self.handle = handle.frame, handle
             self.insp = _calibrated_inspector(handle, self.folder, self.alpha, False, self.echo)
             self.columns = (RAY_CSV_COLUMNS if self.insp.settings_.rays else CSV_COLUMNS) + ("file", "time")
             self._journal = os.open(self.out / JOURNAL, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
             if self.entries:
                 self._write_table()
+                self._unreported += not (self.out / REPORT).exists()  # a journal from before the page was kept
+            skipped = skipped_line(cloud_files(self.folder)[1], self.folder)
+            if skipped:
+                self.echo(skipped)
         except BaseException:
             self.close()
             raise
@@ -199,7 +229,12 @@ class Watcher:
                 continue
             self._append(entry)
             n += 1
+        if self._report_overdue():  # verdicts came, and then none for a while: the page catches up
+            self.write_report()
         return n, settling
+
+    def _report_overdue(self):
+        return bool(self._unreported) and time.monotonic() - self._reported_at >= self.report_seconds
 
     def run(self, once=False, interval=1.0):
         """Poll until interrupted (KeyboardInterrupt propagates), or with ``once`` until every file present has
@@ -246,7 +281,14 @@ class Watcher:
             from .maps import safe_name
 
             entry["map"] = f"maps/{safe_name(src.name)}.ply"
+            self._keep_view({**one["view"], "name": path.name}, entry["score"])
         return entry
+
+    def _keep_view(self, view, score):
+        """Hold a scored file's 3D view for report.html, keeping the ``REPORT_VIEWS`` most anomalous."""
+        self.views[view["name"]] = (-math.inf if score is None else score, view)
+        if len(self.views) > REPORT_VIEWS:
+            del self.views[min(self.views, key=lambda k: self.views[k][0])]
 
     def _append(self, entry):
         """Append ``entry`` to the journal as one whole line, durable before anything else happens."""
@@ -261,33 +303,63 @@ class Watcher:
         score = "" if entry.get("score") is None else f" score {entry['score']:.4g}"
         self.echo(f"{entry['file']}: {entry['verdict']}{score}"
                   + (f" ({entry['reason']})" if entry["verdict"] == "error" else ""))
+        self._unreported += 1
+        if (self.report_every and self._unreported >= self.report_every) or self._report_overdue():
+            self.write_report()
 
     def _write_table(self):
         from .report import write_scores_csv
 
         write_scores_csv(self.out / TABLE, self.entries, self.columns)
 
+    def write_report(self, force=False):
+        """Rewrite ``OUT/report.html`` (atomically) from the journal when a verdict came since it was last written
+        (or ``force``): the page ``score`` writes, one row per file of the journal (named by its file name), with
+        the 3D maps this watcher holds (:meth:`_keep_view`). Returns whether it was written."""
+        if not (self._unreported or force) or not self.entries:
+            return False
+        from .html_report import write_html_report
+        from .results import summarize_run
+        from .run import calibrated_aligned
+
+        rows = [{**e, "name": e["file"]} for e in self.entries]
+        scored = [e for e in self.entries if e["verdict"] != "error"]
+        results = {"rows": rows, "point_labels": [], "point_maps": [], "ray_maps": [],
+                   "seconds": [e["seconds"] for e in scored], "maps": sum("map" in e for e in scored)}
+        summary = summarize_run(self.handle, self.insp, self.folder, None, calibrated_aligned(self.insp), results)
+        write_html_report(self.out / REPORT, rows, summary, [v for _, v in self.views.values()],
+                          title=f"Watch: {self.folder}")
+        self._unreported, self._reported_at = 0, time.monotonic()
+        return True
+
     def summary(self):
-        """The one line said when the watcher stops."""
+        """The one line said when the watcher stops: this run's files by verdict (an 'uncertain' never counted as
+        flagged), and where the journal and the page are."""
+        from .report import format_verdict_counts
+
         n = sum(self.counts.values())
-        parts = ", ".join(f"{v} {k}" for k, v in sorted(self.counts.items()))
+        parts = format_verdict_counts(self.counts) if n else ""
+        page = f", the page in {self.out / REPORT}" if (self.out / REPORT).exists() else ""
         return (f"watch: {n} file(s) scored this time" + (f" ({parts})" if parts else "")
-                + f"; {len(self.entries)} verdict(s) in {self.out / JOURNAL}")
+                + f"; {len(self.entries)} verdict(s) in {self.out / JOURNAL}{page}")
 
 
 def watch(model, folder, out, once=False, settle=1.0, interval=1.0, maps="all", alpha=None, uncertain=True,
-          echo=print, quiet=False):
+          echo=print, quiet=False, report_every=REPORT_EVERY, report_seconds=REPORT_SECONDS):
     """Score the scan files landing in ``folder`` into ``out`` (module docstring) until interrupted, or with
     ``once`` those present (waiting for any still being written to land). ``echo`` says one line per file (not
-    when ``quiet``) and the summary line when it stops, however it stops. Returns the :class:`Watcher` (its
-    ``counts`` say what this run scored)."""
+    when ``quiet``) and the summary line when it stops, however it stops; report.html is brought up to date then
+    too (``report_every``, ``report_seconds``: :class:`Watcher`). Returns the :class:`Watcher` (its ``counts`` say
+    what this run scored)."""
     if not (interval > 0 and math.isfinite(interval)):
         raise InspectionError(f"--interval must be a number of seconds > 0, got {interval!r}")
     echo = echo or (lambda line: None)
-    watcher = Watcher(model, folder, out, settle, maps, alpha, uncertain, None if quiet else echo)
+    watcher = Watcher(model, folder, out, settle, maps, alpha, uncertain, None if quiet else echo, report_every,
+                      report_seconds)
     with watcher:
         try:
             watcher.run(once=once, interval=interval)
         finally:
+            watcher.write_report()
             echo(watcher.summary())
     return watcher

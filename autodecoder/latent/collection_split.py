@@ -39,7 +39,10 @@ def split_training_scans(collection, split="train", calibration_fraction=0.2, se
     """
     candidates = collection.select(split=split, label=("good", "unknown"))
     if not candidates:
-        raise TrainingInputError(f"{collection.path}: no good scans in split {split!r}")
+        raise TrainingInputError(f"{collection.path}: no good scans in split {split!r} ({_holdings(collection)}); a "
+                                 f"folder of good scans becomes one with `nsspr-data import FOLDER --split {split} "
+                                 f"--label good --out COLLECTION` (a tree: FOLDER/{split}/good/), or train on another "
+                                 f"split with --split")
     names = collection.names
     validation = collection.select(split="validation", label="good") if split != "validation" else []
     if validation:
@@ -59,6 +62,17 @@ def split_training_scans(collection, split="train", calibration_fraction=0.2, se
         held += [members[i] for i in order[:n_hold]]
         train += [members[i] for i in order[n_hold:]]
     return sorted(train), [names[i] for i in sorted(held)]
+
+
+def _holdings(collection):
+    """What a collection holds, in words: 'it holds 7 scans: 7 in split 'test' labelled 'unknown''."""
+    from datasets.ingest import group_counts
+
+    counts = group_counts((m["split"], m["label"]) for m in collection.metadata())
+    if not counts:
+        return "it holds no scans"
+    return (f"it holds {sum(counts.values())} scans: "
+            + ", ".join(f"{n} in split {s!r} labelled {lab!r}" for (s, lab), n in counts.items()))
 
 
 class CollectionScans:

@@ -88,7 +88,7 @@ def union_residual(scans, motion="rigid", seed=0):
                             / target.spacing for s in scans]))
 
 
-def size_reproducibility(moved, transforms, seed=0):
+def size_reproducibility(moved, transforms, seed=0, tick=None):
     """How reproducibly the scaled motion sizes a registered group of scans, as a share of how far it spreads them.
 
     Each scan of ``moved`` (already registered onto each other, :func:`datasets.registration.register_group`) is
@@ -97,7 +97,8 @@ def size_reproducibility(moved, transforms, seed=0):
     scales, over that axis' :func:`size_spread`. A family's members have definite sizes, which any half of the
     other members' scans gives back (0.03-0.08 on the benchmarks' stretched families after one round of
     registration); the sizes given to smooth views that do not pin theirs depend on which scans they meet (0.13-0.78
-    on the real bunny's range scans; docs/results.md). nan for fewer than 5 scans."""
+    on the real bunny's range scans; docs/results.md). nan for fewer than 5 scans. ``tick`` (optional): called
+    once per registration."""
     from datasets.registration import Aligner
     from datasets.validation import points_and_normals
 
@@ -110,13 +111,17 @@ def size_reproducibility(moved, transforms, seed=0):
     for i, scan in enumerate(moved):
         others = [m for j, m in enumerate(moved) if j != i]
         points = np.asarray(points_and_normals(scan)[0], dtype=np.float64).reshape(-1, 3)
-        sizes = [np.log(abs(Aligner.from_scans(half, max_scans=len(half), seed=seed, motion="scaled")
-                            .transform(points)[axis, axis])) for half in (others[0::2], others[1::2])]
+        sizes = []
+        for half in (others[0::2], others[1::2]):
+            aligner = Aligner.from_scans(half, max_scans=len(half), seed=seed, motion="scaled")
+            sizes.append(np.log(abs(aligner.transform(points)[axis, axis])))
+            if tick is not None:
+                tick()
         differences.append(abs(sizes[0] - sizes[1]))
     return float(np.quantile(differences, 0.75) / max(spreads[axis], 1e-12))
 
 
-def fit_family(scans, family="auto", max_scans=FAMILY_SCANS, seed=0):
+def fit_family(scans, family="auto", max_scans=FAMILY_SCANS, seed=0, tick=None):
     """The common size of a product family's training scans, when they are one.
 
     Parameters
@@ -129,6 +134,8 @@ def fit_family(scans, family="auto", max_scans=FAMILY_SCANS, seed=0):
         sizes are reproducible (:func:`size_reproducibility` below ``FAMILY_REPRODUCIBLE``; module docstring).
     max_scans : int
     seed : int
+    tick : callable, optional
+        Called once per registration of a scan (a progress bar: deciding takes seconds to minutes).
 
     Returns
     -------
@@ -151,16 +158,16 @@ def fit_family(scans, family="auto", max_scans=FAMILY_SCANS, seed=0):
     if family == "auto":  # one round first: parts in a fixture are told apart there, in a fifth of the time, and
         # what one round's sizes do to the scans tells real scans of one part from a family (module docstring)
         first_moved, first_transforms = register_group(chosen, rounds=1, seed=seed, motion="scaled",
-                                                       return_transforms=True)
+                                                       return_transforms=True, tick=tick)
         first = size_spread(first_transforms)
         if first <= FAMILY_SPREAD / 2:
             return None, first
-        if (union_residual(register_group(chosen, seed=seed), "rigid", seed)
+        if (union_residual(register_group(chosen, seed=seed, tick=tick), "rigid", seed)
                 < FAMILY_SHARPNESS * union_residual(first_moved, "scaled", seed)):
             return None, first  # sizes that make the scans agree less than a rigid registration does: not a family
-        if not size_reproducibility(first_moved, first_transforms, seed) < FAMILY_REPRODUCIBLE:
+        if not size_reproducibility(first_moved, first_transforms, seed, tick) < FAMILY_REPRODUCIBLE:
             return None, first  # sizes that depend on which scans a view meets: views that do not pin their size
-    moved, transforms = register_group(chosen, seed=seed, motion="scaled", return_transforms=True)
+    moved, transforms = register_group(chosen, seed=seed, motion="scaled", return_transforms=True, tick=tick)
     spread = size_spread(transforms)
     if family == "auto" and spread <= FAMILY_SPREAD:
         return None, spread
@@ -185,14 +192,14 @@ def _pose_chosen(scans, max_scans=None):
     return [scans[int(i)] for i in _evenly(len(scans), ALIGN_SCANS if max_scans is None else max_scans)]
 
 
-def _spread_and_decision(chosen, seed):
+def _spread_and_decision(chosen, seed, tick=None):
     """(:func:`datasets.registration.pose_spread` of ``chosen`` or None for fewer than 3, whether it is above
     ``AUTO_RATIO``)."""
     from datasets.registration import AUTO_RATIO, pose_spread
 
     if len(chosen) < 3:
         return None, False
-    spread = pose_spread(chosen, seed=seed)
+    spread = pose_spread(chosen, seed=seed, tick=tick)
     return spread, spread > AUTO_RATIO
 
 
@@ -202,7 +209,7 @@ def pose_decision(scans, max_scans=None, seed=0):
     return _spread_and_decision(_pose_chosen(scans, max_scans), seed)
 
 
-def fit_pose(scans, pose="auto", max_scans=None, seed=0):
+def fit_pose(scans, pose="auto", max_scans=None, seed=0, tick=None):
     """The common pose of training scans placed by hand, when their poses spread (module docstring).
 
     Parameters
@@ -217,6 +224,8 @@ def fit_pose(scans, pose="auto", max_scans=None, seed=0):
         ``datasets.registration.ALIGN_SCANS``: a target of every training scan covers what any view sees; onto 8 of
         them a view from below slid by 10 % of the part's size, docs/results.md).
     seed : int
+    tick : callable, optional
+        Called once per registration of a scan (a progress bar).
 
     Returns
     -------
@@ -233,12 +242,12 @@ def fit_pose(scans, pose="auto", max_scans=None, seed=0):
         return None, None
     chosen, spread = _pose_chosen(scans, max_scans), None
     if pose == "auto":
-        spread, moves = _spread_and_decision(chosen, seed)
+        spread, moves = _spread_and_decision(chosen, seed, tick)
         if not moves:
             return None, spread
     if len(chosen) < 3:
         return None, None
-    moved = register_group(chosen, seed=seed)
+    moved = register_group(chosen, seed=seed, tick=tick)
     return FamilyFrame(Aligner.from_scans(moved, max_scans=len(moved), seed=seed)), spread
 
 

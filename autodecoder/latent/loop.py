@@ -116,7 +116,7 @@ def scan_names(scans, names):
 
 
 def start_run(scans, names, options, *, resume=None, frame=None, fingerprint="", calibration_names=(), device="cpu",
-              family=None):
+              family=None, progress=False):
     """Everything a run trains with, on this process: its state (fresh and seeded, or restored from ``resume``),
     the nets as this process steps them, the target pools of its scans and the run's scope.
 
@@ -134,6 +134,9 @@ def start_run(scans, names, options, *, resume=None, frame=None, fingerprint="",
     frame, fingerprint, calibration_names, family
         Provenance the checkpoint records (see :func:`autodecoder.latent.train.train_latent`).
     device : str or torch.device
+    progress : bool
+        Progress bars (rank 0) over reading the scans (registering each onto a common frame, when the run has one)
+        and building their GP targets: seconds each for scans of tens of thousands of points.
 
     Returns
     -------
@@ -150,7 +153,8 @@ def start_run(scans, names, options, *, resume=None, frame=None, fingerprint="",
     device = torch.device(device)
     n_scans = len(names)
     local = list(range(rank, n_scans, world))  # this rank's scans
-    local_scans = _read_local_scans(scans, names, local, world)
+    progress = bool(progress) and rank == 0
+    local_scans = _read_local_scans(scans, names, local, world, progress)
     part_ids = _part_ids({i: str(getattr(s, "part_id", "")) for i, s in local_scans.items()}, n_scans, world)
     options, config = _resolve_options(options, resume, fingerprint, names, world, count_parts(part_ids))
     if config is None:
@@ -166,7 +170,8 @@ def start_run(scans, names, options, *, resume=None, frame=None, fingerprint="",
         from torch.nn.parallel import DistributedDataParallel
 
         module = DistributedDataParallel(state.nets, device_ids=[device.index] if device.type == "cuda" else None)
-    pools, local_points, state.info["targets_seconds"] = _target_pools(local_scans, local, config, options, device)
+    pools, local_points, state.info["targets_seconds"] = _target_pools(local_scans, local, config, options, device,
+                                                                       progress)
     del local_scans
     scope = RunScope(names=names, local=local, part_ids=part_ids, calibration_names=[str(c) for c in calibration_names],
                       frame=frame_dict(frame), fingerprint=str(fingerprint), rank=rank, world=world,
@@ -175,11 +180,20 @@ def start_run(scans, names, options, *, resume=None, frame=None, fingerprint="",
     return state, module, pools, scope, options
 
 
-def _read_local_scans(scans, names, local, world):
+def _bar(items, progress, desc):
+    """``items`` under a progress bar when ``progress`` (tqdm.auto, as the epochs' bar)."""
+    if not progress:
+        return items
+    from tqdm.auto import tqdm
+
+    return tqdm(items, desc=desc, unit="scan", dynamic_ncols=True)
+
+
+def _read_local_scans(scans, names, local, world, progress=False):
     """{index: Scan} of this rank's scans (``local``), each checked to have at least 10 points."""
     if not local:
         raise ValueError(f"{world} processes but only {len(names)} training scans: every process needs one")
-    local_scans = {i: scans[i] for i in local}
+    local_scans = {i: scans[i] for i in _bar(local, progress, "reading scans")}
     for i, s in local_scans.items():
         if len(s.points) < 10:
             raise ValueError(f"scan {names[i]!r} has {len(s.points)} points; at least 10 needed")
@@ -293,13 +307,13 @@ def _solve_shared_level(state, local_scans, config, options):
     return {**info, "points": len(points), "seconds": time.perf_counter() - t0}
 
 
-def _target_pools(local_scans, local, config, options, device):
+def _target_pools(local_scans, local, config, options, device, progress=False):
     """(pools, points, seconds): this rank's scans' target pools by scan index, their points on ``device`` in
     ``local`` order, and the seconds the GP targets took to build."""
     box, h = _box(config), float(config["lengthscale"])
     t0 = time.perf_counter()
     targets = {i: CloudTargets(np.asarray(s.points, np.float64), np.asarray(s.normals, np.float64), h, box=box)
-               for i, s in local_scans.items()}
+               for i, s in _bar(list(local_scans.items()), progress, "GP targets")}
     seconds = time.perf_counter() - t0
     pools = {i: ScanTargetPool(t, i, options.seed, options.mean_samples, options.target_refresh,
                                options.target_passes, options.pair_clusters, options.cluster_size)

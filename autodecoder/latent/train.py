@@ -19,6 +19,8 @@ import os
 from dataclasses import asdict
 from pathlib import Path
 
+from datasets.registration import registration_ticks
+
 from autodecoder.latent.checkpoint import check_output, checkpoint_to_resume, gather_checkpoint
 from autodecoder.latent.collection_split import CollectionScans, part_types, split_training_scans
 from autodecoder.latent.distributed import setup_distributed
@@ -57,7 +59,7 @@ def train_latent(scans, out=None, options=None, *, names=None, frame=None, finge
         over ``options`` except ``epochs`` and ``checkpoint_every``.
     device : str or torch.device
     quiet : bool
-        No progress bar.
+        No progress bars (reading the scans, their GP targets, the epochs).
     stop_after : int, optional
         End this run (with a checkpoint) once this many epochs are complete, as if interrupted there.
 
@@ -72,7 +74,7 @@ def train_latent(scans, out=None, options=None, *, names=None, frame=None, finge
         family = resume.get("family")
     state, module, pools, scope, options = start_run(scans, names, options, resume=resume, frame=frame,
                                                      fingerprint=fingerprint, calibration_names=calibration_names,
-                                                     device=device, family=family)
+                                                     device=device, family=family, progress=not quiet)
     end_epoch = options.epochs if stop_after is None else min(options.epochs, int(stop_after))
     checkpoint = train_epochs(state, module, pools, scope, options, out, end_epoch, show=not quiet and scope.rank == 0)
     if checkpoint is None:  # nothing left to train (resumed a finished run)
@@ -81,7 +83,7 @@ def train_latent(scans, out=None, options=None, *, names=None, frame=None, finge
 
 
 def train_collection(data, out, *, split="train", calibration_fraction=0.2, resume=False, overwrite=False,
-                     device="auto", quiet=False, family="auto", pose="auto", **options):
+                     device="auto", quiet=False, family="auto", pose="auto", announce=None, **options):
     """Train a latent model over the good scans of a collection file and write its checkpoint (``train_latent.py``).
 
     The scans to hold back for calibration are chosen by :func:`split_training_scans`; the checkpoint records them.
@@ -114,6 +116,10 @@ def train_collection(data, out, *, split="train", calibration_fraction=0.2, resu
         :func:`autodecoder.latent.family.fit_pose`); 'auto' (the default): when their poses spread, by the rule
         with which inspection's ``align='auto'`` decides to register scans. Not for several part types (their scans
         stay where they lie). A resumed run keeps what it did.
+    announce : callable, optional
+        Called as ``announce(train_names, calibration_names)`` once the scans to train on and to hold back are
+        chosen, before the long work (the family and pose decisions, the training): ``train_latent.py`` says there
+        what so many scans will give the inspection threshold.
     **options
         :class:`LatentOptions` fields (``seed`` also seeds the hold-out).
 
@@ -150,6 +156,8 @@ def train_collection(data, out, *, split="train", calibration_fraction=0.2, resu
             train, calibration = split_training_scans(collection, split, calibration_fraction,
                                                       options.get("seed", LatentOptions.seed))
         scans, family_frame = CollectionScans(collection, train), None
+        if announce is not None:
+            announce(list(scans.names), list(calibration))
         parts = part_types(collection, train)
         for flag, value in (("--family on", family), ("--pose on", pose)):
             if len(parts) > 1 and value is True:
@@ -185,7 +193,9 @@ def pose_scans(scans, pose="auto", seed=0, quiet=True):
     """``scans`` (a lazy sequence of training scans) moved into one common pose when their poses spread (parts placed
     by hand: :func:`autodecoder.latent.family.fit_pose`), with one printed line saying so unless ``quiet``. Returns
     (the scans to train on, the :class:`~autodecoder.latent.family.FamilyFrame` or None)."""
-    frame, spread = fit_pose(scans, pose, seed=seed)
+    with registration_ticks("pose: placed by hand?" if pose == "auto" else "common pose",
+                            not quiet and pose is not False) as tick:
+        frame, spread = fit_pose(scans, pose, seed=seed, tick=tick)
     if frame is None:
         return scans, None
     if not quiet:
@@ -200,7 +210,9 @@ def family_scans(scans, family="auto", seed=0, quiet=True):
     """``scans`` (a lazy sequence of training scans) brought to one size when they are a product family
     (:func:`autodecoder.latent.family.fit_family`), with one printed line saying so unless ``quiet``. Returns
     (the scans to train on, the :class:`~autodecoder.latent.family.FamilyFrame` or None)."""
-    frame, spread = fit_family(scans, family, seed=seed)
+    with registration_ticks("family of sizes?" if family == "auto" else "common size",
+                            not quiet and family is not False) as tick:
+        frame, spread = fit_family(scans, family, seed=seed, tick=tick)
     if frame is None:
         return scans, None
     if not quiet:

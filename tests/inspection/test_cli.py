@@ -131,7 +131,10 @@ def test_score_calibrates_an_uncalibrated_model_on_its_held_back_scans(workdir, 
     decision = summary["decision"]
     assert decision["n"] == 6 and decision["basis"] == "log-normal" and decision["alpha"] == 0.02
     assert summary["threshold"] == pytest.approx(decision["value"]) and "49" in decision["note"]
-    assert "threshold basis: log-normal on 6 good scans" in said and "note: 3 held-back scans are fewer" in said
+    # the threshold in plain words first (its rate, its interval, what set it), the statistics after
+    plain = said.index(f"threshold {summary['threshold']:.4g}: a good scan is flagged 2 % of the time on average")
+    assert "it rests on 3 held-back scans, fewer than the 49" in said[plain:].splitlines()[0]
+    assert said[plain:].splitlines()[1].startswith("statistics: basis log-normal on 6 calibration scores")
     variances = cal.extra["reference"]["term_variances"]  # the joint score's terms, weighed by the good scans
     assert summary["point_score"] == "joint" and summary["term_variances"] == pytest.approx(variances)
     assert f"the field's {variances[0] ** 0.5:.2f}, the good points' {variances[1] ** 0.5:.2f}" in said
