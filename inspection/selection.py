@@ -96,7 +96,7 @@ def select_scans(model, scans, reference_scans=None, split=None, part=None, trai
         how = f"good scans of split {split!r} the model did not train on"
     elif held_set and any(s.name in held_set for s in not_trained if getattr(s, "name", None)):
         calibration = [s for s in not_trained if s.name in held_set]
-        how = f"the model's {len(calibration)} held-back good scans"
+        how = f"the model's {len(calibration)} held-back good scan{'' if len(calibration) == 1 else 's'}"
     else:
         calibration = not_trained
         how = "good scans the model did not train on"
