@@ -20,7 +20,8 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 def _parser():
     from .config import DEFAULT_AGGREGATE, DEFAULT_PROJECTION, InspectionConfig
     from .scores import POINT_SCORES
-    from .watch import REPORT_EVERY, REPORT_SECONDS
+    from .batch_check import DEFAULT_MAX_DEFECTIVE_SHARE
+    from .watch import DEFAULT_WINDOW, REPORT_EVERY, REPORT_SECONDS
 
     defaults = InspectionConfig()
     from datasets.cli import OneLineParser
@@ -91,6 +92,8 @@ def _parser():
                                                             "folder")
     s.add_argument("--jobs", type=_positive_int, default=1,
                    help="score in this many processes (default 1); the results are the same, in the same order")
+    s.add_argument("--max-defective-share", type=_share, default=DEFAULT_MAX_DEFECTIVE_SHARE,
+                   help="the largest share of defective scans a batch may hold (default %(default)s): the batch check (docs/inspection.md) warns when the scans do not look like the calibration's good ones, and then tells a scan above the threshold but within the batch's shift 'uncertain', not 'defective'; a line with few defective parts says so with a smaller share (0.2), which makes the check sensitive on small batches")
     s.add_argument("--quiet", action="store_true")
 
     w = sub.add_parser("watch", help="score each scan file as it lands in a folder (a scanner's drop folder), once; "
@@ -117,6 +120,10 @@ def _parser():
     w.add_argument("--report-seconds", type=_seconds, default=REPORT_SECONDS, metavar="S",
                    help="... or S seconds after it was last written, whichever comes first, and when the watcher "
                         "stops (default %(default)s)")
+    w.add_argument("--max-defective-share", type=_share, default=DEFAULT_MAX_DEFECTIVE_SHARE,
+                   help="the largest share of defective scans the last --window scans may hold (default %(default)s): the batch check (docs/inspection.md) warns when the scans do not look like the calibration's good ones, and then tells a scan above the threshold but within the batch's shift 'uncertain', not 'defective'; a line with few defective parts says so with a smaller share (0.2), which makes the check sensitive on small batches")
+    w.add_argument("--window", type=_positive_int, default=DEFAULT_WINDOW, metavar="N",
+                   help="the batch check looks at the last N scans (default %(default)s)")
     w.add_argument("--quiet", action="store_true", help="no line per scan (the summary line stays)")
 
     d = sub.add_parser("demo", help="the whole pipeline on the built-in part: synthesise, train, calibrate, score")
@@ -149,6 +156,17 @@ def _whole(text):
     if value < 0:
         raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
     return value
+
+
+def _share(text):
+    import argparse
+
+    from .batch_check import check_max_defective_share
+
+    try:
+        return check_max_defective_share(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _seconds(text):
@@ -202,7 +220,7 @@ def main(argv=None):
             summary = score(args.model, args.data, args.out, split=None if args.split == "all" else args.split,
                             alpha=args.alpha, maps=args.maps, align=args.align,
                             progress=not args.quiet, overwrite=args.overwrite, uncertain=not args.two_class,
-                            jobs=args.jobs)
+                            jobs=args.jobs, max_defective_share=args.max_defective_share)
             if summary.get("n_errors"):
                 print(f"error: {summary['n_errors']} scan(s) could not be scored (verdict 'error' in "
                       f"{args.out}/scores.csv)", file=sys.stderr)
@@ -232,7 +250,8 @@ def _watch(args):
     try:
         watcher = watch(args.model, args.data, args.out, once=args.once, settle=args.settle, interval=args.interval,
                         maps=args.maps, alpha=args.alpha, uncertain=not args.two_class, quiet=args.quiet,
-                        report_every=args.report_every, report_seconds=args.report_seconds)
+                        report_every=args.report_every, report_seconds=args.report_seconds,
+                        max_defective_share=args.max_defective_share, window=args.window)
     except KeyboardInterrupt:
         return 0
     finally:

@@ -23,6 +23,13 @@ from .scores import POINT_SCORES, WEIGHED_SCORES, fit_term_variances, point_scor
 from .selection import model_parts, select_scans
 from .threshold import DEFAULT_ALPHA, fit_threshold
 
+# what every verdict says when the threshold's level was set by views rendered from clean templates alone (the
+# template regime): real partial scans of another sensor can score above all of them (issue 47)
+SIZE_RATIO = 10.0  # a scan this many times the good scans' size (or 1 / SIZE_RATIO^2 of it) is told why (size_note)
+LEVEL_RENDERED_NOTE = ("the threshold's level rests on views rendered from the templates only: real scans of another "
+                       "sensor may score higher; `nsspr-inspect calibrate --model MODEL --data GOOD_SCANS` with a few "
+                       "real good scans of this sensor sets it from them")
+
 log = logging.getLogger(__name__)
 
 __all__ = ["Inspector", "NotFittedError", "ScanResult", "field_for", "DEFAULT_AGGREGATE", "DEFAULT_PROJECTION"]
@@ -450,6 +457,9 @@ class Inspector(BaseEstimator):
         """
         config = self.config.validated()
         scans, training_given, origins_everywhere = _good_scans(good_scans, self.model)
+        # a public layout's collection: its good scans are views rendered from clean templates
+        provenance = getattr(good_scans, "provenance", None)
+        self._rendered_data = isinstance(provenance, dict) and bool(provenance.get("template_views"))
         self.data_fingerprint_ = good_scans.fingerprint() if hasattr(good_scans, "fingerprint") else ""
         parts = model_parts(self.model)
         if parts:
@@ -460,7 +470,7 @@ class Inspector(BaseEstimator):
                     raise ValueError(f"no good calibration scans of part {part!r} (the model was trained on parts "
                                      f"{parts} and calibrates each on its own scans)")
                 one = type(self)(**self.get_params(deep=False))
-                one.parts_ = None
+                one.parts_, one._rendered_data = None, self._rendered_data
                 one._fit_selection(selection, config, origins_everywhere, cross_fit, f" {part}")
                 self.parts_[part] = one
             self._gather_parts()
@@ -494,6 +504,8 @@ class Inspector(BaseEstimator):
         reference = selection.reference
         self.settings_ = settings
         self.reference_ = None
+        self.level_rendered_ = bool(getattr(self, "_rendered_data", False)) or all(
+            isinstance(getattr(s, "extra", None), dict) and bool(s.extra.get("template")) for s in selection.calibration)
         crossed = []
         if POINT_SCORES[settings.point_score].reference:
             crossed = self._fit_reference(_progress(reference, self.verbose, f"reference{desc}"), selection.surface,
@@ -656,6 +668,60 @@ class Inspector(BaseEstimator):
                                               np.concatenate(field_var), np.concatenate(noise_var),
                                               np.concatenate(grazing) if with_grazing else None)
 
+    def fit_level(self, good_scans, source=""):
+        """Set the threshold's level from real good scans of the inspection's own sensor, keeping the calibration.
+
+        The template regime's (and any) model calibrates on scans its own data holds: views rendered from clean
+        templates, or scans of the training sensor. Good scans of the inspection's own sensor, a first shift's
+        worth (4-16), can score higher or lower than those as a whole; given here, they alone set the threshold's
+        level while every calibration scan keeps giving its spread (:func:`inspection.threshold.fit_threshold`,
+        role ``'site'``): split-conformal on them once there are enough. The per-location reference, the noise
+        model, the ray weighing and the registration stay as calibrated. Called again, the new scans replace the
+        previous call's.
+
+        Parameters
+        ----------
+        good_scans : sequence of Scan
+            Good scans (in the model's frame; :func:`inspection.loading.load_scans` reads scanner files), none of
+            them a scan the model trained on.
+        source : str
+            Where they came from, for the calibration's record (``calibration_source_``).
+
+        Returns
+        -------
+        self
+        """
+        self._check_is_fitted()
+        scans = list(good_scans)
+        if not scans:
+            raise ValueError("fit_level needs at least one good scan of the inspection's own sensor, got none")
+        trained = set(str(n) for n in (getattr(self.model, "train_names", None) or []))
+        seen = [scan_name(s, i) for i, s in enumerate(scans) if getattr(s, "name", None) in trained]
+        if seen:
+            raise ValueError(f"{len(seen)} of the {len(scans)} scans are scans the model trained on (e.g. "
+                             f"{seen[0]!r}): their scores would be optimistic; give good scans it never saw")
+        groups = {}
+        for i, s in enumerate(scans):
+            groups.setdefault(id(self.for_scan(s)), (self.for_scan(s), []))[1].append((i, s))
+        for one, members in groups.values():
+            one._set_site_level([one.inspect(s, i).score for i, s in members],
+                                [scan_name(s, i) for i, s in members], source)
+        if getattr(self, "parts_", None):
+            self._gather_parts()
+        return self
+
+    def _set_site_level(self, scores, names, source):
+        """This (single-part) inspector's threshold with ``scores`` as its 'site' scores (any earlier ones dropped)."""
+        keep = [j for j, r in enumerate(self.calibration_roles_) if r != "site"]
+        self.level_rendered_ = False
+        base = getattr(self, "calibration_source_", "") or ""
+        base = base.split("; level from ")[0]
+        self.calibration_source_ = (f"{base}; level from {len(scores)} good scan{'s' if len(scores) != 1 else ''} of "
+                                    f"the inspection's own sensor{f' ({source})' if source else ''}")
+        self._set(np.concatenate([self.calibration_scores_[keep], np.asarray(scores, dtype=np.float64)]),
+                  [self.calibration_names_[j] for j in keep] + list(names),
+                  [self.calibration_roles_[j] for j in keep] + ["site"] * len(scores))
+
     def _calibrate_from(self, results, names, roles=None):
         """Calibrate from the :class:`ScanResult` of each good calibration scan (:meth:`inspect_components`'s);
         ``roles`` says for each whether it was held back, scored by a fold model or cross-fitted (default: held
@@ -732,6 +798,7 @@ class Inspector(BaseEstimator):
             self.combination_ = Combination.from_dict(rays["components"])
         self.calibration_source_ = calibration.source
         self.data_fingerprint_ = calibration.fingerprint
+        self.level_rendered_ = bool(extra.get("level_rendered", False))
         self._set(calibration.scores, calibration.names,
                   list(calibration.roles) or ["held-back"] * len(calibration.scores))
 
@@ -753,6 +820,7 @@ class Inspector(BaseEstimator):
             return Calibration(**common, extra={"config": settings.as_dict(), "parts": records})
         aligner = getattr(self, "aligner_", None)
         return Calibration(**common, extra={"config": settings.as_dict(),
+                                            "level_rendered": bool(getattr(self, "level_rendered_", False)),
                                             "reference": None if self.reference_ is None else self.reference_.as_dict(),
                                             "rays": self._ray_record(),
                                             "align": None if aligner is None else aligner.as_dict()})
@@ -833,7 +901,31 @@ class Inspector(BaseEstimator):
         scores = np.asarray(anomaly_scores, dtype=np.float64).reshape(-1)
         verdicts = self.verdicts_from_scores(scores, scans, uncertain)
         ones = [self.for_scan(s) for s in scans] if getattr(self, "parts_", None) else [self] * len(scores)
-        return [one.decision_threshold_.reason(float(s), str(v)) for one, s, v in zip(ones, scores, verdicts)]
+        sizes = [self.size_note(scan) for scan in scans] if scans is not None else [""] * len(scores)
+        return [(f"{size}; " if size else "") + one.decision_threshold_.reason(float(s), str(v))
+                + (f"; {LEVEL_RENDERED_NOTE}" if getattr(one, "level_rendered_", False) else "")
+                for one, s, v, size in zip(ones, scores, verdicts, sizes)]
+
+    def size_note(self, scan):
+        """'' or, for a scan whose size cannot be the part's, one line saying so: its bounding box's diagonal is more
+        than ``SIZE_RATIO`` times the good scans' (the per-location reference's points, the whole part) or less than
+        1 / ``SIZE_RATIO`` ** 2 of it (a partial scan is smaller than the part, but not that much). A scan written
+        in millimetres against a model of metres is about 1000x: no score says why as plainly."""
+        one = self.for_scan(scan)
+        reference = getattr(one, "reference_", None)
+        points = getattr(scan, "points", scan)
+        if reference is None or points is None or len(points) < 2:
+            return ""
+        good = float(np.linalg.norm(np.ptp(reference.points, axis=0)))
+        size = float(np.linalg.norm(np.ptp(np.asarray(points, dtype=np.float64).reshape(-1, 3), axis=0)))
+        if not (good > 0 and np.isfinite(size)):
+            return ""
+        ratio = size / good
+        if 1 / SIZE_RATIO ** 2 <= ratio <= SIZE_RATIO:
+            return ""
+        what = f"about {ratio:.3g}x" if ratio > 1 else f"about 1/{1 / ratio:.3g}"
+        return (f"its size is {what} the good scans' (its bounding box's diagonal against theirs, in the model's "
+                f"frame): other units (millimetres against metres?) or not this part")
 
     def predict_verdict(self, scans, uncertain=True, return_reasons=False):
         """The command line's verdict of each scan: ``'good'``, ``'uncertain'`` (its score lies within the

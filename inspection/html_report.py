@@ -156,7 +156,8 @@ def _decision_html(rows, summary):
                       ("ray_point_auroc", "ray point AUROC")):
         if metrics.get(key) is not None:
             known.append(f"{what} {metrics[key]:.3f}")
-    return ('<section id="decision"><h2>Decision</h2>'
+    warnings = "".join(f'<p class="warn"><b>Warning:</b> {_e(w)}</p>' for w in summary.get("warnings") or [])
+    return ('<section id="decision"><h2>Decision</h2>' + warnings +
             f'<ul>{items}</ul><p>Verdicts: {verdicts}. A scan is <i>defective</i> when its score exceeds the '
             'threshold, <i>uncertain</i> (rescan it) when its p-value lies within the threshold\'s own false-alarm '
             'interval, <i>error</i> when it could not be scored (see its reason).</p>'
@@ -436,6 +437,7 @@ header .sub { font-size: 12px; color: #cfd8dc; margin-top: 6px; }
 section { padding: 6px 24px 12px 24px; }
 h2 { font-size: 18px; border-bottom: 1px solid #cfd8dc; padding-bottom: 4px; }
 .note { color: #546e7a; font-size: 13px; }
+.warn { background: #fff3e0; border-left: 4px solid #ef6c00; padding: 6px 10px; }
 .plots { display: flex; flex-wrap: wrap; gap: 12px; }
 .plot { flex: 1 1 460px; min-width: 360px; }
 .view3d { width: 100%; height: 560px; border: 1px solid #cfd8dc; }

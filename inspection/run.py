@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .batch_check import DEFAULT_MAX_DEFECTIVE_SHARE, check_run
 from .errors import InspectionError, about
 from .loading import COLLECTION_SUFFIXES, load_scans, open_collection
 from .results import prepare_out, summarize_run, write_results, write_scan_maps
@@ -24,7 +25,11 @@ def calibrate(model, data, config=None, split=None, progress=True, write=True, e
         The model file (rewritten atomically with the calibration when ``write``).
     data : str or Path
         A collection (the model's training collection gives the held-back scans and the training scans' reference),
-        a folder of scanner files or one cloud file.
+        a folder of scanner files or one cloud file. A model that is calibrated already, given good scans none of
+        which it trained on (real good scans of the inspection's own sensor, say 4-16 of a first shift; a flat
+        folder's unlabelled scans are taken for good), keeps its calibration and lets those scans set the
+        threshold's level (:meth:`Inspector.fit_level`; ``config``'s alpha applies, its other settings are the
+        stored calibration's).
     config : InspectionConfig, optional
         The settings (None: the defaults); validated before any file is read.
     split : str, optional
@@ -34,28 +39,15 @@ def calibrate(model, data, config=None, split=None, progress=True, write=True, e
     """
     from .calibration import write_calibration
     from .config import InspectionConfig
-    from .estimator import Inspector
     from .model_io import load_model
 
     config = (config or InspectionConfig()).validated()
     handle = load_model(model)
-    insp = Inspector.from_config(handle.model, config, verbose=progress)
     data = Path(data)
-    if data.is_file() and data.suffix.lower() in COLLECTION_SUFFIXES:
-        with open_collection(data, handle.frame) as coll:
-            try:
-                insp.fit(coll, split=split)
-            except ValueError as exc:
-                raise about(data, exc) from None
+    if handle.calibration is not None and not _holds_training_scans(handle, data, split):
+        insp = _site_level(handle, data, config, split, progress, echo)
     else:
-        scans, info = load_scans(data, handle.frame, split=split, label="good")
-        skipped = skipped_files_line(data)
-        if echo is not None and skipped:
-            echo(skipped)
-        try:
-            insp.fit(scans, split=split)
-        except ValueError as exc:
-            raise about(data, exc) from None
+        insp = _full_calibration(handle, data, config, split, progress, echo)
     if write:
         write_calibration(handle.path, insp.calibration())
     info = {"n": insp.n_calibration_, "how": insp.calibration_source_}
@@ -64,6 +56,78 @@ def calibrate(model, data, config=None, split=None, progress=True, write=True, e
     else:
         info.update(threshold=insp.threshold_, decision=insp.decision_threshold_)
     return insp, info
+
+
+def _full_calibration(handle, data, config, split, progress, echo):
+    """``Inspector.fit`` on the good scans of ``data`` (:func:`calibrate`)."""
+    from .estimator import Inspector
+
+    insp = Inspector.from_config(handle.model, config, verbose=progress)
+    if data.is_file() and data.suffix.lower() in COLLECTION_SUFFIXES:
+        with open_collection(data, handle.frame) as coll:
+            try:
+                insp.fit(coll, split=split)
+            except ValueError as exc:
+                raise about(data, exc) from None
+        return insp
+    scans = _given_good_scans(data, handle, split, echo)
+    try:
+        insp.fit(scans, split=split)
+    except ValueError as exc:
+        raise about(data, exc) from None
+    return insp
+
+
+def _holds_training_scans(handle, data, split):
+    """Whether ``data`` holds any of the model's training scans (its training collection does): a full calibration
+    then, else the calibrated model's level is set by the given scans (:func:`_site_level`)."""
+    trained = set(str(n) for n in (getattr(handle.model, "train_names", None) or []))
+    if not trained:
+        return True
+    if data.is_file() and data.suffix.lower() in COLLECTION_SUFFIXES:
+        with open_collection(data, handle.frame) as coll:
+            if handle.fingerprint and coll.fingerprint() == handle.fingerprint:
+                return True
+            return any(m["name"] in trained for m in coll.metadata())
+    return False  # scanner files: not the model's collection (a file named like a training scan is refused later)
+
+
+def _given_good_scans(data, handle, split, echo):
+    """The good scans of ``data`` that ``calibrate`` was given: a collection's or a labelled tree's good ones; the
+    scans of a folder without labels (a flat folder of scanner files) are taken for good, as calibrate is given good
+    scans, and ``echo`` says so."""
+    if data.is_file() and data.suffix.lower() in COLLECTION_SUFFIXES:
+        scans, _ = load_scans(data, handle.frame, split=split, label="good")
+        return scans
+    scans, _ = load_scans(data, handle.frame, split=split)
+    skipped = skipped_files_line(data)
+    if echo is not None and skipped:
+        echo(skipped)
+    unlabelled = [s for s in scans if s.label == "unknown"]
+    if unlabelled and echo is not None:
+        echo(f"taking the {len(unlabelled)} unlabelled scan{'s' if len(unlabelled) != 1 else ''} of {data} for good "
+             f"ones (calibrate is given good scans; a tree's good/ and defective folders label them)")
+    return [s for s in scans if s.label in ("good", "unknown")]
+
+
+def _site_level(handle, data, config, split, progress, echo):
+    """A calibrated model given good scans it never trained on (not its training collection): they set the
+    threshold's level, the stored calibration its spread and everything else (:meth:`Inspector.fit_level`)."""
+    from .estimator import Inspector
+
+    insp = _calibrated_inspector(handle, data, config.alpha, progress, echo)
+    scans = _given_good_scans(data, handle, split, echo)
+    if not scans:
+        raise InspectionError(f"{data}: no good scans to set the threshold's level with")
+    if echo is not None:
+        echo(f"{handle.path} is calibrated: the {len(scans)} good scan{'s' if len(scans) != 1 else ''} of {data} set "
+             f"its threshold's level (the scans of the inspection's own sensor), its calibration scans the spread; "
+             f"calibrating on the training collection again starts afresh")
+    try:
+        insp.fit_level(scans, source=str(data))
+    except ValueError as exc:
+        raise about(data, exc) from None
+    return insp
 
 
 def skipped_files_line(data):
@@ -156,7 +220,7 @@ def _calibrate_for_scoring(handle, data, alpha, progress, echo, align="auto"):
 
 
 def score(model, data, out, split="test", alpha=None, maps="flagged", align=False, progress=True, overwrite=False,
-          echo=print, uncertain=True, jobs=1):
+          echo=print, uncertain=True, jobs=1, max_defective_share=None):
     """Score scans against a calibrated model and write report.html, scores.csv, summary.json, roc.png, scores.png,
     maps/.
 
@@ -167,6 +231,11 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
     the threshold's own uncertainty gets verdict ``'uncertain'`` (rescan it; ``summary['n_uncertain']``) unless
     ``uncertain`` is False (two classes). ``jobs`` > 1 scores the scans in that many processes, with the same
     results, in the same order, as one (:func:`_inspect_scans`).
+
+    The scored scans are checked as a batch against the calibration (:mod:`inspection.batch_check`, at most
+    ``max_defective_share`` of them defective; None: its default): when they do not look like the calibration's good
+    scans (another sensor, other units) the summary says so (``summary['batch_check']``, ``summary['warnings']``)
+    and a scan above the threshold but within the batch's shift is told 'uncertain', not 'defective'.
 
     ``align``: every scan is registered onto the good training scans before it is scored. It is a setting of the
     calibration (``calibrate --align``), which registers the calibration scans the same way: an uncalibrated model
@@ -205,14 +274,36 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
     calibration = insp.calibration() if handle.calibration is None else handle.calibration
     spec = (handle.path, calibration, alpha)  # what a worker process builds its inspector from
     results = _inspect_scans(insp, scans, maps, out / "maps", progress, uncertain, jobs, spec)
+    batch = check_run(insp, scans, results["rows"], DEFAULT_MAX_DEFECTIVE_SHARE if max_defective_share is None
+                      else max_defective_share, uncertain)  # before the counts: it can retell verdicts
     results["rows"] += [_error_row(name, reason) for name, reason in info["failed"]]
     summary = summarize_run(handle, insp, data, split, aligned, results)
+    summary["batch_check"] = batch
+    summary["warnings"] = run_warnings(insp, batch)
     write_results(out, insp, results, summary)
     write_html_report(out / "report.html", results["rows"], summary, results["views"])  # the page of it all
     echo(format_table(results["rows"], summary))
+    for line in summary["warnings"]:
+        echo(f"warning: {line}")
     echo(f"results in {out}/: report.html, scores.csv, summary.json, roc.png, scores.png"
          + (f", maps/ ({results['maps']} coloured PLY + legend.png)" if results["maps"] else ""))
     return summary
+
+
+def run_warnings(insp, batch):
+    """What a run's user must read before its verdicts (summary.json's ``warnings``, the report page, the terminal):
+    the batch check's message when it fired (per part), and that the threshold's level rests on views rendered from
+    templates only."""
+    lines = []
+    checks = {None: batch} if batch is None or "fired" in batch else batch
+    for part, check in checks.items():
+        if check and check.get("fired"):
+            lines.append((f"part {part}: " if part else "") + check["message"])
+    if any(getattr(one, "level_rendered_", False) for one in (insp.parts_ or {"": insp}).values()):
+        from .estimator import LEVEL_RENDERED_NOTE
+
+        lines.append(LEVEL_RENDERED_NOTE)
+    return lines
 
 
 def calibrated_aligned(insp):
@@ -305,7 +396,8 @@ def _inspect_one(insp, scan, i, maps, maps_dir, uncertain=True):
     verdict = str(one.verdicts_from_scores([res.score], uncertain=uncertain)[0])
     row = {"name": scan.name, "split": scan.split, "label": scan.label, "defect": scan.defect,
            "score": res.score, "p_value": float(one.p_values_from_scores([res.score])[0]), "verdict": verdict,
-           "reason": "", "flagged": flagged, "why": one.reasons_from_scores([res.score], uncertain=uncertain)[0]}
+           "reason": one.size_note(scan), "flagged": flagged,
+           "why": one.reasons_from_scores([res.score], [scan], uncertain=uncertain)[0]}
     if rays:
         through = res.rays.through_observed
         row.update(score_points=res.components["points"], score_rays=res.components["rays"],

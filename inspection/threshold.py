@@ -110,11 +110,12 @@ def conformal_threshold(calibration_scores, alpha):
     return float(cal[k])
 
 
-def _log_fit(level_scores, spread_scores=()):
+def _log_fit(level_scores, spread_scores=(), spread_groups=None):
     """The log-normal fit (module docstring): (m, s, n_level, df).
 
-    m: mean log score of ``level_scores``; s: the standard deviation of the log scores pooled within the two groups
-    (each around its own mean), with df = n_level + n_spread - 2 (n_level - 1 without spread scores)."""
+    m: mean log score of ``level_scores``; s: the standard deviation of the log scores pooled within the groups
+    (each around its own mean: the level scores, and the spread scores as one group or, with ``spread_groups`` (one
+    label per spread score), as several), with df = the sum over groups of their size - 1."""
     level = _scores(level_scores)
     spread = np.asarray(spread_scores, dtype=np.float64).reshape(-1)
     both = np.concatenate([level, spread])
@@ -122,8 +123,12 @@ def _log_fit(level_scores, spread_scores=()):
         raise ValueError(f"the log-normal tail needs positive finite scores; got a minimum of {both.min():.4g}")
     y, x = np.log(level), np.log(spread)
     m = float(y.mean())
-    squares = float(np.sum((y - m) ** 2) + (np.sum((x - x.mean()) ** 2) if len(x) else 0.0))
-    df = len(y) - 1 + (len(x) - 1 if len(x) else 0)
+    groups = np.zeros(len(x), dtype=int) if spread_groups is None else np.unique(spread_groups, return_inverse=True)[1]
+    squares, df = float(np.sum((y - m) ** 2)), len(y) - 1
+    for g in np.unique(groups):
+        xg = x[groups == g]
+        squares += float(np.sum((xg - xg.mean()) ** 2))
+        df += len(xg) - 1
     if df < MIN_TAIL_SCANS - 1:
         raise ValueError(f"the log-normal tail needs >= {MIN_TAIL_SCANS - 1} degrees of freedom for its spread "
                          f"(>= {MIN_TAIL_SCANS} scores), got {df}")
@@ -315,15 +320,18 @@ def describe_decision(decision):
     if "mean" in fit:
         stats.append(f"log-normal level from {_scans(fit['n_level'], 'score')} (mean log score {fit['mean']:.4g}, "
                      f"sd {fit['sd']:.3g}, {fit['df']} degrees of freedom)")
-    for key, what in (("cross_fit_shift", "cross-fit shift"), ("fold_shift", "fold shift")):
+    for key, what in (("cross_fit_shift", "cross-fit shift"), ("fold_shift", "fold shift"),
+                      ("site_shift", "site shift (the own sensor's good scans over the model's calibration scans)")):
         if key in fit:
             stats.append(f"{what} {fit[key]:+.3g} in log score")
     return plain, "statistics: " + "; ".join(stats)
 
 
-ROLES = ("held-back", "fold", "cross-fitted")
+ROLES = ("held-back", "fold", "cross-fitted", "site")
 # roles whose scores are out of sample: scored by a model that never trained on the scan
-OUT_OF_SAMPLE = ("held-back", "fold")
+OUT_OF_SAMPLE = ("held-back", "fold", "site")
+# 'site': real good scans from the inspection's own sensor, given to calibrate after the model's own calibration
+# (:meth:`inspection.Inspector.fit_level`); with any of them they alone set the threshold's level
 
 
 def _plan(n_out, n_crossed, alpha, positive=True):
@@ -374,9 +382,12 @@ def fit_threshold(calibration_scores, alpha, roles=None):
     roles : (n,) sequence of {'held-back', 'fold', 'cross-fitted'}, optional
         How each score was obtained (default: all held back): by the model on a scan it did not train on
         ('held-back'), by a fold model on a training scan it did not train on ('fold'; both out of sample), or by
-        the model on a training scan scored as if new ('cross-fitted', :meth:`inspection.Inspector.fit`).
-        Cross-fitted scores can be optimistic (the nets saw those scans): they never set the threshold's level,
-        only the spread of the log-normal tail.
+        the model on a training scan scored as if new ('cross-fitted', :meth:`inspection.Inspector.fit`), or
+        by the model on a real good scan of the inspection's own sensor given after its calibration ('site',
+        :meth:`inspection.Inspector.fit_level`). Cross-fitted scores can be optimistic (the nets saw those scans):
+        they never set the threshold's level, only the spread of the log-normal tail. With any 'site' scores, they
+        alone set the level (the model's own calibration scans, rendered template views say, may come from another
+        sensor) and every group gives the spread, each around its own mean.
 
     Returns
     -------
@@ -393,6 +404,8 @@ def fit_threshold(calibration_scores, alpha, roles=None):
     roles = np.array(["held-back"] * len(cal) if roles is None else list(roles))
     if roles.shape != cal.shape or not np.isin(roles, ROLES).all():
         raise ValueError(f"roles: one of {ROLES} per score ({len(cal)}), got {list(roles)}")
+    if np.any(roles == "site"):
+        return _site_threshold(cal, roles, alpha)
     out_of_sample = np.isin(roles, OUT_OF_SAMPLE)
     held, crossed = cal[out_of_sample], cal[roles == "cross-fitted"]
     folds = cal[roles == "fold"]
@@ -434,6 +447,49 @@ def fit_threshold(calibration_scores, alpha, roles=None):
             f"is the largest of their scores, at the smallest reachable rate {alpha_used:.3g}; {why}")
     return Threshold(float(held.max()), alpha, "conformal", n_h, alpha_used, interval, note,
                      alpha_used=alpha_used, fit={**fit, "scores": held.tolist()})
+
+
+def _site_threshold(cal, roles, alpha):
+    """:func:`fit_threshold` with real good scans of the inspection's own sensor ('site' scores): split-conformal on
+    them alone when there are enough; else the log-normal tail, its level their mean log score, its spread pooled
+    within every role's group around the group's own mean (the model's calibration scans give the tail's shape, the
+    site's scans where it lies); else the largest site score at the smallest reachable rate."""
+    site = cal[roles == "site"]
+    others = cal[roles != "site"]
+    other_roles = roles[roles != "site"]
+    n_s, n = len(site), len(cal)
+    fit, need = {}, math.ceil(1 / alpha - 1 - _TOL)
+    model_out = cal[np.isin(roles, ("held-back", "fold"))]
+    positive = bool(np.all(cal > 0))
+    if len(model_out) and positive:
+        # how much higher the site's good scans score than the model's own out-of-sample calibration scans
+        fit["site_shift"] = float(np.log(site).mean() - np.log(model_out).mean())
+    shift = ("" if "site_shift" not in fit else
+             f" (they score {_shift_words(-fit['site_shift'])} than the model's own calibration scans)")
+    what = _scans(n_s, "good scan") + " of the inspection's own sensor"
+    if allowed_exceedances(n_s, alpha) >= 0:
+        k = allowed_exceedances(n_s, alpha)
+        predicted, interval = min(1.0, (k + 1) / (n_s + 1)), conformal_far_interval(n_s, alpha)
+        note = f"{_rate_and_interval(predicted, interval)}: set exactly (split-conformal) by the {what}"
+        return Threshold(conformal_threshold(site, alpha), alpha, "conformal", n_s, predicted, interval, note,
+                         fit={**fit, "scores": site.tolist(), "level_from": "site"})
+    df = n_s - 1 + sum(int(np.sum(other_roles == r)) - 1 for r in np.unique(other_roles))
+    if positive and df >= MIN_TAIL_SCANS - 1 and n_s >= 1:
+        m, sd, _, df = _log_fit(site, others, other_roles)
+        fit.update(mean=m, sd=sd, n_level=n_s, df=df, level_from="site")
+        interval = lognormal_far_interval(n_s, alpha, df=df)
+        note = (f"{_rate_and_interval(alpha, interval)}: its level is set by the {what}{shift}, fewer than the "
+                f"{need} an exact threshold at alpha={alpha:g} needs, and its spread by them and the model's "
+                f"{len(others)} calibration scores (a log-normal fit); more good scans of the line narrow the "
+                f"interval")
+        return Threshold(float(math.exp(m + _tail_factor(n_s, df, alpha) * sd)), alpha, "log-normal", n, alpha,
+                         interval, note, fit=fit)
+    reach = 1 / (n_s + 1)
+    interval = conformal_far_interval(n_s, reach)
+    note = (f"{_rate_and_interval(reach, interval)}: the {what} are too few for alpha={alpha:g}, so the threshold "
+            f"is the largest of their scores, at the smallest reachable rate {reach:.3g}")
+    return Threshold(float(site.max()), alpha, "conformal", n_s, reach, interval, note, alpha_used=reach,
+                     fit={**fit, "scores": site.tolist(), "level_from": "site"})
 
 
 def calibration_outlook(n_heldback, n_training, alpha=DEFAULT_ALPHA, folds=0):

@@ -33,6 +33,7 @@ import time
 from datetime import datetime, timezone
 from pathlib import Path
 
+from .batch_check import DEFAULT_MAX_DEFECTIVE_SHARE, check_max_defective_share
 from .errors import InspectionError
 
 JOURNAL = "verdicts.jsonl"
@@ -42,6 +43,8 @@ LOCK = ".watch.lock"
 _SIDECAR = ".json"
 REPORT_EVERY = 10  # scans between two rewrites of report.html ...
 REPORT_SECONDS = 60.0  # ... or seconds, whichever comes first
+DEFAULT_WINDOW = 50  # the batch check's window: the last 50 scans (at the default share a batch of 50 good scans of
+# another sensor can fire it, one of 16 cannot: inspection.batch_check)
 REPORT_VIEWS = 50  # the most anomalous scans whose 3D maps the page holds (each up to VIEW_POINTS points)
 
 
@@ -133,11 +136,21 @@ class Watcher:
     report_seconds : float
         ... or once this many seconds have passed since it was last written and a scan was scored since (checked
         at each verdict and each look, :meth:`poll`).
+    max_defective_share, window : float, int
+        The batch check (:mod:`inspection.batch_check`) of the last ``window`` scored scans, this one included, at
+        most ``max_defective_share`` of them defective: when it fires, the scan is told 'uncertain' rather than
+        'defective' unless its score lies beyond the window's shift, and a warning says so once (and once when
+        the scans look like the calibration's again). A model of several part types is not checked.
     """
 
     def __init__(self, model, folder, out, settle=1.0, maps="all", alpha=None, uncertain=True, echo=print,
-                 report_every=REPORT_EVERY, report_seconds=REPORT_SECONDS):
+                 report_every=REPORT_EVERY, report_seconds=REPORT_SECONDS,
+                 max_defective_share=DEFAULT_MAX_DEFECTIVE_SHARE, window=DEFAULT_WINDOW):
         self.model, self.folder, self.out = Path(model), Path(folder), Path(out)
+        self.max_defective_share = check_max_defective_share(max_defective_share)
+        if not (isinstance(window, int) and window >= 1):
+            raise InspectionError(f"--window must be a whole number of scans >= 1, got {window!r}")
+        self.window, self.batch = window, None  # batch: the last check of the window (a BatchCheck)
         self.settle, self.maps, self.alpha, self.uncertain = float(settle), maps, alpha, uncertain
         self.report_every, self.report_seconds = report_every, report_seconds
         self.echo = echo or (lambda line: None)
@@ -264,6 +277,7 @@ class Watcher:
             try:
                 one = _inspect_one(self.insp, scan, 0, self.maps, self.out / "maps", self.uncertain)
                 row = one["row"]
+                self._check_window(row)
             except Exception as exc:  # noqa: BLE001 - as above, for what scoring raises beyond a ValueError
                 row = _error_row(scan, f"{path}: cannot be scored ({type(exc).__name__}: {exc})")
         try:
@@ -283,6 +297,24 @@ class Watcher:
             entry["map"] = f"maps/{safe_name(src.name)}.ply"
             self._keep_view({**one["view"], "name": path.name}, entry["score"])
         return entry
+
+    def _check_window(self, row):
+        """The batch check of the last ``window`` scored scans with ``row`` (a scored scan's row, retold in place
+        when the check fires); a warning line when the check's state changes."""
+        if self.insp.parts_ or row.get("verdict") == "error":
+            return
+        from .batch_check import check_rows, retell
+
+        recent = [e for e in self.entries if e.get("verdict") != "error" and e.get("score") is not None]
+        check = check_rows(self.insp, recent[-(self.window - 1):] + [row] if self.window > 1 else [row],
+                           self.max_defective_share)
+        was = self.batch is not None and self.batch.fired
+        self.batch = check
+        if check.fired and self.uncertain:
+            retell(row, check)
+        if check.fired != was:
+            self.echo(f"warning: the last {check.n} scans: {check.message}" if check.fired else
+                      f"the last {check.n} scans look like the calibration's good scans again")
 
     def _keep_view(self, view, score):
         """Hold a scored file's 3D view for report.html, keeping the ``REPORT_VIEWS`` most anomalous."""
@@ -320,13 +352,15 @@ class Watcher:
             return False
         from .html_report import write_html_report
         from .results import summarize_run
-        from .run import calibrated_aligned
+        from .run import calibrated_aligned, run_warnings
 
         rows = [{**e, "name": e["file"]} for e in self.entries]
         scored = [e for e in self.entries if e["verdict"] != "error"]
         results = {"rows": rows, "point_labels": [], "point_maps": [], "ray_maps": [],
                    "seconds": [e["seconds"] for e in scored], "maps": sum("map" in e for e in scored)}
         summary = summarize_run(self.handle, self.insp, self.folder, None, calibrated_aligned(self.insp), results)
+        batch = None if self.batch is None else {**self.batch.as_dict(), "window": self.window}
+        summary.update(batch_check=batch, warnings=run_warnings(self.insp, batch))
         write_html_report(self.out / REPORT, rows, summary, [v for _, v in self.views.values()],
                           title=f"Watch: {self.folder}")
         self._unreported, self._reported_at = 0, time.monotonic()
@@ -345,7 +379,8 @@ class Watcher:
 
 
 def watch(model, folder, out, once=False, settle=1.0, interval=1.0, maps="all", alpha=None, uncertain=True,
-          echo=print, quiet=False, report_every=REPORT_EVERY, report_seconds=REPORT_SECONDS):
+          echo=print, quiet=False, report_every=REPORT_EVERY, report_seconds=REPORT_SECONDS,
+          max_defective_share=DEFAULT_MAX_DEFECTIVE_SHARE, window=DEFAULT_WINDOW):
     """Score the scan files landing in ``folder`` into ``out`` (module docstring) until interrupted, or with
     ``once`` those present (waiting for any still being written to land). ``echo`` says one line per file (not
     when ``quiet``) and the summary line when it stops, however it stops; report.html is brought up to date then
@@ -355,7 +390,7 @@ def watch(model, folder, out, once=False, settle=1.0, interval=1.0, maps="all", 
         raise InspectionError(f"--interval must be a number of seconds > 0, got {interval!r}")
     echo = echo or (lambda line: None)
     watcher = Watcher(model, folder, out, settle, maps, alpha, uncertain, None if quiet else echo, report_every,
-                      report_seconds)
+                      report_seconds, max_defective_share, window)
     with watcher:
         try:
             watcher.run(once=once, interval=interval)
