@@ -18,10 +18,11 @@ Sensor origin (optional, file units): an npz key ``sensor_origin`` or a sidecar 
 ``{"view_direction": [x, y, z]}`` (from the part toward the sensor, any length: a line scanner's sweep, a sensor
 whose stand-off nobody wrote down): the origin is then put ``VIEW_DIRECTION_DISTANCE`` bounding-box diagonals from
 the cloud's centre along it, where its rays to the part are parallel within a third of a degree.
+How each file was read (voxel side or subset, stray points, normals) is recorded in the collection's provenance
+(``reading``, :mod:`datasets.reading`), so that a file scored later from a folder is read the same.
 """
 import json
 import logging
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -30,9 +31,10 @@ import numpy as np
 
 from .atomic import check_writable
 from .cloud_io import CLOUD_SUFFIXES, is_cloud_file, read_cloud, write_cloud
-from .ingest import group_counts, voxel_downsample, write_scans
+from .ingest import group_counts, write_scans
 from .layouts import LAYOUT_SIGNS, import_public, resolve_layout
 from .normals import estimate_normals
+from .reading import Reading
 from .scan import LABELS, SPLITS, Scan
 
 log = logging.getLogger(__name__)
@@ -227,8 +229,11 @@ def _read_ground_truth(gt, n, cloud):
     return labels.astype(np.uint8)
 
 
-def load_source(src, voxel=None, n_points=None, seed=0):
+def load_source(src, voxel=None, n_points=None, seed=0, reading=None):
     """Read one scanner file into a Scan in file units, cleaned, with normals, optionally downsampled.
+
+    The one reading of a file (:mod:`datasets.reading`): an import and a file read later for scoring call this with
+    the same :class:`~datasets.reading.Reading` and get the same points and normals.
 
     Parameters
     ----------
@@ -238,17 +243,35 @@ def load_source(src, voxel=None, n_points=None, seed=0):
     n_points : int, optional
         Keep a random subset of this many points (all points when there are fewer).
     seed : int
-        The subset is drawn from a generator seeded with (seed, crc32 of the scan name), so a scan's subset does not
-        depend on which other files are imported or in which order.
+        Seeds the subset together with the file's points (:func:`datasets.reading.subset`), so a scan's subset does
+        not depend on which other files are imported, in which order, or where in a tree the file lies.
+    reading : datasets.reading.Reading, optional
+        All the rules at once (then ``voxel``, ``n_points`` and ``seed`` must be left at their defaults). A scan
+        without a sensor origin whose normal signs the reading leaves to the good surface is marked so
+        (:func:`datasets.reading.mark_signs`).
 
     Returns
     -------
     scan : Scan
         In file units (the collection frame is applied later).
     n_dropped : int
-        Non-finite points (or points with non-finite or zero normals) that were removed.
+        Non-finite points (or points with non-finite or zero normals, when the file's normals are used) that were
+        removed.
+
+    Raises
+    ------
+    ValueError
+        Naming the file: no or too few finite points, all points identical, a bad sidecar or ground truth.
     """
+    from .reading import Reading, downsample, mark_signs
+
+    if reading is None:
+        reading = Reading(voxel=voxel, points=n_points, seed=seed)
+    elif voxel is not None or n_points is not None or seed != 0:
+        raise ValueError("load_source: give a reading or voxel / n_points / seed, not both")
     points, normals = read_cloud(src.path)
+    if reading.file_normals == "ignored":
+        normals = None
     n_raw = len(points)
     labels = _read_ground_truth(src.ground_truth, n_raw, src.path) if src.ground_truth is not None else None
     ok = np.all(np.isfinite(points), axis=1)
@@ -268,23 +291,24 @@ def load_source(src, voxel=None, n_points=None, seed=0):
     if np.ptp(points, axis=0).max() == 0:
         raise ValueError(f"{src.path}: all {len(points)} points are identical")
     origin = _read_sensor_origin(src.path, points)
-    if normals is None:
-        normals = estimate_normals(points, origin)
-    else:
+    if normals is not None:
         normals = normals / np.linalg.norm(normals, axis=1, keepdims=True)
-    if voxel is not None:
-        points, normals, labels = voxel_downsample(points, normals, labels, voxel)
-    elif n_points is not None and len(points) > n_points:
-        rng = np.random.default_rng([seed, zlib.crc32(src.name.encode())])
-        keep = np.sort(rng.choice(len(points), size=n_points, replace=False))
-        points, normals = points[keep], normals[keep]
-        labels = labels[keep] if labels is not None else None
+    elif reading.normals == "before downsampling":
+        normals = estimate_normals(points, origin)
+    if normals is not None:
+        points, normals, labels = downsample(points, normals, labels, reading)
+    else:  # normals estimated on the downsampled points (the public layouts)
+        points, _, labels = downsample(points, np.zeros_like(points), labels, reading)
+        if len(points) < MIN_POINTS:
+            raise ValueError(f"{src.path}: {len(points)} point(s) left after downsampling, need at least "
+                             f"{MIN_POINTS}")
+        normals = estimate_normals(points, origin)
     if labels is None and src.all_good:
         labels = np.zeros(len(points), np.uint8)
     scan = Scan(name=src.name, points=points, normals=normals, split=src.split, label=src.label, defect=src.defect,
                 point_labels=labels, sensor_origin=origin)
     scan.points = np.asarray(points, dtype=np.float64)  # keep file-unit precision until the frame is applied
-    return scan, n_dropped
+    return mark_signs(scan, reading), n_dropped
 
 
 # ---- whole folders ---------------------------------------------------------------------------------------------------
@@ -351,13 +375,16 @@ def import_tree(root, out, voxel=None, n_points=None, seed=0, overwrite=False, p
         raise ValueError(f"{root}: options {sorted(public_options)} apply to the public layouts only, not 'tree'")
     listing = list_folder(root, exclude=out, split=split, label=label)
     sources = listing.sources
+    # the rules every file is read by, recorded so that a file scored later reads the same (datasets.reading); the
+    # stray points are dropped by write_scans, after the frame's fit has left them out
+    reading = Reading(voxel=voxel, points=n_points, seed=seed, strays="dropped" if drop_strays else "kept")
     scans, n_dropped = [], 0
     for src in tqdm(sources, desc="import", unit="file", disable=None if progress is None else not progress):
-        scan, dropped = load_source(src, voxel=voxel, n_points=n_points, seed=seed)
+        scan, dropped = load_source(src, reading=reading)
         scans.append(scan)
         n_dropped += dropped
     provenance = {"source": "import", "root": str(root.resolve()), "files": len(sources), "voxel": voxel,
-                  "points": n_points, "seed": seed, "dropped_nonfinite": n_dropped}
+                  "points": n_points, "seed": seed, "dropped_nonfinite": n_dropped, "reading": reading.as_dict()}
     summary = write_scans(scans, out, provenance, overwrite, drop_strays=drop_strays)
     summary.update(n_dropped=n_dropped, skipped=[str(p) for p in listing.skipped])
     log.info("imported %d scans from %s into %s", len(scans), root, out)

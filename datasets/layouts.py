@@ -18,12 +18,13 @@ the training clouds' own point spacing so that a scan keeps about ``max_points``
 """
 import logging
 import re
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
+
+from .normals import orient_consistently
 
 log = logging.getLogger(__name__)
 
@@ -417,18 +418,71 @@ def orient_like_templates(points, normals, templates, max_offset=3.0, votes=TEMP
     on_templates : bool
         Whether the scan lay on the templates (and its signs were decided by them).
     """
-    tree, template_normals, spacing = templates
+    d, j = _surface_neighbours(points, templates, votes)
+    if not np.median(d[:, 0]) <= max_offset * templates[2]:
+        return normals, False
+    return _signed_like(normals, templates, d, j, max_offset), True
+
+
+def orient_by_surface(points, normals, surface, max_offset=3.0, votes=TEMPLATE_NORMAL_VOTES):
+    """The normals of a scan without a sensor origin signed by a good surface, whatever signs they come with.
+
+    :func:`orient_like_templates`'s rule, made independent of the signs the normals arrive with: the result depends
+    on the points, the normals' lines and the surface only. Where the surface decides every point (each lies within
+    ``max_offset`` spacings of it), its votes alone set the signs. Otherwise the scan's own signs are first made
+    :func:`datasets.normals.orient_consistently`'s (a consistent orientation and a global sign decided afresh), then
+    the rule applies; a scan that does not lie on the surface (or no surface) keeps those. So a scan imported with
+    its normals signed by the templates and the same file read with the estimator's signs end the same (what
+    inspection applies when it scores a scan without a sensor origin, :mod:`datasets.reading`).
+
+    Parameters
+    ----------
+    points : (N, 3) float array
+    normals : (N, 3) float array
+        Unit normals, any signs.
+    surface : (index, (M, 3) float array, float) or None
+        A nearest-neighbour index over the good surface's points (``query(x, k)`` -> (distances, indices), ``n``;
+        a scipy ``cKDTree`` or :class:`datasets.neighbours.NearestNeighbours`), their unit outward normals, their
+        median point spacing; in the scan's frame and units. None: no surface (consistent orientation only).
+    max_offset, votes :
+        As :func:`orient_like_templates`.
+
+    Returns
+    -------
+    normals : (N, 3) float64 array
+    on_surface : bool
+        Whether the scan lay on the surface (and its signs were decided by it).
+    """
+    points = np.asarray(points, dtype=np.float64)
+    normals = np.asarray(normals, dtype=np.float64)
+    if surface is None:
+        return orient_consistently(points, normals), False
+    d, j = _surface_neighbours(points, surface, votes)
+    near = d[:, 0] <= max_offset * surface[2]
+    if not near.all():  # points the surface leaves to the scan's own signs: make those independent of the input's
+        normals = orient_consistently(points, normals)
+    if not np.median(d[:, 0]) <= max_offset * surface[2]:
+        return normals, False
+    return _signed_like(normals, surface, d, j, max_offset), True
+
+
+def _surface_neighbours(points, surface, votes):
+    """(distances, indices), each (N, k), of the k = min(votes, M) nearest surface points of each point."""
+    tree = surface[0]
     votes = min(int(votes), tree.n)
     d, j = tree.query(points, k=votes)
-    d, j = d.reshape(len(points), votes), j.reshape(len(points), votes)
-    if not np.median(d[:, 0]) <= max_offset * spacing:
-        return normals, False
+    return np.asarray(d).reshape(len(points), votes), np.asarray(j).reshape(len(points), votes)
+
+
+def _signed_like(normals, surface, d, j, max_offset):
+    """:func:`orient_like_templates`'s signs from the surface neighbours (d, j) of a scan on the surface."""
+    _, surface_normals, spacing = surface
     normals = np.asarray(normals, dtype=np.float64)
-    agree = np.einsum("ij,ij->i", normals, template_normals[j[:, 0]]) > 0
+    agree = np.einsum("ij,ij->i", normals, surface_normals[j[:, 0]]) > 0
     normals = normals if agree.mean() >= 0.5 else -normals
-    vote = np.einsum("ij,ikj->i", normals, template_normals[j])
+    vote = np.einsum("ij,ikj->i", normals, surface_normals[j])
     flip = (d[:, 0] <= max_offset * spacing) & (vote < 0)
-    return np.where(flip[:, None], -normals, normals), True
+    return np.where(flip[:, None], -normals, normals)
 
 
 def import_public(root, out, layout, views=DEFAULT_VIEWS, validation_views=DEFAULT_VALIDATION_VIEWS,
@@ -465,8 +519,9 @@ def import_public(root, out, layout, views=DEFAULT_VIEWS, validation_views=DEFAU
     """
     from tqdm import tqdm
 
-    from .ingest import voxel_downsample, write_scans
+    from .ingest import write_scans
     from .normals import estimate_normals
+    from .reading import SIGNS_FROM_SURFACE, Reading, downsample
     from .scan import Scan
     from .templates import render_views
 
@@ -486,17 +541,21 @@ def import_public(root, out, layout, views=DEFAULT_VIEWS, validation_views=DEFAU
                      voxel, UNITS[layout], max_points)
     from scipy.spatial import cKDTree
 
+    from .importer import _read_sensor_origin
+
+    # the rules every scan is read by, recorded so that a file scored later reads the same (datasets.reading): the
+    # files' own normals are not read (the layouts' loaders read xyz only) and normals come after downsampling
+    # (estimating them on the full cloud would cost more and be averaged away); the signs of a scan without a sensor
+    # origin are decided by the good surface (here the templates, at scoring the calibration's good scans)
+    reading = Reading(voxel=voxel, points=None if voxel is not None else n_points, seed=seed, file_normals="ignored",
+                      normals="after downsampling", signs="estimated" if layout == "mvtec3d" else SIGNS_FROM_SURFACE)
     scans, n_dropped, template_clouds, templates, n_oriented = [], 0, [], None, 0
     for src in tqdm(sources, desc=f"import {layout}", unit="file", disable=None if progress is None else not progress):
         points, labels, origin, dropped = read_public_source(src, keep_plane, seed)
         n_dropped += dropped
-        if voxel is not None:
-            # normals come after: estimating them on the full cloud would cost more and be averaged away
-            points, _, labels = voxel_downsample(points, np.zeros_like(points), labels, voxel)
-        elif n_points is not None and len(points) > n_points:
-            rng = np.random.default_rng([seed, zlib.crc32(src.name.encode())])
-            keep = np.sort(rng.choice(len(points), size=n_points, replace=False))
-            points, labels = points[keep], None if labels is None else labels[keep]
+        if src.role == "cloud":  # a sidecar's sensor origin, as for any scanner file (datasets.importer)
+            origin = _read_sensor_origin(src.path, points)
+        points, _, labels = downsample(points, np.zeros_like(points), labels, reading)
         if src.role == "template":  # the sources list templates first
             normals = estimate_normals(points)
             template_clouds.append((points, normals))
@@ -516,7 +575,7 @@ def import_public(root, out, layout, views=DEFAULT_VIEWS, validation_views=DEFAU
         scans.append(scan)
     provenance = {"source": "import", "layout": layout, "units": UNITS[layout], "root": str(root.resolve()),
                   "files": len(sources), "voxel": voxel, "voxel_auto": voxel_auto, "max_points": max_points,
-                  "points": n_points, "seed": seed, "dropped_nonfinite": n_dropped}
+                  "points": n_points, "seed": seed, "dropped_nonfinite": n_dropped, "reading": reading.as_dict()}
     if layout == "mvtec3d":
         provenance["table_plane"] = "kept" if keep_plane else "removed"
     else:

@@ -46,6 +46,38 @@ def estimate_normals(points, sensor_origin=None, orient=True):
     if sensor_origin is not None:
         return _orient_toward_sensor(pts, np.asarray(pcd.normals, dtype=np.float64),
                                      np.asarray(sensor_origin, dtype=np.float64))
+    return _orient_consistently(pcd, pts)
+
+
+def orient_consistently(points, normals):
+    """The signs :func:`estimate_normals` gives a cloud without a sensor origin, for normals already estimated.
+
+    The normals are oriented consistently with one another along a minimum spanning tree of the cloud (open3d's
+    ``orient_normals_consistent_tangent_plane``), then the global sign that makes most of them point away from the
+    cloud's centroid is taken. The result depends on the normals' lines only, not on the signs they come with: the
+    propagation keeps only whether neighbours agree, and the global sign is decided afresh (exact ties aside). So two
+    copies of a cloud whose normals differ by any per-point signs end the same.
+
+    Parameters
+    ----------
+    points : (N, 3) float array, N >= 3, finite
+    normals : (N, 3) float array
+        Unit normals, any signs.
+
+    Returns
+    -------
+    (N, 3) float64 array
+    """
+    import open3d as o3d
+
+    pts = np.asarray(points, dtype=np.float64)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    pcd.normals = o3d.utility.Vector3dVector(np.asarray(normals, dtype=np.float64))
+    return _orient_consistently(pcd, pts)
+
+
+def _orient_consistently(pcd, pts):
+    """:func:`orient_consistently` on an open3d cloud ``pcd`` (its normals set) of the points ``pts`` (N, 3)."""
     if len(pts) > 16:
         try:  # propagate one orientation along a minimum spanning tree so neighbours agree...
             pcd.orient_normals_consistent_tangent_plane(15)

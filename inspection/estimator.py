@@ -17,6 +17,7 @@ from datasets.validation import points_and_normals
 from .calibration import Calibration
 from .config import DEFAULT_AGGREGATE, DEFAULT_PROJECTION, InspectionConfig
 from .evidence import ScanEvidence, field_for, gather_evidence, scan_name, stage
+from .loading import reading_of, signed_for_scoring
 from .aggregates import aggregate as aggregate_scores
 from .reference import REFERENCE_QUANTITY, LocalReference
 from .scores import POINT_SCORES, WEIGHED_SCORES, fit_term_variances, point_scores, reference_scores, reference_terms
@@ -150,6 +151,9 @@ class Inspector(BaseEstimator):
     n_calibration_ : int
     reference_ : LocalReference or None
         Per-location statistics of good scans (point scores with a reference).
+    reading_ : dict or None
+        How the collection :meth:`fit` read had read its scanner files (:class:`datasets.reading.Reading` as a
+        dict; None for scans given as a list): :func:`inspection.loading.load_scans` reads files scored later by it.
     combination_ : Combination or None
         The standardization of the components on the calibration scans (with rays).
     aligner_ : inspection.align.Aligner or None
@@ -196,6 +200,7 @@ class Inspector(BaseEstimator):
         config = replace(calibration.config(), alpha=calibration.alpha if alpha is None else alpha)
         insp = cls.from_config(model, config, verbose)
         parts = (calibration.extra or {}).get("parts")
+        insp.reading_ = (calibration.extra or {}).get("reading")  # how scanner files are read (inspection.loading)
         if parts:
             insp.parts_ = {p: cls.from_calibration(model, Calibration.from_dict(record), alpha, verbose)
                            for p, record in sorted(parts.items())}
@@ -345,6 +350,9 @@ class Inspector(BaseEstimator):
         return moved, aligner.transform(np.asarray(scan.points, dtype=np.float64))  # a scan-like without extra
 
     def _evidence(self, scan, index, settings, exclude_own_code=False, timings=None):
+        # one reading of a file (issue 47): a scan whose normal signs its reading leaves to the good surface gets them
+        # from the reference's good scans here, whether it came from a collection or a folder
+        scan = signed_for_scoring(scan, getattr(self, "reference_", None))
         quantity = REFERENCE_QUANTITY if POINT_SCORES[settings.point_score].reference else None
         return gather_evidence(self.model, scan, index, quantity=quantity, projection=settings.projection,
                                need_origin=settings.rays, exclude_own_code=exclude_own_code, timings=timings)
@@ -460,6 +468,7 @@ class Inspector(BaseEstimator):
         # a public layout's collection: its good scans are views rendered from clean templates
         provenance = getattr(good_scans, "provenance", None)
         self._rendered_data = isinstance(provenance, dict) and bool(provenance.get("template_views"))
+        self.reading_ = reading_of(good_scans)  # how its files were read: files scored later are read the same
         self.data_fingerprint_ = good_scans.fingerprint() if hasattr(good_scans, "fingerprint") else ""
         parts = model_parts(self.model)
         if parts:
@@ -817,9 +826,10 @@ class Inspector(BaseEstimator):
                       fingerprint=fingerprint)
         if getattr(self, "parts_", None):
             records = {p: one.calibration(fingerprint=fingerprint).as_dict() for p, one in sorted(self.parts_.items())}
-            return Calibration(**common, extra={"config": settings.as_dict(), "parts": records})
+            return Calibration(**common, extra={"config": settings.as_dict(), "parts": records,
+                                                "reading": getattr(self, "reading_", None)})
         aligner = getattr(self, "aligner_", None)
-        return Calibration(**common, extra={"config": settings.as_dict(),
+        return Calibration(**common, extra={"config": settings.as_dict(), "reading": getattr(self, "reading_", None),
                                             "level_rendered": bool(getattr(self, "level_rendered_", False)),
                                             "reference": None if self.reference_ is None else self.reference_.as_dict(),
                                             "rays": self._ray_record(),

@@ -99,7 +99,8 @@ def _given_good_scans(data, handle, split, echo):
     if data.is_file() and data.suffix.lower() in COLLECTION_SUFFIXES:
         scans, _ = load_scans(data, handle.frame, split=split, label="good")
         return scans
-    scans, _ = load_scans(data, handle.frame, split=split)
+    reading = None if handle.calibration is None else (handle.calibration.extra or {}).get("reading")
+    scans, _ = load_scans(data, handle.frame, split=split, reading=reading)  # files read as the model's were
     skipped = skipped_files_line(data)
     if echo is not None and skipped:
         echo(skipped)
@@ -263,7 +264,8 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
                               f"drawn from scans scored where they lay, not registered ones; calibrate it again with "
                               f"`python -m inspection calibrate --model {handle.path} --data TRAINING_COLLECTION "
                               f"--align` (scoring then registers every scan by itself)")
-    scans, info = load_scans(data, handle.frame, split=split, model_fingerprint=handle.fingerprint, errors="collect")
+    scans, info = load_scans(data, handle.frame, split=split, model_fingerprint=handle.fingerprint, errors="collect",
+                             reading=getattr(insp, "reading_", None))  # files read as the model's were (issue 47)
     skipped = skipped_files_line(data)
     if skipped:
         echo(skipped)

@@ -260,16 +260,16 @@ class Watcher:
 
     def _score_file(self, path, st):
         """Read and score one file; its journal entry, or None when the file changed while it was read."""
-        from datasets.importer import ScanSource, load_source
+        from datasets.importer import ScanSource
 
+        from .loading import read_file
         from .run import _error_row, _inspect_one
 
         t0 = time.perf_counter()
         src = ScanSource(path, path.stem, "test", "unknown", "")
         one = None
         try:
-            scan, _ = load_source(src)
-            scan = self.frame.apply(scan)
+            scan = read_file(src, self.frame, getattr(self.insp, "reading_", None))  # as score reads it (issue 47)
         except Exception as exc:  # noqa: BLE001 - a bad file is an error line, never the end of the watcher
             reason = " ".join(str(exc).split()) or type(exc).__name__
             row = _error_row(src.name, reason if str(path) in reason else f"{path}: {reason}")
