@@ -100,6 +100,83 @@ def synth_collection(part, seed=0, root=CACHE, progress=False, **params):
     return cached_path("collection", keyed, build, root, label=Path(str(part)).stem) / "tree.h5"
 
 
+# the Real3D-AD-like class folders of the template regime: 4 complete clouds sampled on the part's mesh, depth noise
+# TEMPLATE_NOISE x its diagonal along the normal
+TEMPLATES = 4
+TEMPLATE_NOISE = 0.002
+
+
+def template_collection(part, test, seed=0, template_points=10000, views=16, validation_views=4, root=CACHE):
+    """The template regime's collection of ``part``, cached: :data:`TEMPLATES` complete clouds sampled on its mesh
+    (:func:`write_templates`) and the test scans of the collection ``test`` (file units: Real3D-AD ``.pcd`` files
+    without sensor origins, ground truth in ``gt/``), written as a Real3D-AD class folder and imported by the datasets
+    importer (the templates become ``views`` partial training views and ``validation_views`` held-back views each;
+    the frame is fitted to the training views, so that every ``test`` of the same part, seed and template options
+    gives a collection in the same frame with the same training and held-back scans). Returns its ``data.h5``.
+
+    Parameters
+    ----------
+    part : str
+        See :func:`part_mesh`.
+    test : Path
+        A :func:`synth_collection` of the part (its scans are the test scans; ``n_train=0``). Keyed by its folder's
+        name, which holds its parameters' key.
+    seed : int
+        The templates' and the views' seed.
+    template_points, views, validation_views : int
+    """
+    from datasets.templates import VISIBILITY_RULE
+
+    test = Path(test)
+    params = {"part": part, "test": str(test.parent.name), "template_points": template_points, "seed": seed,
+              "views": views, "validation_views": validation_views, "visibility": VISIBILITY_RULE}
+
+    def build(folder):
+        from datasets import ScanCollection
+        from datasets.importer import import_tree
+
+        tree = folder / "tree"
+        write_templates(part_mesh(part), tree / "train", template_points, seed)
+        with ScanCollection(test) as c:
+            frame, scans = c.frame, c.read_many(range(len(c)))
+        for i, s in enumerate(scans):
+            points = frame.to_file(s.points)
+            stem = f"{i + 1}_{'good' if s.label == 'good' else s.defect}"
+            write_pcd(tree / "test" / f"{stem}.pcd", points)
+            if s.label != "good":
+                (tree / "gt").mkdir(exist_ok=True)
+                np.savetxt(tree / "gt" / f"{stem}.txt", np.column_stack([points, s.point_labels]),
+                           fmt=["%.6f"] * 3 + ["%d"])
+        import_tree(tree, folder / "data.h5", seed=seed, views=views, validation_views=validation_views,
+                    progress=False)
+
+    return cached_path("templates", params, build, root, label=part) / "data.h5"
+
+
+def write_templates(mesh, folder, n_points, seed):
+    """:data:`TEMPLATES` complete clouds of ``n_points`` sampled on ``mesh`` (its units), depth noise
+    :data:`TEMPLATE_NOISE` x its diagonal along the normal, as ``folder/<k>_template.pcd``."""
+    import trimesh
+
+    diag = float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
+    for k in range(TEMPLATES):
+        rng = np.random.default_rng([seed, 1000 + k])
+        pts, faces = trimesh.sample.sample_surface(mesh, n_points, seed=int(rng.integers(2**31)))
+        pts = pts + mesh.face_normals[faces] * rng.normal(0, TEMPLATE_NOISE * diag, (len(pts), 1))
+        write_pcd(folder / f"{k + 1}_template.pcd", pts)
+
+
+def write_pcd(path, points):
+    """(n, 3) points as a ``.pcd`` file (open3d), its folder made."""
+    import open3d as o3d
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+    if not o3d.io.write_point_cloud(str(path), pcd):
+        raise RuntimeError(f"{path}: open3d could not write it")
+
+
 # a product family (issue 32): training scans of variants stretched along the part's longest axis by these factors
 # (evenly spread over both ranges), test scans of one variant that no training scan showed
 FAMILY_STRETCH = ((0.8, 0.9), (1.1, 1.2))

@@ -204,6 +204,44 @@ def scoring_seconds(model_path, data_path, out_dir, jobs_list=(1, 2), progress=F
     return figures
 
 
+def score_calibrated(model_path, data_path, out_dir, *, maps="none", progress=False):
+    """Another collection's test split scored by a calibrated model, as ``python -m inspection score`` does: the model
+    is copied to ``out_dir/model.pt`` (its calibration with it) and ``results/`` written there. The collection must lie
+    in the model's frame (another test sensor's scans imported as the training collection's were).
+
+    Returns
+    -------
+    dict
+        summary.json's content.
+    """
+    from inspection.run import score
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    copy = out_dir / "model.pt"
+    shutil.copyfile(model_path, copy)
+    return score(copy, data_path, out_dir / "results", split="test", progress=progress, maps=maps,
+                 echo=lambda line: None, overwrite=True)
+
+
+def calibration_gap(run_dir):
+    """How far a scored run's good test scans lie from the scans that calibrated its threshold: the mean log score
+    of the good test scans (``good_test_mean_log``), each calibration role's (``<role>_mean_log``: held-back,
+    fold, cross-fitted) and the difference (``minus_<role>``; positive: the test scans score higher than what set
+    the threshold), from ``run_dir/results/scores.csv`` and ``run_dir/model.pt``."""
+    from benchmarks.metrics import GOOD
+
+    scored = read_scores(Path(run_dir) / "results")
+    good = scored["score"][(scored["label"] == GOOD) & np.isfinite(scored["score"])]
+    test = float(np.log(good).mean())
+    gap = {"good_test_mean_log": test}
+    for role, values in calibration_scores(Path(run_dir) / "model.pt").items():
+        if len(values):
+            gap[f"{role}_mean_log"] = float(np.log(values).mean())
+            gap[f"minus_{role}"] = test - float(np.log(values).mean())
+    return gap
+
+
 def _drop_folds(model_path):
     """Remove the fold models from a model file (a copy), atomically."""
     from autodecoder.latent.folds import FOLDS_KEY

@@ -192,7 +192,7 @@ class VirtualScanner:
                            jitter_translation=jitter_translation, seed=seed)
 
     def scan(self, camera_position, look_at=None, fov_deg=40.0, resolution=None, noise=0.0, n_points=4000,
-             pose=None, seed=None, sensor="pinhole"):
+             pose=None, seed=None, sensor="pinhole", grazing_dropout=0.0, ragged=0.0):
         """Scan the mesh from one camera position.
 
         Parameters
@@ -219,6 +219,21 @@ class VirtualScanner:
             through ``camera_position``, perpendicular to the optical axis and to the fan, over the part's whole
             extent (its diagonal); each line is a fan of ``fov_deg`` from the head's position at that moment, so the
             rays are parallel along the sweep (:func:`_line_rays`).
+        grazing_dropout : float >= 0
+            Returns lost at grazing incidence, as a sensor whose return weakens with the angle loses them: a hit at
+            incidence angle theta (between its ray and the surface normal) is kept with probability
+            ``cos(theta) ** grazing_dropout`` (1: a Lambertian return, 1/2 kept at 60 degrees; 2: 1/4 kept there).
+            0 (the default): every hit kept, the scan exactly as without this option.
+        ragged : float >= 0
+            Ragged borders, in mesh units: the scan's borders (hits next to a missed ray: the silhouette; or across a
+            depth discontinuity: an occluding edge and the surface it hides) eaten back by up to this distance, as
+            real sensors lose returns there. The depth of the bite varies along the border: border stretches about
+            ``2 * ragged`` long each draw a depth uniform in [0, ``ragged``] (:func:`_ragged_keep`). The edges of the
+            field of view are not borders (a crop stays straight). 0 (the default): no hit lost.
+
+        The returned points are an exact ``n_points`` drawn from the hits these two options keep (the resolution is
+        raised until enough are kept), so they change where the points lie, not how many there are. Either option
+        draws one number from the scan's generator before the points are chosen; at 0 none is drawn.
 
         Returns
         -------
@@ -227,10 +242,16 @@ class VirtualScanner:
         Raises
         ------
         ValueError
-            When no ray hits the part, or an unknown ``sensor``.
+            When no ray hits the part (or none is kept), an unknown ``sensor``, or a negative ``grazing_dropout`` or
+            ``ragged``.
         """
         if sensor not in SENSORS:
             raise ValueError(f"sensor must be one of {SENSORS}, got {sensor!r}")
+        if not 0 <= grazing_dropout < np.inf:
+            raise ValueError(f"grazing_dropout must be >= 0 (an exponent on the cosine of incidence), got "
+                             f"{grazing_dropout!r}")
+        if not 0 <= ragged < np.inf:
+            raise ValueError(f"ragged must be >= 0 (a distance in mesh units), got {ragged!r}")
         if isinstance(camera_position, View):
             view = camera_position
             camera_position, look_at, pose = view.camera_position, view.look_at, view.pose
@@ -250,6 +271,9 @@ class VirtualScanner:
             height = int(np.ceil(np.sqrt(6.0 * n_points * 3.0 / 4.0)))
             resolution = (int(np.ceil(height * 4.0 / 3.0)), height)
         width, height = (max(2, int(r)) for r in resolution)
+        # the losses' own draws: one seed from the scan's generator, a generator of their own at each resolution
+        losses = grazing_dropout > 0 or ragged > 0
+        loss_seed = int(rng.integers(2 ** 63)) if losses else None
         while True:
             if sensor == "pinhole":
                 directions = _pinhole_directions(eye, target, fov_deg, width, height)
@@ -257,10 +281,15 @@ class VirtualScanner:
             else:
                 origins, directions = _line_rays(eye, target, fov_deg, width, height, self.diagonal)
             t_hit, ray_index, triangle_ids, normals = self._cast(origins, directions)
+            if losses and len(t_hit):
+                keep = _lost_returns(origins, directions, t_hit, ray_index, normals, width, height, grazing_dropout,
+                                     ragged, np.random.default_rng(loss_seed))
+                t_hit, ray_index, triangle_ids, normals = (a[keep] for a in (t_hit, ray_index, triangle_ids, normals))
             n_hits = len(t_hit)
             if n_hits == 0:
                 raise ValueError(f"the part is not visible from camera position {eye_world.tolist()} "
-                                 f"looking at {target_world.tolist()} (fov {fov_deg} deg)")
+                                 f"looking at {target_world.tolist()} (fov {fov_deg} deg)"
+                                 + (" once grazing and border returns are lost" if losses else ""))
             if n_hits >= n_points or width * height >= _MAX_RAYS:
                 break
             # Hits grow with the pixel count: aim 20% above what is needed.
@@ -301,6 +330,82 @@ class VirtualScanner:
         normals = hit["primitive_normals"].numpy()[index].astype(np.float64)
         normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-30)
         return t[index].astype(np.float64), index, hit["primitive_ids"].numpy()[index].astype(np.int64), normals
+
+
+# two neighbouring hits of the ray grid lie across a depth discontinuity when they are farther apart than this many
+# times the median distance between neighbours along that grid axis (a surface steeper than about 83 degrees to the
+# rays, or an occluding edge)
+_DEPTH_JUMP = 8.0
+
+
+def _lost_returns(origins, directions, t_hit, ray_index, normals, width, height, grazing_dropout, ragged, rng):
+    """Which hits a real sensor returns (:meth:`VirtualScanner.scan`'s ``grazing_dropout`` and ``ragged``).
+
+    Parameters
+    ----------
+    origins, directions : (k, 3) arrays
+        The rays of a ``height`` x ``width`` grid (k = width * height), row-major, mesh frame.
+    t_hit, ray_index : (h,) arrays
+        The hits: distance along the ray, index of the ray.
+    normals : (h, 3) array
+        Unit normals of the hit triangles.
+    width, height : int
+    grazing_dropout, ragged : float
+    rng : numpy Generator
+
+    Returns
+    -------
+    (h,) bool array
+        True for a hit that is returned.
+    """
+    keep = np.ones(len(t_hit), dtype=bool)
+    d = directions[ray_index]
+    if grazing_dropout > 0:
+        cosine = np.abs(np.sum(normals * d, axis=1))
+        keep &= rng.uniform(size=len(t_hit)) < cosine ** grazing_dropout
+    if ragged > 0:
+        points = origins[ray_index] + t_hit[:, None] * d
+        keep &= _ragged_keep(points, ray_index, width, height, ragged, rng)
+    return keep
+
+
+def _ragged_keep(points, ray_index, width, height, ragged, rng):
+    """Hits kept by ragged borders: (h,) bool, False within the bite of the border nearest to the hit.
+
+    Border hits are those of the ``height`` x ``width`` ray grid next to a ray that missed (a silhouette) or across a
+    depth discontinuity (:data:`_DEPTH_JUMP`). The border is cut into stretches: the border hits are binned into cubes
+    of side ``2 * ragged`` and one of each cube's hits, drawn at random, is its stretch's centre; each border hit
+    belongs to its nearest centre's stretch and each stretch draws a bite depth uniform in [0, ``ragged``]. A hit
+    whose distance to its nearest border hit is below that border hit's bite is lost.
+    """
+    from scipy.spatial import cKDTree
+
+    grid = np.full(width * height, -1, dtype=np.int64)
+    grid[ray_index] = np.arange(len(ray_index))
+    grid = grid.reshape(height, width)
+    border = np.zeros(len(ray_index), dtype=bool)
+    for a, b in ((grid[:, :-1], grid[:, 1:]), (grid[:-1, :], grid[1:, :])):  # neighbours across, then down
+        a, b = a.ravel(), b.ravel()
+        one = (a >= 0) != (b >= 0)  # one of the two rays missed: the hit one is on the silhouette
+        border[a[one & (a >= 0)]] = True
+        border[b[one & (b >= 0)]] = True
+        both = (a >= 0) & (b >= 0)
+        if both.any():
+            gap = np.linalg.norm(points[a[both]] - points[b[both]], axis=1)
+            jump = gap > _DEPTH_JUMP * np.median(gap)
+            border[a[both][jump]] = True
+            border[b[both][jump]] = True
+    if not border.any():
+        return np.ones(len(ray_index), dtype=bool)
+    edge = points[border]
+    cells = np.floor(edge / (2.0 * ragged)).astype(np.int64)
+    order = rng.permutation(len(edge))
+    _, first = np.unique(cells[order], axis=0, return_index=True)
+    centres = order[np.sort(first)]
+    depth = rng.uniform(0.0, ragged, size=len(centres))
+    bite = depth[cKDTree(edge[centres]).query(edge)[1]]  # (b,) each border hit's stretch's depth
+    distance, nearest = cKDTree(edge).query(points)
+    return distance >= bite[nearest]
 
 
 def _camera_axes(eye, target):

@@ -11,7 +11,7 @@ def synthesise(mesh, n_train=32, n_test_good=16, n_test_defective=16, defects=DE
                noise=0.002, seed=0, jitter_deg=0.0, n_validation=0, part_id="", jitter_translation=0.0,
                radius_range=(1.5, 2.2), fov_deg=40.0, min_defect_fraction=0.015, min_defect_points=30,
                max_attempts=12, progress=True, sensor="pinhole", origin_standoff=None, origin_tilt_deg=0.0,
-               defect_size=1.0):
+               defect_size=1.0, grazing_dropout=0.0, ragged=0.0):
     """Scan a part from random views, good and with synthetic defects, into scans in the collection frame.
 
     Parameters
@@ -59,6 +59,19 @@ def synthesise(mesh, n_train=32, n_test_good=16, n_test_defective=16, defects=DE
         The scans themselves do not change with either (their draws come after the scan's own).
     defect_size : float > 0
         Every defect's width and depth times this (:func:`datasets.defects.make_defect`'s ``size``).
+    grazing_dropout : float >= 0
+        Returns lost at grazing incidence (:meth:`datasets.scanner.VirtualScanner.scan`): a hit at incidence angle
+        theta is kept with probability ``cos(theta) ** grazing_dropout`` (1: Lambertian). 0: none lost.
+    ragged : float >= 0
+        Ragged borders RELATIVE to the part's size, like ``noise``: every scan's silhouettes and occluding edges
+        eaten back by up to ``ragged * bounding-box diagonal`` (:meth:`datasets.scanner.VirtualScanner.scan`). 0:
+        clean borders.
+
+    The sensor's options (``noise``, ``n_points``, ``radius_range``, ``fov_deg``, ``sensor``, ``grazing_dropout``,
+    ``ragged``) describe one device. With the same ``seed`` and counts, each good scan sees the part from the same
+    direction in the same pose whatever they are (its camera distance scaled with ``radius_range``), so two calls
+    that differ only in them give the same good views through two sensors. At their defaults the scans are exactly
+    those of the versions before ``grazing_dropout`` and ``ragged`` existed.
 
     Returns
     -------
@@ -101,6 +114,11 @@ def synthesise(mesh, n_train=32, n_test_good=16, n_test_defective=16, defects=DE
             raise ValueError(f"origin_standoff must be two factors 0 < low <= high, got {origin_standoff!r}")
     if not 0 <= origin_tilt_deg < 90:
         raise ValueError(f"origin_tilt_deg must be in [0, 90) degrees, got {origin_tilt_deg!r}")
+    if not 0 <= grazing_dropout < np.inf:
+        raise ValueError(f"grazing_dropout must be >= 0 (an exponent on the cosine of incidence), got "
+                         f"{grazing_dropout!r}")
+    if not 0 <= ragged < np.inf:
+        raise ValueError(f"ragged must be >= 0 (relative to the bounding-box diagonal), got {ragged!r}")
     scanner = VirtualScanner(mesh)
     frame = Frame.fit(mesh.vertices)
     jobs = ([("train", "good", i) for i in range(n_train)]
@@ -111,7 +129,8 @@ def synthesise(mesh, n_train=32, n_test_good=16, n_test_defective=16, defects=DE
     children = np.random.SeedSequence(seed).spawn(len(jobs))
     if not 0 < defect_size < np.inf:
         raise ValueError(f"defect_size must be > 0 (a factor on the defects' sizes), got {defect_size!r}")
-    options = dict(n_points=int(n_points), noise=noise * scanner.diagonal, fov_deg=fov_deg, sensor=sensor)
+    options = dict(n_points=int(n_points), noise=noise * scanner.diagonal, fov_deg=fov_deg, sensor=sensor,
+                   grazing_dropout=float(grazing_dropout), ragged=ragged * scanner.diagonal)
     view_options = dict(radius_range=radius_range, jitter_deg=jitter_deg, jitter_translation=jitter_translation)
     scans = []
     for (split, kind, i), child in tqdm(list(zip(jobs, children)), desc="synth scans", unit="scan",

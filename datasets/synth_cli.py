@@ -23,6 +23,12 @@ def register(subparsers):
     p.add_argument("--points", type=int, default=4000, help="points per scan (default 4000)")
     p.add_argument("--noise", type=float, default=0.002,
                    help="depth-noise std relative to the part's bounding-box diagonal (default 0.002)")
+    p.add_argument("--grazing-dropout", type=float, default=0.0, metavar="K",
+                   help="returns lost at grazing incidence: a hit at incidence angle theta kept with probability "
+                        "cos(theta)^K (1: Lambertian; default 0: every hit kept)")
+    p.add_argument("--ragged", type=float, default=0.0, metavar="F",
+                   help="ragged borders: silhouettes and occluding edges eaten back by up to F x the bounding-box "
+                        "diagonal, by a depth that varies along them (default 0: clean borders)")
     p.add_argument("--jitter", type=float, default=0.0, metavar="DEG",
                    help="random rotation of the part per scan, up to DEG degrees (default 0: a fixture)")
     p.add_argument("--seed", type=int, default=0, help="seed of everything random (default 0)")
@@ -37,7 +43,7 @@ def register(subparsers):
 # synthesise's parameter -> the option that sets it (its errors name the option)
 _OPTION_OF = {"n_train": "--train", "n_validation": "--validation", "n_test_good": "--test-good",
               "n_test_defective": "--test-defective", "n_points": "--points", "noise": "--noise",
-              "jitter_deg": "--jitter"}
+              "jitter_deg": "--jitter", "grazing_dropout": "--grazing-dropout", "ragged": "--ragged"}
 
 
 def run_synth(args):
@@ -77,6 +83,9 @@ def run_synth(args):
     parameters = dict(n_train=args.train, n_validation=args.validation, n_test_good=args.test_good,
                       n_test_defective=args.test_defective, defects=list(defects), n_points=args.points,
                       noise=args.noise, jitter_deg=args.jitter, seed=args.seed, part_id=part_id)
+    # the sensor's losses only when asked for: a collection written at the defaults keeps its bytes
+    parameters.update({k: v for k, v in (("grazing_dropout", getattr(args, "grazing_dropout", 0.0)),
+                                         ("ragged", getattr(args, "ragged", 0.0))) if v})
     try:
         scans, frame = synthesise(mesh, progress=not getattr(args, "quiet", False), **parameters)
     except ValueError as exc:  # the library names its parameters; the user typed the options

@@ -310,74 +310,21 @@ def _verdict_figures(scored, keep):
 
 # ---------------------------------------------------------------------------------------------------- templates
 def _template_collection(part, args):
-    """The imported Real3D-AD-like class folder of ``part`` (cached). Returns its ``data.h5``."""
+    """The imported Real3D-AD-like class folder of ``part`` (cached: :func:`benchmarks.cache.template_collection`,
+    the synthetic collection's test scans as its test scans). Returns its ``data.h5``."""
     test = cache.synth_collection(part, args.seed, root=args.cache, n_train=0, n_test_good=args.test_good,
                                   n_test_defective=args.per_defect or 8, n_points=args.points)
-    from datasets.templates import VISIBILITY_RULE
-
-    params = {"part": part, "test": str(test.parent.name), "template_points": args.template_points,
-              "seed": args.seed, "views": args.views, "validation_views": args.validation_views,
-              "visibility": VISIBILITY_RULE}
-
-    def build(folder):
-        from datasets import ScanCollection
-        from datasets.importer import import_tree
-
-        tree = folder / "tree"
-        _write_templates(cache.part_mesh(part), tree / "train", args.template_points, args.seed)
-        with ScanCollection(test) as c:
-            frame, scans = c.frame, c.read_many(range(len(c)))
-        for i, s in enumerate(scans):
-            points = frame.to_file(s.points)
-            stem = f"{i + 1}_{'good' if s.label == metrics.GOOD else s.defect}"
-            _write_pcd(tree / "test" / f"{stem}.pcd", points)
-            if s.label != metrics.GOOD:
-                (tree / "gt").mkdir(exist_ok=True)
-                np.savetxt(tree / "gt" / f"{stem}.txt", np.column_stack([points, s.point_labels]),
-                           fmt=["%.6f"] * 3 + ["%d"])
-        import_tree(tree, folder / "data.h5", seed=args.seed, views=args.views,
-                    validation_views=args.validation_views, progress=False)
-
-    return cache.cached_path("templates", params, build, args.cache, label=part) / "data.h5"
+    return cache.template_collection(part, test, args.seed, args.template_points, args.views, args.validation_views,
+                                     root=args.cache)
 
 
 def _calibration_gap(run_dir):
-    """How far the good test scans' scores lie from the calibration scans' (the template regime's false alarms):
-    the mean log score of the good test scans minus that of the held-back views and of the cross-fitted training
-    views (positive: the test scans score higher than what calibrated the threshold)."""
-    scored = inspect_api.read_scores(Path(run_dir) / "results")
-    good = scored["score"][(scored["label"] == metrics.GOOD) & np.isfinite(scored["score"])]
-    cal = inspect_api.calibration_scores(Path(run_dir) / "model.pt")
-    test = float(np.log(good).mean())
-    gap = {"good_test_mean_log": test}
-    for role, values in cal.items():
-        if len(values):
-            gap[f"{role}_mean_log"] = float(np.log(values).mean())
-            gap[f"minus_{role}"] = test - float(np.log(values).mean())
+    """How far the good test scans' scores lie from the calibration scans' (:func:`benchmarks.inspect_api.
+    calibration_gap`), printed."""
+    gap = inspect_api.calibration_gap(run_dir)
     print("  calibration gap (mean log score, good test minus calibration): "
           + ", ".join(f"{k[6:]} {v:+.3f}" for k, v in gap.items() if k.startswith("minus_")))
     return gap
-
-
-def _write_templates(mesh, folder, n_points, seed):
-    """4 complete clouds sampled on ``mesh`` (its units), depth noise 0.002 x its diagonal along the normal."""
-    import trimesh
-
-    diag = float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
-    for k in range(4):
-        rng = np.random.default_rng([seed, 1000 + k])
-        pts, faces = trimesh.sample.sample_surface(mesh, n_points, seed=int(rng.integers(2**31)))
-        pts = pts + mesh.face_normals[faces] * rng.normal(0, 0.002 * diag, (len(pts), 1))
-        _write_pcd(folder / f"{k + 1}_template.pcd", pts)
-
-
-def _write_pcd(path, points):
-    import open3d as o3d
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
-    if not o3d.io.write_point_cloud(str(path), pcd):
-        raise RuntimeError(f"{path}: open3d could not write it")
 
 
 def _templates(part, args):
