@@ -36,12 +36,13 @@ from .layouts import LAYOUT_SIGNS, import_public, resolve_layout
 from .normals import estimate_normals
 from .reading import Reading
 from .scan import LABELS, SPLITS, Scan
+from .sidecar import SIDECAR_SUFFIX as _SIDECAR_SUFFIX
+from .sidecar import VIEW_DIRECTION_DISTANCE  # noqa: F401 - where the importer's module docstring and users find it
+from .sidecar import read_sensor_origin as _read_sensor_origin
 
 log = logging.getLogger(__name__)
 
 MIN_POINTS = 3  # fewer finite points cannot define a tangent plane, let alone a surface
-_SIDECAR_SUFFIX = ".json"
-VIEW_DIRECTION_DISTANCE = 100.0  # bounding-box diagonals: a sidecar's view direction as a far origin (module doc)
 
 
 @dataclass(frozen=True)
@@ -183,39 +184,6 @@ def _public_layouts():
 
 
 # ---- per-file processing ---------------------------------------------------------------------------------------------
-def _read_sensor_origin(path, points):
-    """Sensor origin (3,) in file units from an npz key or a ``<stem>.json`` sidecar (a ``view_direction`` becomes
-    a far origin beyond the cloud ``points``: module docstring), or None."""
-    if path.suffix.lower() == ".npz":
-        with np.load(path, allow_pickle=False) as z:
-            if "sensor_origin" in z.files:
-                return _check_origin(z["sensor_origin"], path)
-    sidecar = path.with_suffix(_SIDECAR_SUFFIX)
-    if sidecar.is_file():
-        expected = '{"sensor_origin": [x, y, z]} or {"view_direction": [x, y, z]}'
-        try:
-            record = json.loads(sidecar.read_text())
-            if "sensor_origin" in record:
-                return _check_origin(record["sensor_origin"], sidecar)
-            direction = _check_origin(record["view_direction"], sidecar, "view_direction")
-        except (json.JSONDecodeError, KeyError, TypeError, AttributeError) as e:
-            raise ValueError(f"{sidecar}: expected {expected} ({e})") from None
-        length = float(np.linalg.norm(direction))
-        if not length > 0:
-            raise ValueError(f"{sidecar}: view_direction must not be zero")
-        lo, hi = points.min(0), points.max(0)
-        diagonal = max(float(np.linalg.norm(hi - lo)), 1e-12)
-        return (lo + hi) / 2 + VIEW_DIRECTION_DISTANCE * diagonal * direction / length
-    return None
-
-
-def _check_origin(value, where, what="sensor_origin"):
-    o = np.asarray(value, dtype=np.float64).reshape(-1)
-    if o.shape != (3,) or not np.all(np.isfinite(o)):
-        raise ValueError(f"{where}: {what} must be 3 finite numbers, got {value!r}")
-    return o
-
-
 def _read_ground_truth(gt, n, cloud):
     try:
         table = np.loadtxt(gt, ndmin=2)
@@ -469,3 +437,40 @@ def collection_info(path):
         lines.append(f"provenance: {json.dumps(c.provenance, sort_keys=True)}")
         lines.append(f"fingerprint: {c.fingerprint()}")
     return "\n".join(lines)
+
+
+def read_scan(src, reading=None):
+    """One scanner file read by ``reading``'s rules, as the import that recorded it read its files.
+
+    :func:`datasets.importer.load_source` (points, sensor origin, normals, downsampling, the mark of normals whose
+    signs the good surface decides), then the stray points dropped when the reading says so (as the import's
+    :func:`datasets.ingest.write_scans` drops them).
+
+    Parameters
+    ----------
+    src : datasets.importer.ScanSource
+    reading : Reading, dict or None
+        None: the default reading (a folder imported without options).
+
+    Returns
+    -------
+    scan : Scan
+        In file units.
+    n_dropped : int
+        Non-finite rows removed (as :func:`datasets.importer.load_source` counts them).
+
+    Raises
+    ------
+    ValueError, OSError
+        The file cannot be read as a scan (the message names it).
+    """
+    from .ingest import _without
+    from .outliers import stray_points
+
+    reading = Reading.from_dict(reading)
+    scan, n_dropped = load_source(src, reading=reading)
+    if reading.strays == "dropped":
+        mask = stray_points(scan.points)
+        if mask.any():
+            scan = _without(scan, mask)
+    return scan, n_dropped

@@ -541,7 +541,7 @@ def import_public(root, out, layout, views=DEFAULT_VIEWS, validation_views=DEFAU
                      voxel, UNITS[layout], max_points)
     from scipy.spatial import cKDTree
 
-    from .importer import _read_sensor_origin
+    from .sidecar import read_sensor_origin
 
     # the rules every scan is read by, recorded so that a file scored later reads the same (datasets.reading): the
     # files' own normals are not read (the layouts' loaders read xyz only) and normals come after downsampling
@@ -554,7 +554,7 @@ def import_public(root, out, layout, views=DEFAULT_VIEWS, validation_views=DEFAU
         points, labels, origin, dropped = read_public_source(src, keep_plane, seed)
         n_dropped += dropped
         if src.role == "cloud":  # a sidecar's sensor origin, as for any scanner file (datasets.importer)
-            origin = _read_sensor_origin(src.path, points)
+            origin = read_sensor_origin(src.path, points)
         points, _, labels = downsample(points, np.zeros_like(points), labels, reading)
         if src.role == "template":  # the sources list templates first
             normals = estimate_normals(points)

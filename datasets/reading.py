@@ -5,7 +5,7 @@ points dropped or kept, the file's own normals used or estimated again, and how 
 without a sensor origin are decided). :class:`Reading` holds those rules; the importers record it in the collection's
 provenance (``provenance['reading']``), inspection's calibration carries it (``Inspector.reading_``), and every file
 read for scoring (``score --data FOLDER``, ``watch``, :func:`inspection.loading.load_scans`) is read by the same
-rules, through the same functions (:func:`datasets.importer.load_source`, :func:`read_scan`). So one file gives the
+rules, through the same functions (:func:`datasets.importer.load_source`, :func:`datasets.importer.read_scan`). So one file gives the
 same points whether it was imported first or read from a folder.
 
 The signs of normals estimated without a sensor origin are a guess (the estimator's consistent orientation, pointing
@@ -175,44 +175,6 @@ def downsample(points, normals, labels, reading):
         keep = subset(points, reading.points, reading.seed)
         return points[keep], normals[keep], None if labels is None else labels[keep]
     return points, normals, labels
-
-
-def read_scan(src, reading=None):
-    """One scanner file read by ``reading``'s rules, as the import that recorded it read its files.
-
-    :func:`datasets.importer.load_source` (points, sensor origin, normals, downsampling, the mark of normals whose
-    signs the good surface decides), then the stray points dropped when the reading says so (as the import's
-    :func:`datasets.ingest.write_scans` drops them).
-
-    Parameters
-    ----------
-    src : datasets.importer.ScanSource
-    reading : Reading, dict or None
-        None: the default reading (a folder imported without options).
-
-    Returns
-    -------
-    scan : Scan
-        In file units.
-    n_dropped : int
-        Non-finite rows removed (as :func:`datasets.importer.load_source` counts them).
-
-    Raises
-    ------
-    ValueError, OSError
-        The file cannot be read as a scan (the message names it).
-    """
-    from .importer import load_source
-    from .ingest import _without
-    from .outliers import stray_points
-
-    reading = Reading.from_dict(reading)
-    scan, n_dropped = load_source(src, reading=reading)
-    if reading.strays == "dropped":
-        mask = stray_points(scan.points)
-        if mask.any():
-            scan = _without(scan, mask)
-    return scan, n_dropped
 
 
 def mark_signs(scan, reading):

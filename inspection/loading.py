@@ -138,7 +138,7 @@ def read_file(src, frame, reading=None):
     frame : datasets.Frame
         The model's frame.
     reading : datasets.reading.Reading, dict or None
-        The training collection's reading (:func:`datasets.reading.read_scan`); None: the default.
+        The training collection's reading (:func:`datasets.importer.read_scan`); None: the default.
 
     Returns
     -------
@@ -150,7 +150,7 @@ def read_file(src, frame, reading=None):
     InspectionError
         Naming the file: it cannot be read as a scan.
     """
-    from datasets.reading import read_scan
+    from datasets.importer import read_scan
 
     try:
         scan, _ = read_scan(src, checked_reading(reading))

@@ -20,7 +20,8 @@ from datasets import ScanCollection, write_cloud
 from datasets.importer import ScanSource, import_tree, load_source
 from datasets.layouts import orient_by_surface, orient_like_templates
 from datasets.normals import estimate_normals, orient_consistently
-from datasets.reading import SIGNS_FROM_SURFACE, SIGNS_KEY, Reading, read_scan
+from datasets.importer import read_scan
+from datasets.reading import SIGNS_FROM_SURFACE, SIGNS_KEY, Reading
 from inspection.errors import InspectionError
 from inspection.loading import load_scans, read_file, signed_for_scoring
 
