@@ -132,6 +132,13 @@ def _noisy(name, seed, sigma):
     return s
 
 
+def _off(name, seed, factor=1.3):
+    """A good half-sphere as a sensor off in its depth scale sees it (smooth, not noise: every point moved)."""
+    s = half_sphere(name, "test", "good", seed=seed)
+    s.points = (s.points * factor).astype(s.points.dtype)
+    return s
+
+
 def test_calibrate_with_real_good_scans_moves_the_level_to_them(calibrated, tmp_path, capsys):
     model = tmp_path / "model.pt"
     model.write_bytes((calibrated / "model.pt").read_bytes())
@@ -157,7 +164,7 @@ def test_calibrate_with_real_good_scans_moves_the_level_to_them(calibrated, tmp_
 
 
 def test_score_warns_and_tells_uncertain_on_a_batch_of_another_sensor(calibrated, tmp_path):
-    noisy = _folder(tmp_path, "noisy", [_noisy(f"n{i:02d}", 300 + i, 0.03) for i in range(20)])
+    noisy = _folder(tmp_path, "noisy", [_off(f"n{i:02d}", 300 + i) for i in range(20)])
     out = tmp_path / "out"
     assert main(["score", "--model", str(calibrated / "model.pt"), "--data", str(noisy), "--out", str(out),
                  "--quiet", "--max-defective-share", "0.2", "--maps", "none"]) == 0
@@ -215,7 +222,7 @@ def test_a_level_from_rendered_views_only_is_said_on_every_verdict(tmp_path):
 def test_watch_warns_once_and_tells_uncertain_over_its_window(calibrated, tmp_path):
     from inspection.watch import JOURNAL, watch
 
-    drop = _folder(tmp_path, "drop", [_noisy(f"n{i:02d}", 500 + i, 0.03) for i in range(12)])
+    drop = _folder(tmp_path, "drop", [_off(f"n{i:02d}", 500 + i) for i in range(12)])
     said = []
     watch(calibrated / "model.pt", drop, tmp_path / "line", once=True, settle=0, echo=said.append, maps="none",
           max_defective_share=0.2, window=12)
