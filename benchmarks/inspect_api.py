@@ -224,6 +224,28 @@ def score_calibrated(model_path, data_path, out_dir, *, maps="none", progress=Fa
                  echo=lambda line: None, overwrite=True)
 
 
+def site_level_and_score(model_path, good_folder, data_path, out_dir, *, progress=False):
+    """A calibrated model's level set by good scans of the inspection's own sensor, then a collection scored, as
+    ``python -m inspection calibrate --model M --data FOLDER`` and ``score`` do: the model is copied to
+    ``out_dir/model.pt``, given the scanner files of ``good_folder`` (none a scan it trained on:
+    :meth:`inspection.Inspector.fit_level`) and ``data_path``'s test split scored into ``out_dir/results/``.
+
+    Returns
+    -------
+    dict
+        summary.json's content.
+    """
+    from inspection.run import calibrate, score
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    copy = out_dir / "model.pt"
+    shutil.copyfile(model_path, copy)
+    calibrate(copy, good_folder, progress=progress, echo=lambda line: None)
+    return score(copy, data_path, out_dir / "results", split="test", progress=progress, maps="none",
+                 echo=lambda line: None, overwrite=True)
+
+
 def calibration_gap(run_dir):
     """How far a scored run's good test scans lie from the scans that calibrated its threshold: the mean log score
     of the good test scans (``good_test_mean_log``), each calibration role's (``<role>_mean_log``: held-back,
