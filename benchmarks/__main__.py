@@ -3,6 +3,9 @@
 The suites are the modules of ``benchmarks/suites/`` (found with pkgutil). Each exposes ``DESCRIPTION`` (one line),
 ``add_arguments(parser)`` and ``run(args) -> dict`` (the figures; the suite prints its own table). After the run the
 record (command, commit, date, load, figures: :mod:`benchmarks.record`) is written and its path printed.
+
+``python -m benchmarks table [--records DIR] [--doc FILE] [--suites A,B] [--check]`` runs no suite: it rewrites
+docs/results.md's table of every suite from its newest record (:mod:`benchmarks.results_doc`).
 """
 import argparse
 import importlib
@@ -38,7 +41,8 @@ def build_parser(found=None):
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks", description="Run one benchmark suite and write the record of the run "
         "(command, commit, date, load, figures) as JSON.",
-        epilog="Each suite's options: python -m benchmarks SUITE --help. Map of the suites: benchmarks/README.md.")
+        epilog="Each suite's options: python -m benchmarks SUITE --help. Map of the suites: benchmarks/README.md. "
+        "docs/results.md's tables from the newest records: python -m benchmarks table [--check] (no suite is run).")
     parser.add_argument("--records", default=RECORDS, metavar="DIR",
                         help="folder of the run records (default: %(default)s)")
     parser.add_argument("--no-record", action="store_true", help="do not write the run's record")
@@ -57,6 +61,10 @@ def main(argv=None):
     from benchmarks.record import Moment, write_record
 
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["table"]:  # not a suite: docs/results.md's tables from the records
+        from benchmarks.results_doc import main as table
+
+        return table(argv[1:])
     found = discover()
     args = build_parser(found).parse_args(argv)
     module = found[args.suite]

@@ -1,9 +1,10 @@
 """The benchmarks' one door into the inspection package: every suite that calibrates, scores or reads a scored run
 goes through these functions, so a change of the inspection API is met here once.
 
-Written against ``inspection.run.calibrate`` / ``inspection.run.score`` (what ``python -m inspection calibrate`` and
-``score`` run) with an ``inspection.config.InspectionConfig``, ``inspection.Inspector.from_calibration`` and the
-files ``score`` writes (``scores.csv``, ``summary.json``).
+Written against ``inspection.job.calibrate`` / ``inspection.run.score`` (what ``python -m inspection calibrate`` and
+``score`` run) with an ``inspection.config.InspectionConfig``, the per-scan job's
+``inspection.job.calibrated_inspector`` (a model file's calibrated inspector, as ``score`` builds it) and the files
+``score`` writes (``scores.csv``, ``summary.json``).
 """
 import csv
 import shutil
@@ -19,9 +20,9 @@ _ECHOED = ("note:", "threshold basis", "calibrated on", "part ", "the rays weigh
 def model_info(model_path):
     """What a benchmark needs to know of a trained model: ``train_names``, ``heldback_names``, ``kind``,
     ``train_seconds`` and ``epoch`` (None where the checkpoint does not say)."""
-    from inspection.model_io import load_model
+    from inspection.model_io import load_model_handle
 
-    handle = load_model(model_path)
+    handle = load_model_handle(model_path)
     info = getattr(handle.model, "info", None) or {}
     return {"train_names": list(handle.train_names), "heldback_names": list(handle.heldback_names),
             "kind": handle.kind, "train_seconds": info.get("train_seconds"),
@@ -61,9 +62,9 @@ def in_common_frame(model_path, scans):
     """``scans`` registered onto the model's common frame (the pose of training scans placed by hand, or a family's
     size: ``LatentModel.normalise``, a training scan onto the others), as the toolkit registers them before it scores
     them; None when the model has no such frame. A baseline given the scans as aligned as the toolkit's are."""
-    from inspection.model_io import load_model
+    from inspection.model_io import load_model_handle
 
-    model = load_model(model_path).model
+    model = load_model_handle(model_path).model
     if getattr(model, "family", None) is None:
         return None
     return [model.normalise(s) for s in scans]
@@ -115,7 +116,8 @@ def calibrate_and_score(model_path, data_path, out_dir, *, rays=None, point_scor
         summary.json's content, and ``calibration_seconds``.
     """
     from inspection.config import InspectionConfig
-    from inspection.run import calibrate, describe_calibration, score
+    from inspection.job import calibrate, describe_calibration
+    from inspection.run import score
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -183,7 +185,8 @@ def scoring_seconds(model_path, data_path, out_dir, jobs_list=(1, 2), progress=F
         ``scans`` (scored per run), ``calibration_seconds``, and per N (str) ``{"seconds", "scans_per_second",
         "scores"}`` with ``scores`` the scores.csv rows' scores (equal across N: the runs must agree).
     """
-    from inspection.run import calibrate, score
+    from inspection.job import calibrate
+    from inspection.run import score
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -235,7 +238,8 @@ def site_level_and_score(model_path, good_folder, data_path, out_dir, *, progres
     dict
         summary.json's content.
     """
-    from inspection.run import calibrate, score
+    from inspection.job import calibrate
+    from inspection.run import score
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -371,9 +375,9 @@ def map_neighbours():
 def calibration_settings(model_path):
     """How a calibrated model scores: ``point_score``, ``aggregate``, ``noise`` (the floor used: the calibration's or
     the model's own), ``lengthscale`` (the model's kernel lengthscale), ``alpha``."""
-    from inspection import load_model
+    from inspection import load_model_handle
 
-    handle = load_model(model_path)
+    handle = load_model_handle(model_path)
     cal = handle.calibration
     settings = _inspector(model_path).settings_
     return {"point_score": settings.point_score, "aggregate": settings.aggregate, "alpha": cal.alpha,
@@ -406,20 +410,20 @@ def points_alone_threshold(model_path):
 
 
 def _inspector(model_path):
-    """The Inspector of a calibrated model, with its stored calibration."""
-    from inspection import Inspector, load_model
+    """The Inspector of a calibrated model, with its stored calibration (the per-scan job's, as ``score`` builds
+    it)."""
+    from inspection import calibrated_inspector, load_model_handle
 
-    handle = load_model(model_path)
-    return Inspector.from_calibration(handle.model, handle.calibration)
+    return calibrated_inspector(load_model_handle(model_path))
 
 
 def fit_inspector(model_path, data_path, progress=False):
     """``inspection.Inspector(model).fit(collection)`` at the defaults: a calibrated inspector of a trained model on
     its training collection (not written to the model file)."""
     from datasets import ScanCollection
-    from inspection import Inspector, load_model
+    from inspection import Inspector, load_model_handle
 
-    handle = load_model(model_path)
+    handle = load_model_handle(model_path)
     with ScanCollection(data_path) as c:
         return Inspector(handle.model, verbose=progress).fit(c)
 
@@ -482,20 +486,20 @@ def field_terms_by_code(inspector, scans):
         points ``defect_own`` / ``defect_clean``: the median z_d at its defect points under each code.
     """
     from inspection.aggregates import aggregate
-    from inspection.evidence import field_for, gather_evidence
+    from inspection.evidence import field_for, gather_evidence, kept_points
     from inspection.reference import REFERENCE_QUANTITY, field_quantity
-    from inspection.scores import reference_scores
+    from inspection.scores import noise_floor, reference_scores
 
     settings, reference = inspector.settings_, inspector.reference_
     out = []
     for s in scans:
         ev = gather_evidence(inspector.model, s, quantity=REFERENCE_QUANTITY, projection=settings.projection)
-        noise = float(getattr(ev.field, "noise", 0.0) if settings.noise is None else settings.noise)
+        noise = noise_floor(ev.field, settings.noise)
 
         def field_term(value, variance):
             return reference_scores(reference, "distance", ev.points, value, variance, noise, ev.grazing, ev.normals)
 
-        keep = ~ev.stray if ev.stray is not None and not ev.stray.all() else np.ones(len(ev.points), bool)
+        keep = kept_points(ev.stray, len(ev.points))
         own = field_term(ev.value, ev.variance)
         surface = reference_scores(reference, "surface", ev.points, ev.value, ev.variance, noise, ev.grazing,
                                    ev.normals)

@@ -201,6 +201,20 @@ def _open_h5(path):
     return h5
 
 
+def _data_fingerprint(frame, meta, offsets, has_labels, sensor_origin, hashes):
+    """sha256 hex of a collection's data (:meth:`ScanCollection.fingerprint`): the format, the frame, the per-scan
+    string fields, the offsets, which scans have labels, the sensor origins (NaN: none) and the content hashes."""
+    h = hashlib.sha256()
+    h.update(f"{FORMAT_NAME}/{FORMAT_VERSION}\n".encode())
+    h.update(json.dumps(frame.as_dict(), sort_keys=True).encode())
+    h.update(json.dumps([meta[k] for k in _STRING_FIELDS], ensure_ascii=False).encode())
+    h.update(offsets.astype("<i8").tobytes())
+    h.update(has_labels.astype("u1").tobytes())
+    h.update(np.nan_to_num(sensor_origin, nan=np.inf).astype("<f4").tobytes())  # one NaN bit pattern
+    h.update(b"".join(hashes.tolist()))
+    return h.hexdigest()
+
+
 class ScanCollection:
     """A read-only view of a collection file; reads one scan's slice at a time.
 
@@ -434,8 +448,7 @@ class ScanCollection:
         return scans, failed
 
     def __iter__(self):
-        for i in range(len(self)):
-            yield self[i]
+        return (self[i] for i in range(len(self)))
 
     @property
     def names(self):
@@ -494,15 +507,8 @@ class ScanCollection:
         Cheap (reads no points: the per-scan hashes are computed at write time; :meth:`verify` re-checks them).
         Provenance and toolkit version are not part of it: the same data imported twice has the same fingerprint.
         """
-        h = hashlib.sha256()
-        h.update(f"{FORMAT_NAME}/{FORMAT_VERSION}\n".encode())
-        h.update(json.dumps(self._frame.as_dict(), sort_keys=True).encode())
-        h.update(json.dumps([self._meta[k] for k in _STRING_FIELDS], ensure_ascii=False).encode())
-        h.update(self._offsets.astype("<i8").tobytes())
-        h.update(self._has_labels.astype("u1").tobytes())
-        h.update(np.nan_to_num(self._sensor_origin, nan=np.inf).astype("<f4").tobytes())  # one NaN bit pattern
-        h.update(b"".join(self._hashes.tolist()))
-        return h.hexdigest()
+        return _data_fingerprint(self._frame, self._meta, self._offsets, self._has_labels, self._sensor_origin,
+                                 self._hashes)
 
     def verify(self):
         """Read every scan, which recomputes its content hash from its arrays; :class:`ScanReadError` naming the

@@ -36,6 +36,8 @@ from contextlib import contextmanager
 
 import numpy as np
 
+from datasets.validation import points_and_normals
+
 DEFAULT_LEVELS = (4.0, 2.0, 1.0)  # ICP voxel sizes in multiples of the target's point spacing, coarse to fine
 PRIOR_DEGREES = 5.0  # the placement prior: rotation sd (degrees) ...
 PRIOR_SIZE = 0.02  # ... and translation sd per axis, in target bounding-box diagonals (module docstring)
@@ -143,7 +145,6 @@ class Aligner:
                    scale_axes=(True, True, True)):
         """The aligner onto up to ``max_scans`` of ``scans`` (good training scans, objects with ``points``,
         ``normals`` or None, ``name``), a seeded choice, each point owned by its scan's name."""
-        from datasets.validation import points_and_normals
 
         scans = list(scans)
         if not scans:
@@ -320,13 +321,9 @@ class Aligner:
         return self._scaled_icp(pts, levels[1:], free, best[1])
 
     def scaled_matrix(self, R, t, s):
-        """The (4, 4) affine transform of the scaled motion's state (R, t, s) about this target's centre:
-        x -> R diag(exp s) (x - c) + c + t."""
-        c = self.centre
-        L = R @ np.diag(np.exp(s))
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = L, c + t - L @ c
-        return T
+        """The (4, 4) affine transform of the scaled motion's state (R, t, s) about this target's centre
+        (:func:`scaled_affine`)."""
+        return scaled_affine(self.centre, R, t, s)
 
     def _scaled_icp(self, pts, levels, free, state, iterations=None):
         """Robust point-to-plane ICP of the scaled motion x -> R diag(exp s) (x - c) + c + t (c: the target's box
@@ -375,6 +372,16 @@ class Aligner:
         if isinstance(scan, np.ndarray) or not hasattr(scan, "points"):
             return self.align(np.asarray(scan, dtype=np.float64).reshape(-1, 3))[0]
         return moved_by(scan, self.transform(scan.points))
+
+
+def scaled_affine(centre, R, t, s):
+    """The (4, 4) affine transform x -> R diag(exp s) (x - c) + c + t of a scaled motion's state (R (3, 3), t (3,),
+    s (3,) log scales) about ``centre`` c (3,)."""
+    c = np.asarray(centre, dtype=np.float64)
+    L = R @ np.diag(np.exp(s))
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = L, c + t - L @ c
+    return T
 
 
 def _starts():
@@ -428,7 +435,6 @@ def register_group(scans, rounds=GROUP_ROUNDS, seed=0, motion="rigid", return_tr
     transform of all rounds in ``extra['align']`` for a :class:`datasets.Scan`), and with ``return_transforms``
     also each scan's transform (4, 4). Fewer than 3 scans: returned as they are (identity transforms). ``tick``
     (optional) is called once per registration of a scan, for a progress bar over work of unknown length."""
-    from datasets.validation import points_and_normals
 
     scans = list(scans)
     if len(scans) < 3:
@@ -562,7 +568,6 @@ def pose_spread(scans, max_scans=AUTO_SCANS, seed=0, tick=None):
     few degrees of hand placement give 1.3 and more (docs/results.md#parts-placed-by-hand-alignment-in-the-calibration-issue-27).
     Fewer than 3 scans: 1.0 (nothing to compare). ``tick`` (optional) is called once per registered scan.
     """
-    from datasets.validation import points_and_normals
 
     scans = list(scans)
     if len(scans) < 3:

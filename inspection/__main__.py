@@ -84,7 +84,9 @@ def _parser():
     s.add_argument("--align", action="store_true",
                    help="register each scan onto the good training scans first (ICP); a setting of the calibration: "
                         "an uncalibrated model is calibrated with it (without it: registered when the training "
-                        "scans' poses spread), a model calibrated with `calibrate --align` aligns without it")
+                        "scans' poses spread), a model calibrated with `calibrate --align` aligns without it, as "
+                        "does a model trained in one common pose or a family's size (one line says it is not "
+                        "needed); refused for a model calibrated without registration")
     s.add_argument("--two-class", action="store_true",
                    help="good or defective only (default: a scan whose score lies within the threshold's own "
                         "uncertainty is 'uncertain': rescan it)")
@@ -208,7 +210,7 @@ def main(argv=None):
 
     try:
         if args.command == "calibrate":
-            from .run import calibrate, describe_calibration
+            from .job import calibrate, describe_calibration
 
             config = config_from_args(args)
             insp, info = calibrate(args.model, args.data, config, split=args.split, progress=not args.quiet,

@@ -99,6 +99,38 @@ class InspectionConfig:
         return replace(self, alpha=float(self.alpha), noise=noise, projection=check_projection(self.projection),
                        ray_options=ray_options)
 
+    def decided(self, model, with_reference, with_origins):
+        """These (validated) settings with ``point_score`` and ``rays`` decided for ``model`` (module docstring): for
+        a calibration with a per-location reference (``with_reference``: the model's training scans among the good
+        scans) and a sensor origin on every good scan (``with_origins``). ``ray_options`` become complete with rays
+        and None without; ``projection`` becomes the ``project`` options themselves (:meth:`projection_for`).
+        ``align`` is left as it is: the calibration decides it from the training scans' poses
+        (:func:`inspection.calibrating.fit_alignment`)."""
+        from .ray_evidence import check_ray_options
+
+        point_score = self.point_score
+        if point_score == "auto":
+            point_score = "joint" if with_reference else "residual"
+        rays = self.rays
+        if rays == "auto":
+            rays = bool(with_reference and with_origins)
+        return replace(self, point_score=point_score, rays=bool(rays),
+                       ray_options=check_ray_options(self.ray_options) if rays else None,
+                       projection=self.projection_for(model))
+
+    def projection_for(self, model):
+        """The ``project`` options these settings mean for ``model``: None for a fixed field (no ``project``);
+        ``'default'`` means ``DEFAULT_PROJECTION`` for the toolkit's latent models
+        (:class:`autodecoder.latent.model.LatentModel`) and the projector's own defaults (None) for any other model
+        with a ``project`` method; an empty dict means the projector's own defaults too."""
+        if not hasattr(model, "project"):
+            return None
+        if self.projection == "default":
+            from autodecoder.latent.model import LatentModel
+
+            return self.projection_options() if isinstance(model, LatentModel) else None
+        return self.projection_options() or None
+
     def projection_options(self):
         """The ``project`` keyword arguments these settings mean (a dict, possibly empty)."""
         if self.projection == "default":

@@ -20,7 +20,8 @@ def run_demo(out="demo_output", seed=0, quick=False, progress=True, echo=print):
     from datasets.parts import builtin_part
     from datasets.synth import synthesise
 
-    from .run import calibrate, describe_calibration, score
+    from .job import calibrate, describe_calibration
+    from .run import score
 
     t_start = time.perf_counter()
     out = Path(out)

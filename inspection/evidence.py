@@ -50,11 +50,35 @@ class ScanEvidence:
     normals: np.ndarray = None
 
 
+def kept_points(stray, count):
+    """Which of a scan's ``count`` points its score counts: (count,) bool, every point but its stray returns.
+
+    A stray point (a lone return off the surface, :func:`datasets.outliers.stray_points`) is not a defect unless
+    many points agree, so a scan's score aggregates the others, and the calibration fits what good scans' scores
+    count (the term variances, the reach of :func:`inspection.calibrating.uncovered_points`) on the same points.
+    When every point is stray (or none was looked for: ``stray`` None) every point counts: a score needs points.
+    The maps keep every point's own score either way.
+
+    Parameters
+    ----------
+    stray : (count,) bool array or None
+        :attr:`ScanEvidence.stray`.
+    count : int
+        The scan's number of points.
+    """
+    if stray is None:
+        return np.ones(count, dtype=bool)
+    stray = np.asarray(stray, dtype=bool).reshape(-1)
+    if len(stray) != count:
+        raise ValueError(f"kept_points: {count} points but {len(stray)} stray flags")
+    return np.ones(count, dtype=bool) if stray.all() else ~stray
+
+
 @contextmanager
 def stage(timings, name):
     """Adds the wall time of the block to ``timings[name]`` (seconds; a dict, or None: nothing is timed). The
-    inspection's per-scan stages (:func:`gather_evidence`, ``Inspector._score``) are timed this way for the latency
-    benchmark."""
+    inspection's per-scan stages (:func:`gather_evidence`, :func:`inspection.scoring.score_evidence`) are timed this
+    way for the latency benchmark."""
     if timings is None:
         yield
         return

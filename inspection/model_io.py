@@ -44,8 +44,9 @@ class ModelHandle:
         return np.asarray(pts), np.asarray(mesh.face_normals[faces])
 
 
-def load_model(path):
-    """Load a latent checkpoint or a field file for inspection (the file is read once).
+def load_model_handle(path):
+    """Load a latent checkpoint or a field file for inspection (the file is read once): the model with what
+    inspection needs to know of it. (:func:`autodecoder.load_model` loads a latent checkpoint as the model alone.)
 
     Returns
     -------

@@ -96,7 +96,7 @@ class LocalReference:
     angle), where s_ref rests on few or distant neighbours. g = 1 / cos^2 - 1 (:func:`autodecoder.scanning.sensor.grazing_factor`, 0 when the
     sensor origin is unknown) lets the measurement noise grow where the sensor's ray grazes the surface, which is
     where good scans' worst points lie (at a view's border, near silhouettes). ``variance_scale`` and
-    ``grazing_scale`` are calibrated on good scans (:meth:`fit_noise_model`); both 0 is the reference alone.
+    ``grazing_scale`` are calibrated on good scans (:func:`fit_noise_model`); both 0 is the reference alone.
 
     The good scans' points also describe the part's surface by themselves, independently of any field:
     :meth:`surface_scores` scores a point by its offset from the plane through its ``k`` nearest distinct reference
@@ -184,12 +184,6 @@ class LocalReference:
             keep = np.sort(np.random.default_rng(seed).choice(len(pts), max_points, replace=False))
             pts, vals, owners = pts[keep], vals[keep], owners[keep]
         return cls(pts, vals, k, quantity, owners=owners)
-
-    @classmethod
-    def from_fields(cls, scans_and_fields, max_points=60000, seed=0, k=REFERENCE_NEIGHBOURS, quantity=REFERENCE_QUANTITY):
-        """Build from (points (m, 3), field) pairs; see :meth:`from_values`."""
-        return cls.from_values([(p, field_quantity(f, np.asarray(p, dtype=np.float64), quantity))
-                                for p, f in scans_and_fields], max_points, seed, k, quantity)
 
     def without(self, owner):
         """The same reference without the points of good scan ``owner`` (needs ``owners``)."""
@@ -337,8 +331,8 @@ class LocalReference:
         measurement noise grows with the grazing factor g (m,) (None: 0) as in :meth:`standardized`. (m,)
         float64; with ``with_support`` also :meth:`surface`'s ``supported`` (m,) bool."""
         offset, spread, supported = self.surface(points, normals, with_support=True)
-        scores = np.abs(offset) / np.sqrt(self._total(spread, 0.0, float(noise) ** 2, grazing, 0.0,
-                                                      self.grazing_scale))
+        scores = np.abs(offset) / np.sqrt(total_variance(spread, 0.0, float(noise) ** 2, grazing, 0.0,
+                                                          self.grazing_scale))
         return (scores, supported) if with_support else scores
 
     def stats(self, points):
@@ -356,65 +350,11 @@ class LocalReference:
         """The point score (class docstring) of values (m,) with field variances (m,) and grazing factors (m,)
         (None: 0) at points (m, 3)."""
         m_ref, s_ref = self.stats(points)
-        return np.abs(value - m_ref) / np.sqrt(self._total(s_ref**2, variance, noise**2, grazing,
-                                                           self.variance_scale, self.grazing_scale))
-
-    @staticmethod
-    def _total(reference_var, field_var, noise_var, grazing, variance_scale, grazing_scale):
-        g = 0.0 if grazing is None else np.maximum(grazing, 0.0)
-        total = reference_var + variance_scale * np.maximum(field_var, 0.0) + noise_var * (1.0 + grazing_scale * g)
-        return np.maximum(total, _MIN_VARIANCE)
-
-    @staticmethod
-    def fit_noise_model(residuals, reference_variances, field_variances, noise_variances, grazing=None):
-        """``variance_scale`` and ``grazing_scale`` that make good scans' residuals most likely.
-
-        Maximum likelihood of r_i ~ N(0, b_i + kappa u_i + e_i (1 + lambda g_i)) over kappa, lambda >= 0, with r the
-        residuals v - m_ref of good scans not in the reference they are compared with (held-back scans, or
-        cross-fitted ones), b = s_ref^2, u the field's variance, e = noise^2 and g the grazing factor. Solved on
-        log kappa, log lambda (Nelder-Mead from two starts), then compared with the boundaries kappa = 0 and
-        lambda = 0.
-
-        Parameters
-        ----------
-        residuals, reference_variances, field_variances, noise_variances : (n,) arrays
-        grazing : (n,) array, optional
-            None (sensor origins unknown): lambda is 0.
-
-        Returns
-        -------
-        (kappa, lambda) : floats in [0, 1e4]
-        """
-        from scipy.optimize import minimize
-
-        r2 = np.asarray(residuals, dtype=np.float64).reshape(-1) ** 2
-        b, u, e = (np.broadcast_to(np.asarray(a, dtype=np.float64).reshape(-1), r2.shape)
-                   for a in (reference_variances, field_variances, noise_variances))
-        g = None if grazing is None else np.asarray(grazing, dtype=np.float64).reshape(-1)
-        if len(r2) == 0 or (g is not None and g.shape != r2.shape):
-            raise ValueError(f"fit_noise_model needs residuals and, optionally, one grazing factor each; got "
-                             f"{len(r2)} and {None if g is None else len(g)}")
-
-        def nll(kappa, lam):
-            total = LocalReference._total(b, u, e, g, kappa, lam)
-            return float(np.mean(r2 / total + np.log(total)))
-
-        lo, hi = math.log(1e-6), math.log(1e4)
-        clip = lambda t: math.exp(min(max(t, lo), hi))  # noqa: E731
-        candidates = [(0.0, 0.0)]
-        for start in (0.0, -3.0):
-            if g is None:
-                best = minimize(lambda t: nll(clip(t[0]), 0.0), [start], method="Nelder-Mead",
-                                options={"xatol": 1e-4, "fatol": 1e-10})
-                candidates.append((clip(best.x[0]), 0.0))
-            else:
-                best = minimize(lambda t: nll(clip(t[0]), clip(t[1])), [start, start], method="Nelder-Mead",
-                                options={"xatol": 1e-4, "fatol": 1e-10})
-                kappa, lam = clip(best.x[0]), clip(best.x[1])
-                candidates += [(kappa, lam), (kappa, 0.0), (0.0, lam)]
-        return min(candidates, key=lambda c: nll(*c))
+        return np.abs(value - m_ref) / np.sqrt(total_variance(s_ref**2, variance, noise**2, grazing,
+                                                               self.variance_scale, self.grazing_scale))
 
     def as_dict(self):
+        """Plain values (torch tensors for the arrays) to store in a calibration record; the owners are not stored."""
         import torch
 
         surface = normals = None
@@ -429,11 +369,70 @@ class LocalReference:
 
     @classmethod
     def from_dict(cls, d):
-        surface, normals = d.get("surface_points"), d.get("surface_normals")
-        return cls(np.asarray(d["points"]), np.asarray(d["values"]), int(d.get("k", REFERENCE_NEIGHBOURS)),
-                   str(d.get("quantity", REFERENCE_QUANTITY)), float(d.get("variance_scale", 0.0)),
-                   grazing_scale=float(d.get("grazing_scale", 0.0)),
+        """The reference :meth:`as_dict` stored (a record of the current calibration version: an older one is
+        upgraded by :func:`inspection.calibration.migrate` first)."""
+        surface, normals = d["surface_points"], d["surface_normals"]
+        return cls(np.asarray(d["points"]), np.asarray(d["values"]), int(d["k"]), str(d["quantity"]),
+                   float(d["variance_scale"]), grazing_scale=float(d["grazing_scale"]),
                    surface_points=None if surface is None else np.asarray(surface),
                    surface_normals=None if normals is None else np.asarray(normals),
-                   term_variances=d.get("term_variances", (1.0, 1.0)),
-                   field_on_unseen_faces=bool(d.get("field_on_unseen_faces", False)))
+                   term_variances=d["term_variances"], field_on_unseen_faces=bool(d["field_on_unseen_faces"]))
+
+
+def total_variance(reference_var, field_var, noise_var, grazing, variance_scale, grazing_scale):
+    """The variance (m,) a reference score divides by: reference_var + variance_scale * field_var + noise_var * (1 +
+    grazing_scale * g), with the field's variance and the grazing factor g (None: 0) floored at 0, the total at
+    ``_MIN_VARIANCE`` (:class:`LocalReference`'s docstring; squared world units)."""
+    g = 0.0 if grazing is None else np.maximum(grazing, 0.0)
+    total = reference_var + variance_scale * np.maximum(field_var, 0.0) + noise_var * (1.0 + grazing_scale * g)
+    return np.maximum(total, _MIN_VARIANCE)
+
+
+def fit_noise_model(residuals, reference_variances, field_variances, noise_variances, grazing=None):
+    """The noise model of a :class:`LocalReference`: ``variance_scale`` and ``grazing_scale`` that make good scans'
+    residuals most likely.
+
+    Maximum likelihood of r_i ~ N(0, b_i + kappa u_i + e_i (1 + lambda g_i)) over kappa, lambda >= 0, with r the
+    residuals v - m_ref of good scans not in the reference they are compared with (held-back scans, or
+    cross-fitted ones), b = s_ref^2, u the field's variance, e = noise^2 and g the grazing factor. Solved on
+    log kappa, log lambda (Nelder-Mead from two starts), then compared with the boundaries kappa = 0 and
+    lambda = 0.
+
+    Parameters
+    ----------
+    residuals, reference_variances, field_variances, noise_variances : (n,) arrays
+    grazing : (n,) array, optional
+        None (sensor origins unknown): lambda is 0.
+
+    Returns
+    -------
+    (kappa, lambda) : floats in [0, 1e4]
+    """
+    from scipy.optimize import minimize
+
+    r2 = np.asarray(residuals, dtype=np.float64).reshape(-1) ** 2
+    b, u, e = (np.broadcast_to(np.asarray(a, dtype=np.float64).reshape(-1), r2.shape)
+               for a in (reference_variances, field_variances, noise_variances))
+    g = None if grazing is None else np.asarray(grazing, dtype=np.float64).reshape(-1)
+    if len(r2) == 0 or (g is not None and g.shape != r2.shape):
+        raise ValueError(f"fit_noise_model needs residuals and, optionally, one grazing factor each; got "
+                         f"{len(r2)} and {None if g is None else len(g)}")
+
+    def nll(kappa, lam):
+        total = total_variance(b, u, e, g, kappa, lam)
+        return float(np.mean(r2 / total + np.log(total)))
+
+    lo, hi = math.log(1e-6), math.log(1e4)
+    clip = lambda t: math.exp(min(max(t, lo), hi))  # noqa: E731
+    candidates = [(0.0, 0.0)]
+    for start in (0.0, -3.0):
+        if g is None:
+            best = minimize(lambda t: nll(clip(t[0]), 0.0), [start], method="Nelder-Mead",
+                            options={"xatol": 1e-4, "fatol": 1e-10})
+            candidates.append((clip(best.x[0]), 0.0))
+        else:
+            best = minimize(lambda t: nll(clip(t[0]), clip(t[1])), [start, start], method="Nelder-Mead",
+                            options={"xatol": 1e-4, "fatol": 1e-10})
+            kappa, lam = clip(best.x[0]), clip(best.x[1])
+            candidates += [(kappa, lam), (kappa, 0.0), (0.0, lam)]
+    return min(candidates, key=lambda c: nll(*c))

@@ -14,8 +14,6 @@ import numpy as np
 from .reference import checked_term_variances, field_quantity
 
 
-
-
 @dataclass(frozen=True)
 class PointScore:
     """One per-point score of the registry :data:`POINT_SCORES`.
@@ -56,6 +54,13 @@ _MIN_VARIANCE = 1e-20
 WEIGHED_SCORES = ("joint", "agreement")
 CHI2_1_MEDIAN = 0.454936423119572  # the median of chi-square(1): median(z^2) / this estimates Var z for Gaussian z
 MIN_TERM_VARIANCE = 1e-4  # fit_term_variances: a term that is ~0 on every good point still divides by this
+
+
+def noise_floor(field, noise=None):
+    """The measurement noise standard deviation (model frame units) a scan's point scores add to their variance:
+    ``noise`` when the settings give one (:attr:`inspection.config.InspectionConfig.noise`), else the scan's
+    projected ``field``'s own ``noise`` (0 for a field without one). A float."""
+    return float(getattr(field, "noise", 0.0) if noise is None else noise)
 
 
 def point_scores(field, points, kind="residual", noise=None, reference=None, normals=None, origin=None):
@@ -124,7 +129,7 @@ def point_scores(field, points, kind="residual", noise=None, reference=None, nor
         raise ValueError(f"points must be (m, 3), got {points.shape}")
     if len(points) == 0:
         raise ValueError("points: the scan has no points to score")
-    noise = float(getattr(field, "noise", 0.0) if noise is None else noise)
+    noise = noise_floor(field, noise)
     if not noise >= 0:
         raise ValueError(f"noise must be >= 0, got {noise}")
     if POINT_SCORES[kind].reference:
@@ -238,7 +243,7 @@ def reference_terms(reference, points, value, variance, noise, grazing=None, nor
     False: the face of a thin wall no training view saw, an enclosure's inside seen from below), the plane comes
     from the wall's other face, a wall's thickness away, and a good scan's points there read as far off as a
     defect's. The good points cannot speak where no good scan looked; the projected field, which saw this scan, can
-    (as for a training scan left out of the reference, :func:`inspection.estimator._uncovered`). Measured:
+    (as for a training scan left out of the reference, :func:`inspection.calibrating.uncovered_points`). Measured:
     docs/results.md, "Faces no good scan saw". A reference stored before this rule
     (``reference.field_on_unseen_faces`` False) keeps the good points' term there, as it was calibrated. Returns
     two (m,) float64 arrays."""
@@ -256,7 +261,7 @@ def reference_scores(reference, kind, points, value, variance, noise, grazing=No
     points whose compared quantity (m,) and field variance (m,) are given, against ``reference`` (a
     :class:`inspection.reference.LocalReference`); ``grazing`` (m,) and the points' ``normals`` (m, 3) (for the
     reference surface's side) or None. ``uncovered`` (m,) bool or None: points where the reference has no good
-    surface to compare with (a training scan left out of it, :func:`inspection.estimator._uncovered`); there
+    surface to compare with (a training scan left out of it, :func:`inspection.calibrating.uncovered_points`); there
     ``'joint'`` and ``'agreement'`` take the field's term for the good points' term. These two weigh their terms by
     the reference's ``term_variances`` (:func:`fit_term_variances`). ``terms``: (z_d, z_s) of
     :func:`reference_terms` already computed for these points (``'joint'`` and ``'agreement'`` only). Returns (m,)

@@ -166,9 +166,9 @@ class Watcher:
         from datasets.atomic import check_writable
         from datasets.importer import cloud_files, skipped_line
 
-        from .model_io import load_model
+        from .job import calibrated_inspector
+        from .model_io import load_model_handle
         from .report import CSV_COLUMNS, RAY_CSV_COLUMNS
-        from .run import _calibrated_inspector
 
         if self.maps not in ("flagged", "all", "none"):
             raise InspectionError(f"--maps must be flagged, all or none, got {self.maps!r}")
@@ -194,12 +194,12 @@ class Watcher:
         try:
             self.entries = read_journal(self.out / JOURNAL)
             self.done = {_key(e) for e in self.entries}
-            handle = load_model(self.model)
+            handle = load_model_handle(self.model)
             if handle.frame is None:
                 raise InspectionError(f"{self.model}: scanner files need the model's frame, and this model records "
                                       f"none")
             self.frame, self.handle = handle.frame, handle
-            self.insp = _calibrated_inspector(handle, self.folder, self.alpha, False, self.echo)
+            self.insp = calibrated_inspector(handle, self.folder, self.alpha, False, self.echo)
             self.columns = (RAY_CSV_COLUMNS if self.insp.settings_.rays else CSV_COLUMNS) + ("file", "time")
             self._journal = os.open(self.out / JOURNAL, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
             if self.entries:
@@ -262,8 +262,8 @@ class Watcher:
         """Read and score one file; its journal entry, or None when the file changed while it was read."""
         from datasets.importer import ScanSource
 
+        from .job import error_row, inspect_scan
         from .loading import read_file
-        from .run import _error_row, _inspect_one
 
         t0 = time.perf_counter()
         src = ScanSource(path, path.stem, "test", "unknown", "")
@@ -272,14 +272,14 @@ class Watcher:
             scan = read_file(src, self.frame, getattr(self.insp, "reading_", None))  # as score reads it (issue 47)
         except Exception as exc:  # noqa: BLE001 - a bad file is an error line, never the end of the watcher
             reason = " ".join(str(exc).split()) or type(exc).__name__
-            row = _error_row(src.name, reason if str(path) in reason else f"{path}: {reason}")
+            row = error_row(src.name, reason if str(path) in reason else f"{path}: {reason}")
         else:
             try:
-                one = _inspect_one(self.insp, scan, 0, self.maps, self.out / "maps", self.uncertain)
+                one = inspect_scan(self.insp, scan, 0, self.maps, self.out / "maps", self.uncertain)
                 row = one["row"]
                 self._check_window(row)
             except Exception as exc:  # noqa: BLE001 - as above, for what scoring raises beyond a ValueError
-                row = _error_row(scan, f"{path}: cannot be scored ({type(exc).__name__}: {exc})")
+                row = error_row(scan, f"{path}: cannot be scored ({type(exc).__name__}: {exc})")
         try:
             now = path.stat()
         except FileNotFoundError:
@@ -351,8 +351,9 @@ class Watcher:
         if not (self._unreported or force) or not self.entries:
             return False
         from .html_report import write_html_report
+        from .job import calibrated_aligned
         from .results import summarize_run
-        from .run import calibrated_aligned, run_warnings
+        from .run import run_warnings
 
         rows = [{**e, "name": e["file"]} for e in self.entries]
         scored = [e for e in self.entries if e["verdict"] != "error"]

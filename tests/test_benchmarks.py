@@ -193,7 +193,10 @@ def test_spsr_grid_spans_the_box_first_coordinate_fastest():
 
 # ------------------------------------------------------------------------------------------------------ harness
 def _suite_files():
-    return sorted(p.stem for p in (ROOT / "benchmarks" / "suites").glob("*.py") if not p.stem.startswith("_"))
+    """The suites' names: the modules and the packages of benchmarks/suites/ (a suite may be a package of modules)."""
+    suites = ROOT / "benchmarks" / "suites"
+    names = [p.stem for p in suites.glob("*.py")] + [p.parent.name for p in suites.glob("*/__init__.py")]
+    return sorted(name for name in names if not name.startswith("_"))
 
 
 def test_every_suite_is_found_and_keeps_the_contract():
@@ -601,7 +604,8 @@ def test_the_baseline_is_registered_onto_the_models_common_frame_where_it_has_on
     shifted = SimpleNamespace(family=object(), normalise=lambda s: s + 1.0)
     plain = SimpleNamespace(family=None, normalise=lambda s: s)
     models = {"framed.pt": shifted, "plain.pt": plain}
-    monkeypatch.setattr(inspection.model_io, "load_model", lambda path: SimpleNamespace(model=models[str(path)]))
+    monkeypatch.setattr(inspection.model_io, "load_model_handle",
+                        lambda path: SimpleNamespace(model=models[str(path)]))
     scans = [np.zeros((3, 3)), np.ones((2, 3))]
     moved = inspect_api.in_common_frame("framed.pt", scans)
     assert [m.tolist() for m in moved] == [(s + 1.0).tolist() for s in scans]

@@ -2,9 +2,13 @@
 autodecoder.scanning -> inspection, no import pointing back and no import circle (imports inside functions
 included), and light modules that do not import torch or other heavy libraries they do not need.
 
-The benchmark harness too (``benchmarks/``): it imports the library and its own core modules, a suite never imports
-another suite, no module imports a script, only ``benchmarks.inspect_api`` enters the inspection package (beyond its
-training and threshold modules), no circle, no ``sys.path`` edits; the library never imports the benchmarks."""
+The benchmark harness too (``benchmarks/``): it imports the library and its own core modules, a suite (a module of
+``benchmarks/suites/``, or a package there with its modules) never imports another suite, no module imports a
+script, only ``benchmarks.inspect_api`` enters the inspection package (beyond its training and threshold modules),
+no circle, no ``sys.path`` edits; the library never imports the benchmarks.
+
+And size: no module of the packages or the harness over ``MAX_MODULE_LINES`` lines, no class over
+``MAX_CLASS_LINES`` (a module with one job, a class kept to its contract: ../shared/STYLE.md's lessons)."""
 import ast
 import subprocess
 import sys
@@ -147,6 +151,12 @@ def _within(module, package):
     return module == package or module.startswith(package + ".")
 
 
+def _suite_of(module):
+    """The suite a module of benchmarks/suites/ belongs to: ``benchmarks.suites.fit.grid`` -> ``benchmarks.suites.fit``
+    (a suite that is a package may import its own modules, never another suite's)."""
+    return ".".join(module.split(".")[:3])
+
+
 def _benchmark_violations(modules):
     """What breaks the harness' rules in ``modules`` ({name: path} of benchmarks' modules): a list of lines."""
     scripts = _scripts(modules)
@@ -160,7 +170,8 @@ def _benchmark_violations(modules):
             if top in scripts:
                 wrong.append(f"{name} imports the script {target}")
             elif _within(target, "benchmarks.suites") and target != "benchmarks.suites" and (
-                    is_suite and not _within(target, name) or not is_suite and name != "benchmarks.__main__"):
+                    is_suite and not _within(target, _suite_of(name))
+                    or not is_suite and name != "benchmarks.__main__"):
                 wrong.append(f"{name} imports the suite {target}")
             elif _within(target, "benchmarks") and not _within(target, "benchmarks.suites") and not any(
                     target == core or target.startswith(core + ".") for core in BENCHMARK_CORE) \
@@ -207,14 +218,60 @@ def test_the_library_never_imports_the_benchmarks():
 
 def test_the_benchmark_checks_see_a_wrong_module(tmp_path):
     """The checks above must be able to fail: a suite importing another suite, a script, the inspection package
-    directly, and editing sys.path is found on each count; and a circle of two modules is found."""
-    (tmp_path / "benchmarks" / "suites").mkdir(parents=True)
+    directly, and editing sys.path is found on each count; a module of a suite that is a package may import its own
+    suite's modules and no other suite's; and a circle of two modules is found."""
+    (tmp_path / "benchmarks" / "suites" / "pack").mkdir(parents=True)
+    (tmp_path / "benchmarks" / "suites" / "pack" / "__init__.py").write_text(
+        "from benchmarks.suites.pack.mode import run\n")
+    (tmp_path / "benchmarks" / "suites" / "pack" / "mode.py").write_text(
+        "from benchmarks.suites.pack import common\nfrom benchmarks.suites.probe import f\n")
     bad = tmp_path / "benchmarks" / "suites" / "probe.py"
     bad.write_text("import sys\nsys.path.insert(0, '..')\nfrom benchmarks.suites import inspection\n"
                    "def f():\n    from verdicts import synth\n    from inspection.run import score\n")
     (tmp_path / "benchmarks" / "verdicts.py").write_text("from benchmarks.suites.probe import f\n")
     wrong = "\n".join(_benchmark_violations(_benchmark_modules(tmp_path)))
     for expected in ("benchmarks.suites.probe edits sys.path", "imports the suite benchmarks.suites.inspection",
-                     "imports the script verdicts", "imports inspection.run", "benchmarks.verdicts imports the suite"):
+                     "imports the script verdicts", "imports inspection.run", "benchmarks.verdicts imports the suite",
+                     "benchmarks.suites.pack.mode imports the suite benchmarks.suites.probe"):
         assert expected in wrong, wrong
+    assert "imports the suite benchmarks.suites.pack" not in wrong, wrong  # its own modules
     assert _circles({"a": {"b"}, "b": {"a"}}) == ["a -> b -> a"]
+
+
+# ------------------------------------------------------------------------------------------------------------ size
+MAX_MODULE_LINES = 600
+MAX_CLASS_LINES = 300
+SIZED = ("datasets", "autodecoder", "inspection", "benchmarks")
+
+
+def _oversized(paths, root=ROOT):
+    """Lines naming each module of ``paths`` over ``MAX_MODULE_LINES`` lines and each class over ``MAX_CLASS_LINES``
+    (from its ``class`` line to its last, decorators left out), with its size."""
+    wrong = []
+    for path in paths:
+        source = path.read_text()
+        name = path.relative_to(root).as_posix()
+        lines = len(source.splitlines())
+        if lines > MAX_MODULE_LINES:
+            wrong.append(f"{name}: {lines} lines (at most {MAX_MODULE_LINES})")
+        for node in ast.walk(ast.parse(source, str(path))):
+            if isinstance(node, ast.ClassDef) and node.end_lineno - node.lineno + 1 > MAX_CLASS_LINES:
+                wrong.append(f"{name}: class {node.name} {node.end_lineno - node.lineno + 1} lines (at most "
+                             f"{MAX_CLASS_LINES})")
+    return wrong
+
+
+def test_no_module_or_class_is_too_long():
+    """A module over 600 lines holds more than one job, a class over 300 more than its contract: split them (the
+    procedure into a module of functions, each job into a module of its own)."""
+    wrong = _oversized([p for package in SIZED for p in sorted((ROOT / package).rglob("*.py"))])
+    assert not wrong, "too long:\n" + "\n".join(wrong)
+
+
+def test_the_size_check_sees_a_long_module_and_a_long_class(tmp_path):
+    long_class = "class Big:\n" + "    x = 1\n" * MAX_CLASS_LINES
+    (tmp_path / "big.py").write_text(long_class + "\n" * (MAX_MODULE_LINES - MAX_CLASS_LINES))
+    (tmp_path / "fine.py").write_text("class Small:\n" + "    x = 1\n" * (MAX_CLASS_LINES - 1))
+    wrong = _oversized(sorted(tmp_path.glob("*.py")), root=tmp_path)
+    assert wrong == [f"big.py: {MAX_MODULE_LINES + 1} lines (at most {MAX_MODULE_LINES})",
+                     f"big.py: class Big {MAX_CLASS_LINES + 1} lines (at most {MAX_CLASS_LINES})"], wrong

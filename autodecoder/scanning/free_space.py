@@ -92,8 +92,16 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from autodecoder.scanning.own_surface import (BOUNDARY_GAP, BOUNDARY_NEIGHBOURS, median_spacing, passes_through,
+                                              surface_sides)
 from autodecoder.scanning.rays import orthant_survival, ray_gaussian
+from autodecoder.scanning.surface_band import SurfaceBand
 from datasets.validation import check_points
+
+__all__ = ["blocked_probability", "missing_return_probability", "FreeSpaceCheck", "box_interval", "SurfaceBand",
+           "median_spacing", "passes_through", "surface_sides", "MAX_SURPRISAL", "OWN_DEPTH_FACTOR",
+           "OCCLUSION_SPACINGS", "BOUNDARY_NEIGHBOURS", "BOUNDARY_GAP", "SUSPECT_NATS", "DEFAULT_OUTSIDE_SIGMA",
+           "DEFAULT_MAX_SAMPLES", "DEFAULT_SELECT", "DEFAULT_Q_FLOOR"]
 
 DEFAULT_OUTSIDE_SIGMA = 2.0
 DEFAULT_MAX_SAMPLES = 128
@@ -106,8 +114,6 @@ SUSPECT_NATS = 1e-3  # rays with less surprisal are not checked for passing thro
 # distance from a random place of a Poisson pattern exceeds r with probability exp(-pi r^2 / (4 s^2)), s the mean
 # spacing; the samples along the ray, half that apart, add little)
 OCCLUSION_SPACINGS = 2.0
-BOUNDARY_NEIGHBOURS = 10  # surface_sides: the neighbours whose directions must surround a point inside a surface
-BOUNDARY_GAP = 0.5 * math.pi  # and the widest gap between those directions there (radians)
 _MIN_VARIANCE = 1e-20
 MAX_SURPRISAL = -math.log(1e-300)  # the largest surprisal -log P(free) a ray can have: 690.8 nats (P(free) is floored)
 _LOG_FLOOR = -MAX_SURPRISAL
@@ -224,16 +230,6 @@ class _Options:
         if self.own_depth is not None and not float(self.own_depth) > 0:
             raise ValueError(f"own_depth must be None, 'auto' or > 0 (world units), got {self.own_depth!r}")
         return self
-
-
-def median_spacing(tree, sample=2048, seed=0):
-    """The median distance of a point to its nearest other point, over a seeded sample of the points of a
-    scipy.spatial.cKDTree (world units; 0 for fewer than 2 points)."""
-    n = int(tree.n)
-    if n < 2:
-        return 0.0
-    rows = np.arange(n) if n <= sample else np.random.default_rng(seed).choice(n, sample, replace=False)
-    return float(np.median(tree.query(tree.data[rows], k=2)[0][:, 1]))
 
 
 def _check_origin(origin):
@@ -415,98 +411,6 @@ def _segments(field, origin, d, t_near, t_stop, q_out, opts):
                           t_block=out["t_block"], t_enter=out["t_enter"], through_observed=through)
 
 
-def surface_sides(observed, rows=None, k=BOUNDARY_NEIGHBOURS, max_gap=BOUNDARY_GAP):
-    """The surface the scan saw around each observed point: its unit normal (either sign) and where it stops.
-
-    A point is on the surface's border (a hole's rim, a silhouette, the edge of the view) when the directions to its
-    ``k`` nearest neighbours, in their principal plane, leave a gap wider than ``max_gap`` radians (the usual angle
-    criterion of point-cloud boundary detection); the surface stops in the direction of that gap's middle.
-
-    Parameters
-    ----------
-    observed : scipy.spatial.cKDTree
-        Over the scan's points.
-    rows : (r,) int array, optional
-        Only these points (default all n); the arrays returned have one row per point asked for.
-
-    Returns
-    -------
-    sides : (n, 3) float64 array
-        Zero for a point inside the surface; for one on its border, the unit direction in its tangent plane in which
-        the surface stops.
-    normals : (n, 3) float64 array
-        The least direction of its neighbours (zero with fewer than 4 points).
-    """
-    data = np.asarray(observed.data, dtype=np.float64)
-    pts = data if rows is None else data[np.asarray(rows, dtype=np.int64)]
-    n = len(pts)
-    k = min(int(k), len(data) - 1)
-    out = np.zeros((n, 3))
-    if k < 3 or n == 0:
-        return out, np.zeros((n, 3))
-    idx = observed.query(pts, k=k + 1)[1][:, 1:]
-    offsets = data[idx] - pts[:, None, :]  # (n, k, 3)
-    centred = offsets - offsets.mean(1, keepdims=True)
-    _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))
-    u, v = vectors[:, :, 2], vectors[:, :, 1]  # the principal plane (the normal is the least direction)
-    angles = np.sort(np.arctan2(np.einsum("nkj,nj->nk", offsets, v), np.einsum("nkj,nj->nk", offsets, u)), axis=1)
-    gaps = np.diff(np.concatenate([angles, angles[:, :1] + 2 * np.pi], axis=1), axis=1)
-    widest = gaps.argmax(axis=1)
-    border = gaps[np.arange(n), widest] > max_gap
-    middle = angles[np.arange(n), widest] + 0.5 * gaps[np.arange(n), widest]
-    out[border] = (np.cos(middle)[:, None] * u + np.sin(middle)[:, None] * v)[border]
-    return out, vectors[:, :, 0]
-
-
-def passes_through(observed, origin, directions, t_from, t_to, radius, sides=True, max_samples=4096):
-    """Whether rays pass through the scan's own surface between ``t_from`` and ``t_to`` (the module docstring's
-    "rays that pass through the scan's own surface"): between a sample and the next the ray crosses the tangent
-    plane of the sample's nearest observed point, within ``radius`` of that point and on the side of it where the
-    surface the scan saw goes on (``sides``: a ray that passes a hole's rim or a silhouette beside it passes the
-    surface's border, not through it; one that runs along a surface without crossing it does not count).
-
-    Parameters
-    ----------
-    observed : scipy.spatial.cKDTree
-        Over the scan's points (world frame).
-    origin : (3,) array
-    directions : (B, 3) array
-        Unit directions.
-    t_from, t_to : (B,) arrays
-        The part of each ray checked (world units from ``origin``; nothing where t_to <= t_from).
-    radius : float
-        World units (> 0); the samples are spaced at most ``radius`` / 2 apart (at most ``max_samples`` per ray).
-    sides : bool
-        Whether the side of a border point matters (:func:`surface_sides`, computed for the points met only); False:
-        every sample within ``radius`` of an observed point counts.
-
-    Returns
-    -------
-    (B,) bool
-    """
-    directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
-    t_from, t_to = np.asarray(t_from, dtype=np.float64).reshape(-1), np.asarray(t_to, dtype=np.float64).reshape(-1)
-    out = np.zeros(len(directions), dtype=bool)
-    rays = np.flatnonzero(t_to > t_from)
-    if len(rays) == 0:
-        return out
-    counts = np.minimum(max_samples, np.ceil(2.0 * (t_to[rays] - t_from[rays]) / radius).astype(int) + 1)
-    owner = np.repeat(np.arange(len(rays)), counts)
-    start = np.cumsum(counts) - counts
-    u = (np.arange(counts.sum()) - start[owner]) / np.maximum(counts[owner] - 1, 1)  # 0 .. 1 along each ray
-    t = t_from[rays][owner] + u * (t_to[rays] - t_from[rays])[owner]
-    x = origin + t[:, None] * directions[rays][owner]
-    distance, nearest = observed.query(x, k=1, distance_upper_bound=radius)
-    near = np.isfinite(distance)
-    if sides and near.any():  # beside a border point, only on the side where the surface goes on
-        rows = np.flatnonzero(near)
-        met, which = np.unique(nearest[rows], return_inverse=True)
-        border = surface_sides(observed, met)[0][which]
-        near[rows] = np.einsum("ij,ij->i", x[rows] - observed.data[nearest[rows]], border) <= 0.0
-    out[rays] = np.logical_or.reduceat(near, start)
-    return out
-
-
 def _check_segments(field, origin, d, t_near, t_stop, step, q_out, tree, opts):
     """The dense marginals, the end of the tested segment and its orthant probability for b rays; (b,) arrays."""
     b = len(d)
@@ -583,78 +487,3 @@ def _check_segments(field, origin, d, t_near, t_stop, step, q_out, tree, opts):
         # the orthant estimate carries QMC error: it never goes above the exact single-sample bound
         log_free[hot] = np.maximum(np.minimum(log_s, log_free[hot]), _LOG_FLOOR)
     return {"log_free": log_free, "max_marginal": max_q, "t_end": t_end, "t_block": t_block, "t_enter": t_enter}
-
-
-class SurfaceBand:
-    """Where good parts have a surface: the points within ``radius`` of good scans' points (see the module
-    docstring, "Where good parts have a surface"), less the samples where a ray skims past that surface on its outer
-    side ("Not where the ray skims past a good surface").
-
-    Parameters
-    ----------
-    points : (n, 3) array, or a scipy.spatial.cKDTree built over them
-        Points of good scans of the part (e.g. the model's training scans), the field's frame. A tree is used as it
-        is (the caller may already hold one over these points: no second build for every scan inspected).
-    radius : float
-        World units (> 0).
-    normals : (index, (n2, 3) array), optional
-        Good scans' points with unit outward normals: an index with ``query(x, k) -> (distance, rows)`` over n2
-        points (:class:`datasets.neighbours.NearestNeighbours`, or a cKDTree) and their normals, row for row. None:
-        every sample in the band is tested.
-    min_cos : float in [0, 1)
-        With ``normals``: a sample outside the nearest good point's tangent plane, on a ray making |cos| <
-        ``min_cos`` with its normal, is not tested (0: none is left out for it).
-    """
-
-    def __init__(self, points, radius, normals=None, min_cos=0.0):
-        from scipy.spatial import cKDTree
-
-        if not float(radius) > 0:
-            raise ValueError(f"SurfaceBand radius must be > 0 (world units), got {radius!r}")
-        self.radius = float(radius)
-        if isinstance(points, cKDTree):
-            self._tree = points
-            self.points = check_points(points.data, "surface points")
-        else:
-            self.points = check_points(points, "surface points")
-            self._tree = cKDTree(self.points)
-        if not 0 <= float(min_cos) < 1:
-            raise ValueError(f"SurfaceBand min_cos must be in [0, 1), got {min_cos!r}")
-        self.min_cos = float(min_cos)
-        self._normals = None
-        if normals is not None:
-            index, unit = normals
-            unit = np.asarray(unit, dtype=np.float64).reshape(-1, 3)
-            size = index.n if hasattr(index, "n") else len(index.data)
-            length = np.linalg.norm(unit, axis=1)
-            if len(unit) != size or not np.isfinite(unit).all() or not (length > 0).all():
-                raise ValueError(f"SurfaceBand normals: one finite, non-zero normal per indexed point ({size}), got "
-                                 f"{len(unit)}")
-            self._normals = (index, unit / length[:, None])
-
-    def contains(self, x):
-        """(k, 3) points -> (k,) bool: within ``radius`` of a good scan's point."""
-        x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
-        return np.isfinite(self._tree.query(x, k=1, distance_upper_bound=self.radius)[0])
-
-    def skims(self, x, directions):
-        """(k, 3) samples and the (k, 3) unit directions of their rays -> (k,) bool: the sample lies on the outer
-        side of the nearest good point's tangent plane and its ray runs along that plane (|cos| < ``min_cos``). All
-        False without normals or with ``min_cos`` 0."""
-        x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
-        if self._normals is None or self.min_cos <= 0 or len(x) == 0:
-            return np.zeros(len(x), dtype=bool)
-        index, unit = self._normals
-        rows = np.asarray(index.query(x, k=1)[1]).reshape(-1)
-        n = unit[rows]
-        outside = np.einsum("kj,kj->k", x - np.asarray(index.data)[rows], n) > 0
-        along = np.abs(np.einsum("kj,kj->k", np.asarray(directions, dtype=np.float64).reshape(-1, 3), n))
-        return outside & (along < self.min_cos)
-
-    def tested(self, x, directions):
-        """(k,) bool: the samples a ray tests, :meth:`contains` and not :meth:`skims`."""
-        inside = self.contains(x)
-        if inside.any():
-            inside[inside] = ~self.skims(np.asarray(x, dtype=np.float64).reshape(-1, 3)[inside],
-                                         np.asarray(directions, dtype=np.float64).reshape(-1, 3)[inside])
-        return inside

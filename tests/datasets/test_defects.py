@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from datasets.defects import DEFECT_KINDS, _refine_near, defect_for_view, make_defect, pick_spot
+from datasets.defects import (DEFECT_KINDS, HEIGHT_RANGE, RADIUS_RANGE, _refine_near, defect_for_view,
+                              defect_in_points, make_defect, patch_normal, pick_site, pick_spot)
 from datasets.scanner import VirtualScanner
 
 TOP = np.array([0.1, 0.05, 0.25])  # a point of the top face of the box below
@@ -113,3 +114,89 @@ def test_defect_size_scales_width_and_depth(box):
     assert half.radius == pytest.approx(0.5 * whole.radius) and half.height == pytest.approx(0.5 * whole.height)
     with pytest.raises(ValueError, match="size"):
         make_defect(box, "dent", TOP, UP, seed=3, size=0.0)
+
+
+# ------------------------------------------------------------------------------------------------ defects in points
+SENSOR = np.array([0.1, -0.1, 2.0])
+
+
+@pytest.fixture(scope="module")
+def sheet():
+    """A flat scan: a 1 x 1 grid of points (spacing 0.005) in z = 0, normals +z, seen from ``SENSOR`` above."""
+    u = np.arange(-0.5, 0.5, 0.005)
+    points = np.stack([*np.meshgrid(u, u, indexing="ij"), np.zeros((len(u), len(u)))], -1).reshape(-1, 3)
+    return points, np.tile(UP, (len(points), 1))
+
+
+def test_pick_spot_is_pick_site_on_the_scans_points(box):
+    preview = _scan_top(box)
+    points = preview.to_mesh_frame(preview.clean_points)
+    normals = np.asarray(preview.normals) @ preview.pose[:3, :3]
+    eye = preview.to_mesh_frame(preview.sensor_origin[None])[0]
+    for seed in range(3):
+        center, normal = pick_spot(preview, 0.1, seed=seed)
+        i = pick_site(points, normals, eye, 0.1, seed=seed)
+        np.testing.assert_array_equal(center, points[i])
+        np.testing.assert_allclose(normal, normals[i] / np.linalg.norm(normals[i]))
+
+
+def test_pick_site_keeps_the_whole_disc_on_the_sheet(sheet):
+    points, normals = sheet
+    for seed in range(5):
+        i = pick_site(points, normals, SENSOR, 0.05, seed=seed, min_share=0.9)
+        assert np.all(np.abs(points[i, :2]) <= 0.5 - 0.05 + 0.01)  # a disc half over the border has half the points
+        assert i == pick_site(points, normals, SENSOR, 0.05, seed=seed, min_share=0.9)  # the same seed, the same site
+
+
+def test_patch_normal_is_the_mean_of_the_normals_near_the_centre(sheet):
+    points, _ = sheet
+    # a ridge along x = 0.0025, midway between two columns of points: a disc centred on it holds as many of each side
+    tilted = np.where(points[:, :1] > 0.0025, [[0.6, 0.0, 0.8]], [[-0.6, 0.0, 0.8]])
+    np.testing.assert_allclose(patch_normal(points, tilted, [0.0025, 0.0, 0.0], 0.0512), UP, atol=1e-12)
+    np.testing.assert_allclose(patch_normal(points, tilted, [0.3, 0.0, 0.0], 0.0512), [0.6, 0.0, 0.8], atol=1e-12)
+
+
+@pytest.mark.parametrize("kind", DEFECT_KINDS)
+def test_defect_in_points_moves_only_the_labelled_points_where_its_kind_says(sheet, kind):
+    points, normals = sheet
+    out, labels, info = defect_in_points(points, normals, SENSOR, kind, diagonal=1.0, seed=7)
+    c, n0, radius = np.array(info["center"]), np.array(info["normal"]), info["radius"]
+    lab = labels.astype(bool)
+    assert info["kind"] == kind and RADIUS_RANGE[0] <= radius <= RADIUS_RANGE[1] and lab.sum() >= 30
+    np.testing.assert_allclose(n0, UP, atol=1e-12)
+    np.testing.assert_array_equal(out[~lab], points[~lab])  # outside the defect: the scan as measured
+    if kind in ("dent", "bump"):
+        assert HEIGHT_RANGE[0] <= info["height"] <= HEIGHT_RANGE[1]
+        r = np.linalg.norm(points[lab] - c, axis=1)
+        assert r.max() < radius and lab.sum() == (np.linalg.norm(points - c, axis=1) < radius).sum()
+        sign = 1.0 if kind == "bump" else -1.0
+        np.testing.assert_allclose(out[lab] - points[lab], sign * info["height"] * (1 - (r / radius) ** 2)[:, None] ** 2
+                                   * UP, atol=1e-15)
+        return
+    # missing and foreign: each replaced point stays on its sensor ray, behind (missing) or in front of (foreign)
+    # where it was
+    before, after = points[lab] - SENSOR, out[lab] - SENSOR
+    np.testing.assert_allclose(np.cross(before, after), 0.0, atol=1e-12)
+    if kind == "missing":  # on the removed ball's far wall, beneath the sheet
+        assert info["depth"] == radius
+        np.testing.assert_allclose(np.linalg.norm(out[lab] - c, axis=1), radius, rtol=1e-9)
+        assert np.all(out[lab, 2] < 0)
+    else:  # on the object's visible side, above the sheet
+        assert info["shape"] in ("sphere", "box") and np.all(out[lab, 2] > 0)
+        assert np.all(np.linalg.norm(after, axis=1) < np.linalg.norm(before, axis=1))
+
+
+def test_defect_in_points_same_seed_same_defect_and_its_size(sheet):
+    points, normals = sheet
+    a = defect_in_points(points, normals, SENSOR, "foreign", 1.0, noise=1e-3, seed=3)
+    b = defect_in_points(points, normals, SENSOR, "foreign", 1.0, noise=1e-3, seed=3)
+    np.testing.assert_array_equal(a[0], b[0])
+    assert a[2] == b[2]
+    whole = defect_in_points(points, normals, SENSOR, "dent", 1.0, seed=4)[2]
+    half = defect_in_points(points, normals, SENSOR, "dent", 1.0, seed=4, size=0.5)[2]
+    assert half["radius"] == pytest.approx(0.5 * whole["radius"]) and half["height"] == pytest.approx(
+        0.5 * whole["height"])
+    with pytest.raises(ValueError, match="scratch"):
+        defect_in_points(points, normals, SENSOR, "scratch", 1.0)
+    with pytest.raises(ValueError, match="size"):
+        defect_in_points(points, normals, SENSOR, "dent", 1.0, size=0)

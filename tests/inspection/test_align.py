@@ -1,6 +1,7 @@
 """Registration of a real range scan placed by hand: a known 5 degree / 2 % motion of a real view of the Stanford
 bunny is undone to within a fraction of the view's point spacing. Uses ../shared/realscans (skipped, with the reason,
 when that shared data is absent)."""
+import json
 from pathlib import Path
 
 import numpy as np
@@ -81,10 +82,10 @@ def placed_by_hand(tmp_path_factory):
 def test_calibration_scans_are_registered_as_new_scans_are(placed_by_hand, one_torch_thread):
     from datasets import ScanCollection
     from inspection import Inspector
-    from inspection.model_io import load_model
+    from inspection.model_io import load_model_handle
 
     root, scans = placed_by_hand
-    model = load_model(root / "model.pt").model
+    model = load_model_handle(root / "model.pt").model
     with ScanCollection(root / "tree.h5") as c:
         aligned = Inspector(model, align=True).fit(c)
         unmoved = Inspector(model).fit(c)
@@ -118,10 +119,10 @@ def test_a_training_scan_is_not_registered_onto_itself(placed_by_hand):
 def test_the_stored_alignment_moves_scans_as_the_calibration_did(placed_by_hand, one_torch_thread):
     from datasets import ScanCollection
     from inspection import Inspector
-    from inspection.model_io import load_model
+    from inspection.model_io import load_model_handle
 
     root, scans = placed_by_hand
-    model = load_model(root / "model.pt").model
+    model = load_model_handle(root / "model.pt").model
     with ScanCollection(root / "tree.h5") as c:
         fitted = Inspector(model, align=True).fit(c)
     restored = Inspector.from_calibration(model, fitted.calibration())
@@ -137,7 +138,8 @@ def test_score_align_needs_a_calibration_with_it(placed_by_hand, tmp_path, one_t
     import shutil
 
     from inspection.errors import InspectionError
-    from inspection.run import calibrate, score
+    from inspection.job import calibrate
+    from inspection.run import score
 
     root, _ = placed_by_hand
     # uncalibrated: score --align calibrates with alignment, and the calibration then aligns by itself
@@ -159,10 +161,10 @@ def test_score_align_needs_a_calibration_with_it(placed_by_hand, tmp_path, one_t
 
 def test_align_without_training_scans_is_one_clear_error(placed_by_hand, one_torch_thread):
     from inspection import Inspector
-    from inspection.model_io import load_model
+    from inspection.model_io import load_model_handle
 
     root, scans = placed_by_hand
-    model = load_model(root / "model.pt").model
+    model = load_model_handle(root / "model.pt").model
     held = [s for s in scans if s.split == "validation"]
     with pytest.raises(ValueError, match="align=True registers every scan onto the model's good training scans"):
         Inspector(model, align=True).fit(held)
@@ -215,8 +217,8 @@ def test_align_auto_registers_only_where_the_poses_spread(tmp_path, one_torch_th
     fixture's alone; --no-align is never overridden."""
     from datasets import ScanCollection
     from inspection import Inspector
-    from inspection.model_io import load_model
-    from inspection.run import calibrate, describe_calibration
+    from inspection.job import calibrate, describe_calibration
+    from inspection.model_io import load_model_handle
     from tests.inspection.tiny import tiny_field_model
 
     def tree(name, degrees):
@@ -233,7 +235,7 @@ def test_align_auto_registers_only_where_the_poses_spread(tmp_path, one_torch_th
     assert len(notes) == 1 and "--no-align" in notes[0]
     insp, info = calibrate(fixture / "model.pt", fixture / "tree.h5", progress=False)
     assert insp.settings_.align is False and insp.aligner_ is None and insp.alignment_note_ == ""
-    model = load_model(by_hand / "model.pt").model
+    model = load_model_handle(by_hand / "model.pt").model
     with ScanCollection(by_hand / "tree.h5") as c:
         assert Inspector(model, align=False).fit(c).settings_.align is False
 
@@ -332,40 +334,111 @@ def test_fit_pose_moves_scans_placed_by_hand_into_one_pose_and_leaves_a_fixture(
         fit_pose(by_hand, pose="sometimes")
 
 
-def test_training_on_scans_placed_by_hand_moves_them_into_one_pose(tmp_path, one_torch_thread):
+_TINY_TRAINING = dict(quiet=True, epochs=3, seed=0, latent_dim=2, width=16, depth=1, features=8, mean_samples=64,
+                      screen_samples=32, pair_clusters=4, batch=3)
+
+
+def _corner_tree(root, degrees):
+    """``root/tree.h5``: 6 training and 3 held-back corners, each turned by ``degrees`` (0: a fixture). Returns
+    (root, scans)."""
+    from datasets import ScanCollection
+
+    scans = ([_corner(f"train/good/{i:03d}", "train", i, rotation_deg=degrees, n=500) for i in range(6)]
+             + [_corner(f"validation/good/{i:03d}", "validation", 10 + i, rotation_deg=degrees, n=500)
+                for i in range(3)])
+    root.mkdir(parents=True, exist_ok=True)
+    ScanCollection.create(root / "tree.h5", scans)
+    return root, scans
+
+
+@pytest.fixture(scope="module")
+def trained_in_one_pose(tmp_path_factory, one_torch_thread):
+    """A tiny latent model trained (pose='auto', the default) on corners placed by hand: trained in one common pose.
+    Returns (folder with tree.h5 and model.pt, the scans, the trained model)."""
+    from autodecoder.latent.train import train_collection
+
+    root, scans = _corner_tree(tmp_path_factory.mktemp("by_hand"), 4.0)
+    return root, scans, train_collection(root / "tree.h5", root / "model.pt", **_TINY_TRAINING)
+
+
+def test_training_on_scans_placed_by_hand_moves_them_into_one_pose(trained_in_one_pose, tmp_path, one_torch_thread):
     """train_collection's default pose='auto' trains a model of corners placed by hand in one common pose: stored
     in the checkpoint, every scan normalised onto it, so that inspection's align='auto' then finds nothing left to
     register and says why in one line; a fixture, or pose=False, trains without one."""
+    import shutil
+
     from autodecoder.latent.model import load_model
     from autodecoder.latent.train import train_collection
-    from datasets import ScanCollection
     from inspection.align import pose_spread
-    from inspection.run import calibrate, describe_calibration, score
+    from inspection.job import calibrate, describe_calibration
+    from inspection.run import score
 
-    tiny = dict(quiet=True, epochs=3, seed=0, latent_dim=2, width=16, depth=1, features=8, mean_samples=64,
-                screen_samples=32, pair_clusters=4, batch=3)
-
-    def tree(name, degrees):
-        scans = ([_corner(f"train/good/{i:03d}", "train", i, rotation_deg=degrees, n=500) for i in range(6)]
-                 + [_corner(f"validation/good/{i:03d}", "validation", 10 + i, rotation_deg=degrees, n=500)
-                    for i in range(3)])
-        (tmp_path / name).mkdir()
-        ScanCollection.create(tmp_path / name / "tree.h5", scans)
-        return tmp_path / name, scans
-
-    (by_hand, scans), (fixture, _) = tree("by_hand", 4.0), tree("fixture", 0.0)
-    model = train_collection(by_hand / "tree.h5", by_hand / "model.pt", **tiny)
+    by_hand, scans, model = trained_in_one_pose
+    fixture, _ = _corner_tree(tmp_path / "fixture", 0.0)
     assert model.family is not None and model.family.kind == "pose"
     loaded = load_model(by_hand / "model.pt")
     assert loaded.family.kind == "pose"
     new = _corner("test/good/x", "test", 30, rotation_deg=4.0, n=500)
     np.testing.assert_allclose(loaded.normalise(new).points, model.normalise(new).points)
     assert abs(pose_spread([loaded.normalise(s) for s in scans[:6]]) - 1) < 0.05
-    insp, info = calibrate(by_hand / "model.pt", by_hand / "tree.h5", progress=False)
+    copy = tmp_path / "model.pt"  # calibrated here: the module's model stays as trained
+    shutil.copyfile(by_hand / "model.pt", copy)
+    insp, info = calibrate(copy, by_hand / "tree.h5", progress=False)
     assert insp.settings_.align is False  # nothing left to register after the common pose
     assert sum("one common pose" in line for line in describe_calibration(insp, info)) == 1
-    summary = score(by_hand / "model.pt", by_hand / "tree.h5", tmp_path / "out", split="validation", maps="none",
+    summary = score(copy, by_hand / "tree.h5", tmp_path / "out", split="validation", maps="none",
                     echo=lambda line: None)
     assert summary["common_frame"] == "pose" and summary["aligned"] is False
-    assert train_collection(fixture / "tree.h5", fixture / "model.pt", **tiny).family is None
-    assert train_collection(by_hand / "tree.h5", by_hand / "off.pt", pose=False, **tiny).family is None
+    assert train_collection(fixture / "tree.h5", fixture / "model.pt", **_TINY_TRAINING).family is None
+    assert train_collection(by_hand / "tree.h5", tmp_path / "off.pt", pose=False, **_TINY_TRAINING).family is None
+
+
+def _scores_csv(folder):
+    import csv
+
+    with open(folder / "scores.csv", newline="") as fh:
+        return {r["name"]: (r["score"], r["verdict"]) for r in csv.DictReader(fh)}
+
+
+def test_score_align_means_registered_and_a_model_that_registers_by_itself_accepts_it(
+        trained_in_one_pose, placed_by_hand, tmp_path, capsys, one_torch_thread):
+    """`--align` asks that every scan be registered before it is scored. A model trained in one common pose
+    registers every scan by itself (its calibration says so, and registers nothing more): `score --align` on it is
+    accepted with one line saying --align is not needed, and scores exactly as `score` without it. Only a model whose
+    calibration registers nothing refuses it, with the command that calibrates it with registration."""
+    import shutil
+
+    from inspection.__main__ import main
+
+    by_hand = trained_in_one_pose[0]
+    model = tmp_path / "model.pt"
+    shutil.copyfile(by_hand / "model.pt", model)
+    tree = str(by_hand / "tree.h5")
+    assert main(["calibrate", "--model", str(model), "--data", tree, "--quiet"]) == 0
+    said = capsys.readouterr().out
+    assert "every scan is registered onto it before it is scored" in said and "--align" not in said
+    common = ["score", "--model", str(model), "--data", tree, "--split", "validation", "--maps", "none", "--quiet"]
+    assert main(common + ["--out", str(tmp_path / "aligned"), "--align"]) == 0
+    notes = [line for line in capsys.readouterr().out.splitlines() if "--align" in line]
+    assert notes == [f"note: --align is not needed for {model}: it was trained on scans moved into one common pose, "
+                     f"and registers every scan onto that pose before scoring it"]
+    assert main(common + ["--out", str(tmp_path / "plain")]) == 0
+    assert not [line for line in capsys.readouterr().out.splitlines() if "--align" in line]
+    assert _scores_csv(tmp_path / "aligned") == _scores_csv(tmp_path / "plain")  # the same scores and verdicts
+    summary = json.loads((tmp_path / "aligned" / "summary.json").read_text())
+    assert summary["common_frame"] == "pose" and summary["aligned"] is False  # the calibration's own align
+
+    # a model (a fixed field, no common frame) calibrated without registration: --align is refused, one line
+    root, _ = placed_by_hand
+    plain = tmp_path / "plain.pt"
+    shutil.copyfile(root / "model.pt", plain)
+    assert main(["calibrate", "--model", str(plain), "--data", str(root / "tree.h5"), "--no-align", "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["score", "--model", str(plain), "--data", str(root / "tree.h5"), "--out", str(tmp_path / "refused"),
+                 "--maps", "none", "--align", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (f"error: {plain}: --align, but the model was calibrated without it: its threshold was drawn from "
+                   f"scans scored where they lay, not registered ones; calibrate it again with `python -m inspection "
+                   f"calibrate --model {plain} --data TRAINING_COLLECTION --align` (scoring then registers every scan "
+                   f"by itself)")
+    assert not (tmp_path / "refused").exists()

@@ -90,10 +90,10 @@ def test_calibrate_then_score(workdir, tmp_path, capsys):
     import open3d as o3d
     from sklearn.metrics import roc_auc_score
 
-    from inspection import Inspector, load_model
+    from inspection import Inspector, load_model_handle
     from inspection.maps import colours
 
-    handle = load_model(model)
+    handle = load_model_handle(model)
     insp = Inspector.from_calibration(handle.model, handle.calibration)
     with ScanCollection(workdir / "tree.h5") as c:
         tests = c.read_many(c.select(split="test"))
@@ -146,6 +146,40 @@ def test_uncalibrated_model_on_other_data_is_an_error(workdir, tmp_path, capsys)
     err = _error(["score", "--model", str(workdir / "model.pt"), "--data", str(other), "--out", str(tmp_path / "r")],
                  capsys)
     assert "not calibrated" in err and "model.pt" in err and "calibrate" in err
+
+
+def test_the_per_scan_job_is_what_score_runs(workdir, tmp_path):
+    """inspection.job, shared by score, watch and the benchmarks: an uncalibrated model's calibrated_inspector
+    without its training collection is one error naming the command; given it, the model calibrates itself (stored
+    in the file), and inspect_scan gives each scan the row score wrote; error_row is the row of a scan not scored."""
+    from inspection import calibrated_inspector, error_row, inspect_scan, load_model_handle
+    from inspection.errors import InspectionError
+    from inspection.run import score
+
+    model = tmp_path / "model.pt"
+    model.write_bytes((workdir / "model.pt").read_bytes())
+    with pytest.raises(InspectionError, match=r"not calibrated, and no data was given; run `python -m inspection "
+                                              r"calibrate --model .*model.pt --data GOOD_SCANS` first"):
+        calibrated_inspector(load_model_handle(model))
+    said = []
+    insp = calibrated_inspector(load_model_handle(model), workdir / "tree.h5", echo=said.append)
+    assert "is not calibrated: calibrating on its 3 held-back good scans" in said[0]
+    assert read_calibration(model).names == list(insp.calibration_names_)  # stored, as `calibrate` stores it
+    score(model, workdir / "tree.h5", tmp_path / "r", maps="none", progress=False, echo=lambda line: None)
+    with open(tmp_path / "r" / "scores.csv", newline="") as f:
+        written = list(csv.DictReader(f))
+    again = calibrated_inspector(load_model_handle(model))  # calibrated now: from the stored calibration
+    with ScanCollection(workdir / "tree.h5") as c:
+        tests = c.read_many(c.select(split="test"))
+    for i, scan in enumerate(tests):
+        row = inspect_scan(again, scan, i)["row"]
+        assert written[i]["name"] == row["name"] and written[i]["verdict"] == row["verdict"]
+        assert float(written[i]["score"]) == pytest.approx(row["score"], rel=1e-8)  # as the CSV rounds it
+    assert error_row("x.ply", "x.ply: empty") == {"name": "x.ply", "split": "", "label": "unknown", "defect": "",
+                                                  "score": None, "p_value": None, "verdict": "error",
+                                                  "reason": "x.ply: empty"}
+    with pytest.raises(ValueError, match="maps_dir"):
+        inspect_scan(again, tests[0], 0, maps="all")
 
 
 def test_bad_inputs(workdir, tmp_path, capsys):
@@ -229,7 +263,7 @@ def test_latent_model_end_to_end(tmp_path, capsys):
 def test_rays_auto_stays_off_when_some_scans_of_the_collection_have_no_sensor_origin(tmp_path):
     # a public layout's collection: rendered template views carry origins, its test scans none; rays calibrated on
     # the views could not score the test scans, so rays='auto' must not turn them on
-    from inspection.estimator import _good_scans
+    from inspection.calibrating import _good_scans
 
     rng = np.random.default_rng(0)
 

@@ -23,18 +23,18 @@ def folded(tmp_path_factory, one_torch_thread):
 
 
 def test_each_training_scan_is_scored_by_the_fold_model_that_never_saw_it(folded, monkeypatch):
-    import inspection.estimator as estimator
+    import inspection.scoring as scoring
     from inspection import Inspector
 
     data, model = folded
     seen = []
-    real = estimator.gather_evidence
+    real = scoring.gather_evidence
 
     def recording(m, scan, *args, **kwargs):
         seen.append((m, scan.name, kwargs.get("exclude_own_code", False)))
         return real(m, scan, *args, **kwargs)
 
-    monkeypatch.setattr(estimator, "gather_evidence", recording)
+    monkeypatch.setattr(scoring, "gather_evidence", recording)
     with ScanCollection(data) as c:
         insp = Inspector(model, projection={"steps": 5, "starts": 1}).fit(c)
     folds = model.calibration_folds
@@ -74,16 +74,17 @@ def test_without_fold_models_the_training_scans_are_cross_fitted(folded, tmp_pat
 
 
 def test_a_fold_scored_scan_is_compared_with_a_reference_without_its_points(folded):
-    from inspection import Inspector
+    from inspection.calibrating import fold_evidence
+    from inspection.config import InspectionConfig
     from inspection.selection import select_scans
 
     data, model = folded
     with ScanCollection(data) as c:
         goods = c.read_many(c.select(label="good"))
-    insp = Inspector(model, projection={"steps": 5, "starts": 1})
-    settings = insp._resolved(insp.config.validated(), True, False)  # no sensor origins here: no rays
+    config = InspectionConfig(projection={"steps": 5, "starts": 1}).validated()
+    settings = config.decided(model, True, False)  # no sensor origins here: no rays
     selection = select_scans(model, goods)
-    evidence, references = insp._fold_evidence(selection, settings)
+    evidence, references = fold_evidence(model, selection, settings)
     assert sorted(e.name for e in evidence) == sorted(model.train_names)
     by_name = {s.name: s for s in goods}
     for e, reference in zip(evidence, references):
@@ -95,14 +96,14 @@ def test_a_fold_scored_scan_is_compared_with_a_reference_without_its_points(fold
 
 
 def test_a_left_out_training_scan_marks_only_the_surface_no_other_scan_saw():
-    """inspection.estimator._uncovered against brute force: held-back scans on a square set the reach (the 99 %
+    """inspection.calibrating.uncovered_points against brute force: held-back scans on a square set the reach (the 99 %
     quantile of their points' distance to every training scan's points); a training scan that alone saw a flap
     beyond the square, left out, marks exactly its points farther than that from the other scans' points; there the
     joint score is the field's term alone (sqrt((z_d^2 + z_d^2) / 2) = z_d at equal term variances), elsewhere it is as
     before."""
     from types import SimpleNamespace
 
-    from inspection.estimator import _uncovered
+    from inspection.calibrating import uncovered_points
     from inspection.reference import LocalReference
     from inspection.scores import reference_scores
 
@@ -118,7 +119,7 @@ def test_a_left_out_training_scan_marks_only_the_surface_no_other_scan_saw():
                                surface_owners=owners)
     held = [SimpleNamespace(points=square + rng.normal(0, 0.01, square.shape), stray=None) for _ in range(3)]
     crossed = [SimpleNamespace(points=p, stray=None) for p in scans]
-    masks = _uncovered(held, reference, crossed, [reference.without(j) for j in range(3)])
+    masks = uncovered_points(held, reference, crossed, [reference.without(j) for j in range(3)])
     held_d = np.sqrt(((np.concatenate([h.points for h in held])[:, None] - points[None]) ** 2).sum(-1)).min(1)
     reach = np.quantile(held_d, 0.99)
     for j, (p, mask) in enumerate(zip(scans, masks)):
@@ -140,14 +141,15 @@ def test_a_left_out_training_scan_marks_only_the_surface_no_other_scan_saw():
 def test_a_scan_whose_face_of_a_thin_wall_no_good_scan_saw_takes_the_field_term_there():
     """A wall 0.02 thick: scan 0 alone saw its top face, scans 1 and 2 its bottom face. Left out, scan 0's points
     have only the bottom face's points near them, normals opposite, a wall's thickness away (nearer than the
-    held-back scans' reach, so the distance rule of _uncovered keeps them): the good points' plane would come from
+    held-back scans' reach, so the distance rule of uncovered_points keeps them): the good points' plane would come from
     the other face, so the joint score's good-points term is the field's term there
     (inspection.scores.reference_terms); scans 1 and 2, left out, still have the other's points on their side and
     keep the good points' term. A new scan of the top face against a reference of bottom-face scans alone is judged
     the same way; without normals no side can be told and the good points' term stays."""
     from types import SimpleNamespace
 
-    from inspection.estimator import _uncovered
+    from inspection.calibrating import uncovered_points
+    from inspection.calibration import migrate
     from inspection.reference import LocalReference
     from inspection.scores import reference_terms
 
@@ -168,7 +170,7 @@ def test_a_scan_whose_face_of_a_thin_wall_no_good_scan_saw_takes_the_field_term_
     assert reach > 0.03
     crossed = [SimpleNamespace(points=p, normals=n, stray=None) for p, n in scans]
     # the distance rule marks none of them: the wall is thinner than the reach
-    assert not any(m.any() for m in _uncovered(held, reference, crossed, [reference.without(j) for j in range(3)]))
+    assert not any(m.any() for m in uncovered_points(held, reference, crossed, [reference.without(j) for j in range(3)]))
 
     def terms(ref, p, n):
         value, variance = rng.normal(0, 0.004, len(p)), np.full(len(p), 1e-6)
@@ -197,8 +199,10 @@ def test_a_scan_whose_face_of_a_thin_wall_no_good_scan_saw_takes_the_field_term_
     z_d, z_s = terms(restored, new_top, up)
     np.testing.assert_array_equal(z_s, z_d)
     record = bottom_only.as_dict()
-    del record["field_on_unseen_faces"]
-    older = LocalReference.from_dict(record)
+    del record["field_on_unseen_faces"]  # a version-1 calibration record's reference, upgraded as it is read
+    older = LocalReference.from_dict(migrate({"version": 1, "scores": [1.0], "names": ["a"], "aggregate": "top1",
+                                              "point_score": "joint", "extra": {"reference": record}})
+                                     ["extra"]["reference"])
     assert not older.field_on_unseen_faces
     z_d, z_s = terms(older, new_top, up)
     np.testing.assert_allclose(z_s, older.surface_scores(new_top, 0.002, normals=up))

@@ -258,9 +258,7 @@ def test_aligner_recovers_a_small_rotation():
 
 # ---------------------------------------------------------------------------------------------- calibrated variance
 def test_noise_model_matches_the_closed_form_and_a_grid_search():
-    from inspection.reference import LocalReference
-
-    fit = LocalReference.fit_noise_model
+    from inspection.reference import fit_noise_model as fit
     rng = np.random.default_rng(0)
     # constant b, u, e and no grazing: the ML kappa of r ~ N(0, b + kappa u + e) is (mean r^2 - b - e) / u
     b, u, e, kappa = 0.5, 2.0, 0.1, 1.7
@@ -478,8 +476,10 @@ def test_joint_weighs_its_terms_by_their_spread_on_the_calibration_scans():
         stored.extra["reference"]["term_variances"] = damaged
         with pytest.raises(ValueError, match="term_variances must be two positive finite numbers"):
             Inspector.from_calibration(SphereModel(), stored)
-    del stored.extra["reference"]["term_variances"]
-    old = Inspector.from_calibration(SphereModel(), stored)
+    record = stored.as_dict()  # a version-1 record stored before the term variances were fitted: equal weights
+    record["version"] = 1
+    del record["extra"]["reference"]["term_variances"]
+    old = Inspector.from_calibration(SphereModel(), Calibration.from_dict(record))
     assert old.reference_.term_variances == (1.0, 1.0)
     np.testing.assert_allclose(old.inspect_components(held[0]).point_scores ** 2,
                                (distance.inspect_components(held[0]).point_scores ** 2

@@ -91,9 +91,9 @@ def calibrated(collection, model_path):
     """(Inspector fitted on ``collection``, its calibration written into ``model_path``, the model's frame)."""
     from inspection.calibration import write_calibration
     from inspection.estimator import Inspector
-    from inspection.model_io import load_model
+    from inspection.model_io import load_model_handle
 
-    handle = load_model(model_path)
+    handle = load_model_handle(model_path)
     with ScanCollection(collection) as c:
         insp = Inspector(handle.model, alpha=0.3).fit(c)
     write_calibration(model_path, insp.calibration())

@@ -32,14 +32,14 @@ def two_part_run(tmp_path_factory, one_torch_thread):
     data = ScanCollection.create(tmp / "ab.h5", scans)
     model = tmp / "model.pt"
     train_collection(data, model, calibration_fraction=0.34, quiet=True, calibration_folds=2, **TINY)
-    from inspection.run import calibrate
+    from inspection.job import calibrate
 
     insp, info = calibrate(model, data, progress=False)  # stored in the model file
     return data, model, tmp, insp, info
 
 
 def test_calibration_and_thresholds_are_per_part(two_part_run):
-    from inspection.run import describe_calibration
+    from inspection.job import describe_calibration
 
     insp, info = two_part_run[3:]
     assert sorted(insp.parts_) == ["a", "b"]
@@ -54,7 +54,7 @@ def test_calibration_and_thresholds_are_per_part(two_part_run):
 
 def test_scoring_uses_each_parts_threshold_and_stored_calibration(two_part_run):
     from inspection.estimator import Inspector
-    from inspection.model_io import load_model
+    from inspection.model_io import load_model_handle
     from inspection.run import score
 
     data, model, tmp = two_part_run[:3]
@@ -62,7 +62,7 @@ def test_scoring_uses_each_parts_threshold_and_stored_calibration(two_part_run):
     summary = score(model, data, tmp / "results", progress=False, maps="none", echo=lines.append)
     assert "thresholds per part: a " in lines[0]
     assert set(summary["parts"]) == {"a", "b"} and summary["decision"] is None
-    handle = load_model(model)
+    handle = load_model_handle(model)
     loaded = Inspector.from_calibration(handle.model, handle.calibration)
     rows = {r["name"]: r for r in _read_csv(tmp / "results" / "scores.csv")}
     for part in ("a", "b"):
@@ -78,9 +78,9 @@ def test_scoring_uses_each_parts_threshold_and_stored_calibration(two_part_run):
 
 def test_a_scan_of_an_unknown_part_is_refused(two_part_run):
     from inspection.estimator import Inspector
-    from inspection.model_io import load_model
+    from inspection.model_io import load_model_handle
 
-    handle = load_model(two_part_run[1])
+    handle = load_model_handle(two_part_run[1])
     insp = Inspector.from_calibration(handle.model, handle.calibration)
     for part, match in (("c", r"part_id 'c'.*\['a', 'b'\]"), ("", "no part_id")):
         with pytest.raises(ValueError, match=match):
@@ -93,7 +93,7 @@ def test_a_single_part_model_keeps_one_inspector(tmp_path, one_torch_thread):
     from autodecoder.latent.train import train_collection
     from datasets.collection import ScanCollection
     from inspection.estimator import Inspector
-    from inspection.run import calibrate
+    from inspection.job import calibrate
 
     scans = [_sphere(f"train/{k:03d}", 0.2, "a", k) for k in range(5)]
     data = ScanCollection.create(tmp_path / "a.h5", scans)
@@ -117,7 +117,8 @@ def test_a_two_part_model_scores_with_the_rays_when_every_scan_has_a_sensor_orig
 
     from autodecoder.latent.train import train_collection
     from datasets.collection import ScanCollection
-    from inspection.run import calibrate, score
+    from inspection.job import calibrate
+    from inspection.run import score
 
     scans = []
     for i, (part, r) in enumerate((("a", 0.15), ("b", 0.3))):

@@ -198,13 +198,13 @@ def test_a_level_from_rendered_views_only_is_said_on_every_verdict(tmp_path):
     """A calibration whose held-back scans are views rendered from templates says so in each reason."""
     from inspection import Inspector
     from inspection.estimator import LEVEL_RENDERED_NOTE
-    from inspection.model_io import load_model
+    from inspection.model_io import load_model_handle
 
     scans = [half_sphere(f"train/good/{i:03d}", "train", "good", seed=i) for i in range(6)]
     for s in scans:
         s.extra = {"template": "1_template"}
     root = tiny_field_model(tmp_path, scans)
-    handle = load_model(root / "model.pt")
+    handle = load_model_handle(root / "model.pt")
     insp = Inspector.from_config(handle.model, None, verbose=False).fit(scans)
     assert insp.level_rendered_
     new = [half_sphere("test/good/000", "test", "good", seed=50)]

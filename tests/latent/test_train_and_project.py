@@ -154,19 +154,19 @@ def test_foreign_and_other_version_files_are_rejected(trained, tmp_path):
     with pytest.raises(FileNotFoundError, match="missing.pt"):
         load_model(tmp_path / "missing.pt")
     # inspection reads model files through the same format check: one error naming the file
-    from inspection.model_io import load_model as load_for_inspection
+    from inspection.model_io import load_model_handle
 
     with pytest.raises(ValueError, match="other.pt.*not a model file"):
-        load_for_inspection(other)
+        load_model_handle(other)
     with pytest.raises(ValueError, match="newer.pt.*version 99"):
-        load_for_inspection(newer)
+        load_model_handle(newer)
     del state["noise"]
     state["version"] = 1
     damaged = tmp_path / "damaged.pt"
     torch.save(state, damaged)
     with pytest.raises(ValueError, match="damaged.pt.*missing noise"):
-        load_for_inspection(damaged)
-    handle = load_for_inspection(out)
+        load_model_handle(damaged)
+    handle = load_model_handle(out)
     model = load_model(out)
     assert handle.kind == "latent" and handle.heldback_names == model.calibration_names
     assert handle.train_names == model.train_names and handle.frame == model.frame

@@ -1,10 +1,10 @@
-"""autodecoder.scanning.free_space: where the surface a scan saw lies around its points, and which rays pass
-through it (the rule that leaves out rays a sensor at the sidecar's origin could not have travelled), against
-closed forms on a flat sheet with a round hole."""
+"""autodecoder.scanning.own_surface: where the surface a scan saw lies around its points, and which rays pass
+through it (the rule of autodecoder.scanning.free_space that leaves out rays a sensor at the sidecar's origin could
+not have travelled), against closed forms on a flat sheet with a round hole."""
 import numpy as np
 from scipy.spatial import cKDTree
 
-from autodecoder.scanning.free_space import median_spacing, passes_through, surface_sides
+from autodecoder.scanning.own_surface import median_spacing, passes_through, surface_sides
 
 SPACING = 0.01
 HOLE = (np.array([0.0, 0.0]), 0.1)
@@ -62,3 +62,15 @@ def test_a_ray_through_the_sheet_passes_through_it_but_one_through_its_hole_or_p
                           np.zeros(len(xy)), np.full(len(xy), 2.0), radius)
     assert both[0] and not both[3]
     assert not passes_through(tree, starts[0], down[:1], [0.0], [0.5], radius)[0]
+
+
+def test_free_space_still_offers_the_names_it_was_split_into():
+    """free_space was split into own_surface and surface_band: what was imported from it still is, the same objects."""
+    from autodecoder.scanning import free_space, own_surface, surface_band
+
+    for module in (own_surface, surface_band):
+        for name in (n for n in dir(module) if not n.startswith("_") and n.isidentifier()):
+            value = getattr(module, name)
+            if getattr(value, "__module__", None) == module.__name__ or name.isupper():
+                assert getattr(free_space, name) is value, name
+    assert set(free_space.__all__) <= set(dir(free_space))

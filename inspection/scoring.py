@@ -1,0 +1,193 @@
+"""One scan's score under an inspection's fitted state: its registration, evidence, point scores, aggregate and rays.
+
+The functions :class:`inspection.Inspector` scores a scan with, and the calibration procedure
+(:mod:`inspection.calibrating`) scores the good scans with, so that both score alike. Each takes the model, the
+settings in force (an :class:`inspection.config.InspectionConfig` with its 'auto' settings decided) and the fitted
+pieces it needs (the per-location reference, the registration, the rays' weighing) as arguments.
+"""
+from dataclasses import dataclass
+
+import numpy as np
+from sklearn.exceptions import NotFittedError
+
+from .aggregates import aggregate as aggregate_scores
+from .evidence import ScanEvidence, gather_evidence, kept_points, stage
+from .loading import signed_for_scoring
+from .reference import REFERENCE_QUANTITY
+from .scores import POINT_SCORES, noise_floor, point_scores, reference_scores
+
+
+@dataclass
+class ScanResult:
+    """One scan's inspection: its anomaly score (higher = more anomalous) and per-point scores (m,).
+
+    ``transform`` (4, 4) is the registration that moved the scan before it was scored (``align=True``; None
+    otherwise); ``point_scores`` are in the scan's own point order either way. ``components`` holds the per-scan
+    scores that make ``score``: ``{"points": ...}`` (the aggregate of the point
+    scores), plus ``"rays"`` (the ray score: the aggregate of the rays' surprisals, nats) when rays are used; then
+    ``rays`` is the :class:`~inspection.ray_evidence.RayEvidence` (its ``point_map`` is the per-point ray map), and
+    once the calibration weighs the rays (:meth:`inspection.Inspector.inspect`, :func:`weigh_rays`)
+    ``components["ray_nats"]`` is their evidence I (:mod:`inspection.ray_calibration`), ``ray_point_nats`` (m,) the
+    same per point (what the anomaly map adds) and ``score`` the combination (:mod:`inspection.combine`). ``stray``
+    (m,) bool marks the scan's stray returns, left out of the score's aggregate
+    (:func:`inspection.evidence.kept_points`) and of the anomaly map's patches (None: none looked for).
+    """
+
+    score: float
+    point_scores: np.ndarray
+    field: object = None
+    components: dict = None
+    rays: object = None
+    transform: np.ndarray = None
+    stray: np.ndarray = None
+    ray_point_nats: np.ndarray = None
+
+
+def score_scan(model, scan, index, settings, reference=None, aligner=None, timings=None):
+    """A scan registered as the settings say, projected and scored: a :class:`ScanResult` whose ``score`` is the
+    point scores' aggregate (the rays, if scored, not yet weighed: :func:`weigh_rays`).
+
+    Parameters
+    ----------
+    model : latent model, field or callable
+        :func:`inspection.evidence.field_for`.
+    scan : Scan, (points, normals) or (m, 3) array
+        In the model's frame.
+    index : int
+        Its position in its batch (names a scan without a name).
+    settings : InspectionConfig
+        The settings in force ('auto' decided).
+    reference : LocalReference or None
+        The per-location reference (needed by the point scores with one: a NotFittedError without).
+    aligner : inspection.align.Aligner or None
+        The registration target (needed with ``settings.align is True``).
+    timings : dict, optional
+        Receives the seconds of each stage: ``align``, those of :func:`inspection.evidence.gather_evidence` and of
+        :func:`score_evidence`.
+    """
+    if POINT_SCORES[settings.point_score].reference and reference is None:
+        raise NotFittedError(f"point_score {settings.point_score!r} needs the per-location reference: call "
+                             "fit(good_scans) with the model's training scans among them first")
+    scan, transform = registered(model, scan, settings.align, aligner, timings)
+    result = score_evidence(scan_evidence(model, scan, index, settings, reference, timings=timings), reference,
+                            settings, timings)
+    result.transform = transform
+    return result
+
+
+def registered(model, scan, align, aligner, timings=None):
+    """(``scan`` as it is scored, the (4, 4) transform that moved it or None): onto the model's common frame for a
+    model with one (:func:`sized`), then onto the good training scans by ``aligner`` when ``align`` is True."""
+    transform = None
+    if getattr(model, "family", None) is not None:
+        with stage(timings, "align"):
+            scan = sized(model, scan)
+            transform = transform_of(scan)
+    if align is True:
+        with stage(timings, "align"):
+            scan, transform = aligned(aligner, scan)
+    return scan, transform
+
+
+def sized(model, scan):
+    """``scan`` registered onto the model's common frame, a family's size or the common pose of parts placed by
+    hand (:meth:`autodecoder.latent.model.LatentModel.normalise`; a training scan onto the others); as it is for
+    a model without one."""
+    family = getattr(model, "family", None)
+    return scan if family is None else family.normalise(scan)
+
+
+def aligned(aligner, scan):
+    """``scan`` registered by ``aligner`` (an :class:`inspection.align.Aligner`; None: a NotFittedError). Returns
+    (the moved scan, the transform (4, 4))."""
+    if aligner is None:
+        raise NotFittedError("align=True registers scans onto the good training scans chosen by fit: call fit "
+                             "first")
+    if isinstance(scan, np.ndarray) or not hasattr(scan, "points"):  # bare points: moved, with their transform
+        moved, _, transform = aligner.align(np.asarray(scan, dtype=np.float64).reshape(-1, 3))
+        return moved, transform
+    moved = aligner.align_scan(scan)
+    extra = getattr(moved, "extra", None)
+    if isinstance(extra, dict) and "align" in extra:
+        return moved, extra["align"]
+    return moved, aligner.transform(np.asarray(scan.points, dtype=np.float64))  # a scan-like without extra
+
+
+def transform_of(scan):
+    """The (4, 4) transform a registration recorded in a scan's ``extra['align']``, or None."""
+    extra = getattr(scan, "extra", None)
+    return extra.get("align") if isinstance(extra, dict) else None
+
+
+def scan_evidence(model, scan, index, settings, reference=None, exclude_own_code=False, timings=None):
+    """:func:`inspection.evidence.gather_evidence` of a scan (already registered) under the settings: the quantity
+    the per-location point scores compare when the point score has a reference, the sensor origin required with
+    rays. A scan whose reading leaves its normals' signs to the good surface gets them from ``reference``'s good
+    scans first (:func:`inspection.loading.signed_for_scoring`: one reading of a file, whether it came from a
+    collection or a folder). ``exclude_own_code``: a training scan is projected without its own trained code."""
+    scan = signed_for_scoring(scan, reference)
+    quantity = REFERENCE_QUANTITY if POINT_SCORES[settings.point_score].reference else None
+    return gather_evidence(model, scan, index, quantity=quantity, projection=settings.projection,
+                           need_origin=settings.rays, exclude_own_code=exclude_own_code, timings=timings)
+
+
+def score_evidence(evidence: ScanEvidence, reference, settings, timings=None, uncovered=None, terms=None,
+                   surface=None):
+    """A :class:`ScanResult` of a scan's evidence against ``reference`` (components: points, rays).
+
+    Parameters
+    ----------
+    evidence : ScanEvidence
+    reference : LocalReference or None
+        What the point scores with a reference compare with.
+    settings : InspectionConfig
+        The settings in force.
+    timings : dict, optional
+        Receives the seconds of the stages ``reference`` (the point scores), ``aggregate`` and ``rays``.
+    uncovered : (m,) bool, optional
+        A training scan's points where no other good scan has a surface
+        (:func:`inspection.calibrating.uncovered_points`): there the joint score takes the field's term for the good
+        points' term.
+    terms : ((m,), (m,)), optional
+        The joint score's two terms of these points, already computed (the calibration's term variances).
+    surface : LocalReference, optional
+        The reference whose good scans' surface the rays are tested against (default ``reference``).
+
+    The rays' surface is where good parts have one, whoever scanned it: a training scan scored without its own
+    points in the point score's reference (cross-fitted) keeps them in the rays' band and skim normals, as a new
+    scan of its view meets them there. Without them, a face of a thin wall that only it saw borrows the other
+    face's points and normals, and its rays there were accused (docs/results.md).
+    """
+    noise = noise_floor(evidence.field, settings.noise)
+    with stage(timings, "reference"):
+        if POINT_SCORES[settings.point_score].reference:
+            values = reference_scores(reference, settings.point_score, evidence.points, evidence.value,
+                                      evidence.variance, noise, evidence.grazing, evidence.normals, uncovered, terms)
+        else:
+            values = point_scores(evidence.field, evidence.points, kind=settings.point_score, noise=settings.noise)
+    with stage(timings, "aggregate"):
+        score = aggregate_scores(values[kept_points(evidence.stray, len(values))], settings.aggregate)
+    result = ScanResult(score, values, evidence.field, components={"points": score}, stray=evidence.stray)
+    if settings.rays:
+        from .ray_evidence import ray_evidence
+
+        with stage(timings, "rays"):
+            band = reference if surface is None else surface
+            result.rays = ray_evidence(evidence.field, evidence.points, evidence.origin,
+                                       surface=None if band is None else band.tree,
+                                       surface_normals=None if band is None else band.oriented_surface(),
+                                       grazing=evidence.grazing, **settings.ray_options)
+        result.components["rays"] = result.rays.score
+    return result
+
+
+def weigh_rays(result, combination):
+    """``result`` with its rays weighed by the calibration's ``combination`` (:mod:`inspection.ray_calibration`):
+    its ray evidence I in ``components['ray_nats']``, per point in ``ray_point_nats``, and the combined ``score``."""
+    rays = combination.rays
+    per_ray = rays.ray_nats(result.rays)
+    n = len(result.rays.ray_surprisal)
+    result.ray_point_nats = result.rays.per_point(per_ray[:n], per_ray[n:])
+    result.components["ray_nats"] = combination.nats(result.rays)
+    result.score = combination.score(result.components["points"], result.rays)
+    return result
