@@ -548,7 +548,7 @@ def test_field_terms_by_code_projects_a_clean_code_from_the_good_points_alone():
     from datasets import Scan
     from inspection import Inspector
     from benchmarks.inspect_api import field_terms_by_code
-    from tests.inspection.test_inspector import SphereModel, sphere_scan
+    from tests.inspection.spheres import SphereModel, sphere_scan
 
     def scan(name, seed, dent=0.0):
         points, normals = sphere_scan(seed=seed, dent=dent)

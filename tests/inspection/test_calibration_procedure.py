@@ -7,57 +7,25 @@ from dataclasses import fields
 import numpy as np
 import pytest
 
-from autodecoder.field.protocol import Field
 from inspection import Inspector
 from inspection.calibration import CALIBRATION_VERSION, EXTRA_KEYS, Calibration, migrate
 from inspection.config import InspectionConfig
 from inspection.reference import LocalReference
 from inspection.threshold import fit_threshold
+from tests.inspection.spheres import SphereField, SphereModel, sphere_scan
 
 
-class SphereField(Field):
-    """Analytic stochastic field: mean |x - c| - r (a signed distance), constant variance, a noise of its own."""
-
-    def __init__(self, center=(0, 0, 0), radius=1.0, variance=1e-4, noise=0.01):
-        self.center, self.radius, self.var, self.noise = np.asarray(center, float), float(radius), variance, noise
-
-    def mean(self, x):
-        return np.linalg.norm(np.asarray(x) - self.center, axis=1) - self.radius
-
-    def variance(self, x):
-        return np.full(len(x), self.var)
-
-    def mean_gradient(self, x):
-        d = np.asarray(x) - self.center
-        return d / np.linalg.norm(d, axis=1, keepdims=True)
-
-
-class SphereModel:
-    """Projecting a scan fits a sphere (centre and radius, least squares) to it."""
-
-    def project(self, points, normals=None, **options):
-        p = np.asarray(points, float)
-        sol = np.linalg.lstsq(np.c_[2 * p, np.ones(len(p))], (p**2).sum(1), rcond=None)[0]
-        field = SphereField(sol[:3], float(np.sqrt(sol[3] + sol[:3] @ sol[:3])))
-        return type("Projection", (), {"field": field})()
-
-
-def sphere_scan(n=600, seed=0, dent=0.0, noise=0.003):
-    """(m, 3) points on the upper half of a unit sphere centred at (0.1, -0.2, 0.05), dented at the pole by ``dent``."""
-    rng = np.random.default_rng(seed)
-    d = rng.normal(size=(n, 3))
-    d[:, 2] = np.abs(d[:, 2])
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    r = 1.0 + noise * rng.normal(size=n) - dent * np.clip(1 - np.arccos(np.clip(d[:, 2], -1, 1)) / 0.35, 0, None)
-    return d * r[:, None] + np.array([0.1, -0.2, 0.05])
+def sphere_points(n=600, seed=0, dent=0.0):
+    """(m, 3) points of one view of the half sphere (:func:`tests.inspection.spheres.sphere_scan`)."""
+    return sphere_scan(n=n, seed=seed, dent=dent)[0]
 
 
 @pytest.fixture(scope="module")
 def joint():
     """A 'joint' inspector of the sphere model: 4 held-back scans, 6 reference scans cross-fitted; and new scans."""
-    good = [sphere_scan(seed=s) for s in range(6)]
-    held = [sphere_scan(seed=s) for s in range(20, 24)]
-    new = [sphere_scan(seed=40), sphere_scan(seed=41, dent=0.05)]
+    good = [sphere_points(seed=s) for s in range(6)]
+    held = [sphere_points(seed=s) for s in range(20, 24)]
+    new = [sphere_points(seed=40), sphere_points(seed=41, dent=0.05)]
     insp = Inspector(SphereModel(), point_score="joint", alpha=0.2).fit(held, reference_scans=good)
     return insp, held, good, new
 

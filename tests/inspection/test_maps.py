@@ -7,7 +7,7 @@ from sklearn.metrics import roc_auc_score
 from inspection import Inspector
 from inspection.maps import MAP_NEIGHBOURS, map_values, patch_residuals
 
-from .test_inspector import SphereModel, sphere_scan
+from tests.inspection.spheres import SphereModel, sphere_scan
 
 
 def _brute_force(points, residuals, k, excluded):
