@@ -58,8 +58,8 @@ THIN_WALLED = ("cup", "enclosure", "enclosure-approx")  # where missing material
 
 
 def add_tree_arguments(parser, trees, work):
-    """A trees suite's options: ``--trees`` (names of ``trees``, default all), ``--seeds``, ``--jobs``, ``--cache``
-    and ``--work`` (default ``work``)."""
+    """A trees suite's options: ``--trees`` (names of ``trees``, default all), ``--seeds``, ``--jobs``, ``--cache``,
+    ``--work`` (default ``work``) and ``--reuse``."""
     from benchmarks import cache
 
     parser.add_argument("--trees", default=",".join(trees), help="comma-separated tree names (default: all: "
@@ -68,6 +68,9 @@ def add_tree_arguments(parser, trees, work):
     parser.add_argument("--jobs", type=int, default=1, help="(tree, seed) runs at once, each a process (default 1)")
     parser.add_argument("--cache", default=cache.CACHE, help="collections and models (default: %(default)s)")
     parser.add_argument("--work", default=work, help="scored runs and logs (default: %(default)s)")
+    parser.add_argument("--reuse", action="store_true",
+                        help="a (tree, seed) whose record an earlier run of the same command left in WORK/records/ "
+                             "is read, not run again (finishes a run that stopped partway)")
 
 
 def check_names(names, who, trees=TREES):
@@ -77,21 +80,51 @@ def check_names(names, who, trees=TREES):
         raise SystemExit(f"{who}: unknown tree(s) {unknown}; known: {list(trees)}")
 
 
-def run_tree(name, seed, cache_root, work, extra=(), trees=TREES):
-    """Run tree ``name`` of ``trees`` at ``seed`` (``extra``: more options for its suite) in a process of its own, its
-    output to a log file. Returns (its record's figures, log path, seconds); a RuntimeError naming the log when the
-    run fails."""
+def tree_command(name, seed, cache_root, work, extra=(), trees=TREES):
+    """The arguments after ``python -m benchmarks`` of tree ``name`` at ``seed``, and its log and records folder.
+
+    ``extra``: more options for its suite, a list (every suite's) or {suite: list} (a suite not named gets none).
+    Returns (argv list of str, log Path, records Path)."""
     suite, options = trees[name]
+    if isinstance(extra, dict):
+        extra = extra.get(suite, ())
     seeds = ["--seed", str(seed)] + (["--train-seed", str(seed)] if suite == "real" else [])
     slug = f"{slug_of(name)}_seed{seed}"
     log, records = Path(work) / "logs" / f"{slug}.log", Path(work) / "records" / slug
+    argv = ["--records", str(records), suite, *options, *seeds, *map(str, extra), "--cache", str(cache_root),
+            "--work", str(Path(work) / "runs" / suite)]
+    return argv, log, records
+
+
+def reusable_record(argv, records):
+    """The newest record in ``records`` (a tree's folder) whose command is ``python -m benchmarks`` ``argv``, or
+    None (no record, or only records of other commands)."""
+    from benchmarks.record import command_line
+
+    suite = argv[argv.index("--records") + 2]
+    for path in sorted(Path(records).glob(f"{suite}_*.json"), reverse=True):
+        record = json.loads(path.read_text())
+        if record.get("command") == command_line(argv):
+            return record
+    return None
+
+
+def run_tree(name, seed, cache_root, work, extra=(), trees=TREES, reuse=False):
+    """Run tree ``name`` of ``trees`` at ``seed`` (``extra``: more options for its suite, :func:`tree_command`) in a
+    process of its own, its output to a log file. With ``reuse``, a record of the same command already in the tree's
+    records folder is read instead (0 seconds). Returns (its record's figures, log path, seconds); a RuntimeError
+    naming the log when the run fails."""
+    argv, log, records = tree_command(name, seed, cache_root, work, extra, trees)
+    if reuse:
+        record = reusable_record(argv, records)
+        if record is not None:
+            return record["figures"], log, 0.0
+    suite = argv[argv.index("--records") + 2]
     log.parent.mkdir(parents=True, exist_ok=True)
     shutil.rmtree(records, ignore_errors=True)
-    command = [sys.executable, "-m", "benchmarks", "--records", str(records), suite, *options, *seeds, *extra,
-               "--cache", str(cache_root), "--work", str(Path(work) / "runs" / suite)]
     t0 = time.perf_counter()
     with open(log, "w") as out:
-        done = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT,
+        done = subprocess.run([sys.executable, "-m", "benchmarks", *argv], stdout=out, stderr=subprocess.STDOUT,
                               env={**os.environ, "OMP_NUM_THREADS": "1"})
     found = sorted(records.glob(f"{suite}_*.json"))
     if done.returncode != 0 or not found:
@@ -99,13 +132,13 @@ def run_tree(name, seed, cache_root, work, extra=(), trees=TREES):
     return json.loads(found[-1].read_text())["figures"], log, time.perf_counter() - t0
 
 
-def run_trees(runs, cache_root, work, at_once=1, extra=(), done=None, trees=TREES):
+def run_trees(runs, cache_root, work, at_once=1, extra=(), done=None, trees=TREES, reuse=False):
     """:func:`run_tree` for each (name, seed) of ``runs`` (names of ``trees``), ``at_once`` processes at a time.
     ``done(name, seed, result)`` is called as each finishes, result being :func:`run_tree`'s (figures, log,
     seconds). Returns {(name, seed): result}."""
     results = {}
     with ThreadPoolExecutor(max(1, at_once)) as pool:  # threads that wait on one process each
-        futures = {pool.submit(run_tree, name, seed, cache_root, work, extra, trees): (name, seed)
+        futures = {pool.submit(run_tree, name, seed, cache_root, work, extra, trees, reuse): (name, seed)
                    for name, seed in runs}
         for fut in as_completed(futures):
             results[futures[fut]] = fut.result()

@@ -475,7 +475,8 @@ def test_trees_run_each_tree_and_report_each_as_it_finishes(monkeypatch):
     from benchmarks import trees
 
     calls = []
-    monkeypatch.setattr(trees, "run_tree", lambda name, seed, cache_root, work, extra=(), table=trees.TREES: (
+    monkeypatch.setattr(trees, "run_tree", lambda name, seed, cache_root, work, extra=(), table=trees.TREES,
+                        reuse=False: (
         {"name": name, "extra": list(extra)}, f"{work}/{name}.log", float(seed)))
     out = trees.run_trees([("fandisk", 0), ("bunny", 1)], "c", "w", at_once=2, extra=["--x"],
                           done=lambda name, seed, result: calls.append((name, seed, result[0]["extra"])))
@@ -485,6 +486,32 @@ def test_trees_run_each_tree_and_report_each_as_it_finishes(monkeypatch):
     assert trees.part_figures("fandisk", {"parts": {"fandisk": 1}}) == 1
     with pytest.raises(SystemExit, match="unknown tree"):
         trees.check_names(["fandisk", "teapot"], "verdicts")
+
+
+def test_a_tree_gets_its_own_suites_options_and_a_finished_one_is_reused(tmp_path, monkeypatch):
+    """benchmarks/trees.py: extra options by suite go only to that suite's trees; with reuse, a record of the same
+    command is read instead of running the tree again, and a record of another command is not."""
+    import json
+
+    from benchmarks import trees
+    from benchmarks.record import command_line
+
+    table = {"t": ("sensors", ["--tree", "t"]), "j": ("inspection", ["--parts", "builtin"])}
+    extra = {"sensors": ["--site-scans", "8"]}
+    argv, log, records = trees.tree_command("t", 1, "c", tmp_path, extra, table)
+    assert argv[argv.index("sensors"):argv.index("--cache")] == ["sensors", "--tree", "t", "--seed", "1",
+                                                                 "--site-scans", "8"]
+    argv_j, _, _ = trees.tree_command("j", 1, "c", tmp_path, extra, table)
+    assert "--site-scans" not in argv_j
+    records.mkdir(parents=True)
+    (records / "sensors_20260101T000000Z.json").write_text(json.dumps(
+        {"command": command_line(argv), "figures": {"done": 1}}))
+    (records / "sensors_20260102T000000Z.json").write_text(json.dumps(
+        {"command": command_line([*argv, "--epochs", "2"]), "figures": {"done": 2}}))
+    monkeypatch.setattr(trees.subprocess, "run", lambda *a, **k: pytest.fail("a reusable tree was run again"))
+    figures, _, seconds = trees.run_tree("t", 1, "c", tmp_path, extra, table, reuse=True)
+    assert figures == {"done": 1} and seconds == 0.0
+    assert trees.reusable_record(argv_j, records) is None
 
 
 def test_maps_suite_finds_the_scored_runs_only(tmp_path):

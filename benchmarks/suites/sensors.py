@@ -106,10 +106,11 @@ def run(args):
     trees = _trees(sensors)
     check_names(names, "sensors", trees)
     seeds = [int(s) for s in args.seeds.split(",")]
-    extra = [*(["--epochs", str(args.epochs)] if args.epochs else []),
-             *(["--test-good", str(args.test_good)] if args.test_good else []),
-             *(["--per-defect", str(args.per_defect)] if args.per_defect else []),
-             "--site-scans", str(args.site_scans)]
+    common = [*(["--epochs", str(args.epochs)] if args.epochs else []),
+              *(["--test-good", str(args.test_good)] if args.test_good else []),
+              *(["--per-defect", str(args.per_defect)] if args.per_defect else [])]
+    # the site scans are this suite's option (the template trees'); the jitter trees run the inspection suite
+    extra = {"sensors": [*common, "--site-scans", str(args.site_scans)], "inspection": common}
     jobs = [(name, seed) for seed in seeds for name in names]
     runs = {}
 
@@ -122,7 +123,7 @@ def run(args):
                   f"good flagged {r['good_text']} ({r['told_text']} told defective), gap {_signed(r['gap'])}, "
                   f"warning {_fired(r['warning'])} ({seconds:.0f} s for the tree; log {log})", flush=True)
 
-    run_trees(jobs, args.cache, args.work, args.jobs, extra=extra, done=done, trees=trees)
+    run_trees(jobs, args.cache, args.work, args.jobs, extra=extra, done=done, trees=trees, reuse=args.reuse)
     rows = [dict(tree=name, seed=seed, sensor=sensor, **run_row(run_dir))
             for name, seed in jobs for sensor, run_dir in runs[(name, seed)].items()]
     return _report(rows)
