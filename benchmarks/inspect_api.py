@@ -207,31 +207,14 @@ def scoring_seconds(model_path, data_path, out_dir, jobs_list=(1, 2), progress=F
     return figures
 
 
-def score_calibrated(model_path, data_path, out_dir, *, maps="none", progress=False):
+def score_calibrated(model_path, data_path, out_dir, *, good_folder=None, maps="none", progress=False):
     """Another collection's test split scored by a calibrated model, as ``python -m inspection score`` does: the model
     is copied to ``out_dir/model.pt`` (its calibration with it) and ``results/`` written there. The collection must lie
     in the model's frame (another test sensor's scans imported as the training collection's were).
 
-    Returns
-    -------
-    dict
-        summary.json's content.
-    """
-    from inspection.run import score
-
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    copy = out_dir / "model.pt"
-    shutil.copyfile(model_path, copy)
-    return score(copy, data_path, out_dir / "results", split="test", progress=progress, maps=maps,
-                 echo=lambda line: None, overwrite=True)
-
-
-def site_level_and_score(model_path, good_folder, data_path, out_dir, *, progress=False):
-    """A calibrated model's level set by good scans of the inspection's own sensor, then a collection scored, as
-    ``python -m inspection calibrate --model M --data FOLDER`` and ``score`` do: the model is copied to
-    ``out_dir/model.pt``, given the scanner files of ``good_folder`` (none a scan it trained on:
-    :meth:`inspection.Inspector.fit_level`) and ``data_path``'s test split scored into ``out_dir/results/``.
+    With ``good_folder``, the copy is first given that folder's scanner files (good scans of the inspection's own
+    sensor, none a scan it trained on) as ``python -m inspection calibrate --model M --data FOLDER`` does: they set
+    the threshold's level (:meth:`inspection.Inspector.fit_level`).
 
     Returns
     -------
@@ -245,8 +228,9 @@ def site_level_and_score(model_path, good_folder, data_path, out_dir, *, progres
     out_dir.mkdir(parents=True, exist_ok=True)
     copy = out_dir / "model.pt"
     shutil.copyfile(model_path, copy)
-    calibrate(copy, good_folder, progress=progress, echo=lambda line: None)
-    return score(copy, data_path, out_dir / "results", split="test", progress=progress, maps="none",
+    if good_folder is not None:
+        calibrate(copy, good_folder, progress=progress, echo=lambda line: None)
+    return score(copy, data_path, out_dir / "results", split="test", progress=progress, maps=maps,
                  echo=lambda line: None, overwrite=True)
 
 

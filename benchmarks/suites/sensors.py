@@ -176,9 +176,9 @@ def site_collection(part, seed, sensor, args):
 def _site_run(model_path, part, seed, sensor, data, run_dir, args):
     """The '<sensor>+site' run: a copy of the calibrated model given the folder of the sensor's own good scans
     (:func:`site_collection`) by ``calibrate --data FOLDER``, then ``data``'s test split scored with it
-    (:func:`benchmarks.inspect_api.site_level_and_score`)."""
-    inspect_api.site_level_and_score(model_path, site_collection(part, seed, sensor, args), data, run_dir,
-                                     progress=args.progress)
+    (:func:`benchmarks.inspect_api.score_calibrated` with ``good_folder``)."""
+    inspect_api.score_calibrated(model_path, data, run_dir, good_folder=site_collection(part, seed, sensor, args),
+                                 progress=args.progress)
 
 
 def _one_tree(name, seed, sensors, args):
