@@ -142,6 +142,30 @@ def calibrate_and_score(model_path, data_path, out_dir, *, rays=None, point_scor
     return summary
 
 
+def add_calibration_options(parser, cache_help, work, folds_help=""):
+    """The options of a suite that trains, calibrates and scores one tree (``inspection``, ``real``): ``--folds``
+    (:func:`fold_settings`), ``--point-scores`` (:func:`parse_point_scores`), ``--cache`` (``cache_help`` says what
+    it holds), ``--work`` (default ``work``) and ``--progress``. ``folds_help``: what ``both`` adds, if anything."""
+    from benchmarks import cache
+
+    parser.add_argument("--folds", choices=("on", "off", "both"), default="off",
+                        help="calibrate without fold models (off: the default, the held-back scans' level and the "
+                             "training scans cross-fitted), with 2 fold models trained into the cached model (on: "
+                             "train_latent.py --calibration-folds 2), or both" + folds_help)
+    parser.add_argument("--point-scores", default=None, metavar="LIST",
+                        help="also each of these point scores alone (NAME[:AGGREGATE],...; no ray score, one "
+                             "calibration each), a row each: the ablation suite's --trees")
+    parser.add_argument("--cache", default=cache.CACHE, help=f"{cache_help} (default: %(default)s)")
+    parser.add_argument("--work", default=work, help="scored runs (default: %(default)s)")
+    parser.add_argument("--progress", action="store_true", help="progress bars")
+
+
+def fold_settings(choice):
+    """The calibrations ``--folds`` asks for (``'on'``, ``'off'`` or ``'both'``): with the fold models (True),
+    without (False), in that order."""
+    return {"on": (True,), "off": (False,), "both": (False, True)}[choice]
+
+
 def parse_point_scores(text):
     """``'joint,distance,nll:mean'`` -> [('joint', None), ('distance', None), ('nll', 'mean')]: point scores, each
     with an aggregate after a colon (None: the default aggregate). Unknown point scores are a SystemExit."""

@@ -14,9 +14,9 @@ forward-carried SIREN jets of :mod:`autodecoder.siren`.
 * :class:`GridMeanNet`: g = the sum of the levels' values (a hierarchical B-spline, no decoder) or a decoder of the
   features and the code.
 * :class:`GridCovarianceNet`: c(a, b, z) = phi(a, z) . phi(b, z) / K with phi the features (or a decoder of them),
-  so D c(a, b) = J_phi(a)^T J_phi(b) / K as for :class:`autodecoder.field.networks.FeatureCovarianceNet`.
+  so D c(a, b) = J_phi(a)^T J_phi(b) / K as for :class:`autodecoder.field.siren.FeatureCovarianceNet`.
 
-Both nets expose the methods of their SIREN counterparts in :mod:`autodecoder.field.networks`, so the losses, the
+Both nets expose the methods of their SIREN counterparts in :mod:`autodecoder.field.siren`, so the losses, the
 step functions of :mod:`autodecoder.field.steps` and :class:`autodecoder.field.stochastic_field.StochasticField` use them unchanged (train
 them with :mod:`autodecoder.field.grid_fit`: no weight decay on control values). Coordinates are in the model
 (unit-cube) frame; the grids cover the box ``[lo, hi]`` given at construction (stored as buffers, so a state dict

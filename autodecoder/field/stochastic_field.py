@@ -29,7 +29,8 @@ class StochasticField(Field):
     Parameters
     ----------
     mean_net, cov_net : torch.nn.Module
-        :class:`MeanNet` and a covariance net (:class:`FeatureCovarianceNet` or :class:`PairCovarianceNet`).
+        The mean net and a covariance net: :class:`autodecoder.field.siren.MeanNet` and ``FeatureCovarianceNet`` or
+        ``PairCovarianceNet``, or the grid's (:mod:`autodecoder.field.grid_networks`).
     frame : datasets.frame.Frame
         World -> model frame.
     config : dict

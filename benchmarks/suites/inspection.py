@@ -101,16 +101,7 @@ def add_arguments(p):
     p.add_argument("--template-points", type=int, default=10000, help="--templates: points per template")
     p.add_argument("--views", type=int, default=16, help="--templates: training views per template")
     p.add_argument("--validation-views", type=int, default=4, help="--templates: held-back views per template")
-    p.add_argument("--folds", choices=("on", "off", "both"), default="off",
-                   help="calibrate without fold models (off: the default, the held-back scans' level and the training "
-                        "scans cross-fitted), with 2 fold models trained into the cached model (on: train_latent.py "
-                        "--calibration-folds 2), or both, one row each")
-    p.add_argument("--point-scores", default=None, metavar="LIST",
-                   help="also each of these point scores alone (NAME[:AGGREGATE],...; no ray score, one calibration "
-                        "each), a row each: the ablation suite's --trees")
-    p.add_argument("--cache", default=cache.CACHE, help="collections and models (default: %(default)s)")
-    p.add_argument("--work", default=WORK, help="scored runs (default: %(default)s)")
-    p.add_argument("--progress", action="store_true", help="progress bars")
+    inspect_api.add_calibration_options(p, "collections and models", WORK, folds_help=", one row each")
 
 
 def run(args):
@@ -208,7 +199,7 @@ def _single(part, args):
     one = {"collection": str(data), "model": str(model), "train_seconds": info["train_seconds"],
            "fold_seconds": _fold_seconds(model)}
     rows = []
-    for folds in _fold_settings(args):
+    for folds in inspect_api.fold_settings(args.folds):
         run_dir = Path(args.work) / data.parent.name / (_run_name(args) + ("" if folds else "_nofolds"))
         summary = inspect_api.calibrate_and_score(model, data, run_dir, rays=args.rays, align=args.align,
                                                   progress=args.progress, folds=folds,
@@ -243,11 +234,6 @@ def _single(part, args):
         print(f"  {part}: the same from the same {paired['views']} camera positions for every member: {members}; "
               f"unseen over trained, median over views {paired['paired_ratio']:.2f}", flush=True)
     return data, one, rows + [dict(part=part, **nn_figures)]
-
-
-def _fold_settings(args):
-    """Calibrations to run: with the fold models (True), without (False)."""
-    return {"on": (True,), "off": (False,), "both": (False, True)}[args.folds]
 
 
 def _fold_seconds(model):
@@ -335,7 +321,7 @@ def _templates(part, args):
     model = cache.trained_model(data, root=args.cache, **_train_options(args))
     out = {"collection": str(data), "model": str(model), "fold_seconds": _fold_seconds(model)}
     rows = []
-    for folds in _fold_settings(args):
+    for folds in inspect_api.fold_settings(args.folds):
         run_dir = Path(args.work) / data.parent.name / (_run_name(args) + ("" if folds else "_nofolds"))
         summary = inspect_api.calibrate_and_score(model, data, run_dir, rays=args.rays, maps="none", folds=folds,
                                                   progress=args.progress, echo=lambda line: print(f"  {part}: {line}"))

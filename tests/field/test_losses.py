@@ -12,7 +12,7 @@ from autodecoder.field.gp_targets import GPPosterior
 from autodecoder.field.kernel import bspline3, kernel, support_radius
 from autodecoder.field.losses import (SCREENING_WEIGHT, covariance_dirichlet_loss_features,
                                 covariance_dirichlet_loss_pairs, mean_dirichlet_loss, screening_loss)
-from autodecoder.field.networks import FeatureCovarianceNet
+from autodecoder.field.siren import FeatureCovarianceNet
 from autodecoder.field.sampling import Box, sample_mean_targets, sample_pair_clusters
 
 

@@ -7,7 +7,7 @@ with a wide margin (float64 agreement is ~1e-12); one float32 smoke test guards 
 import pytest
 import torch
 
-from autodecoder.field.networks import FeatureCovarianceNet, MeanNet, PairCovarianceNet
+from autodecoder.field.siren import FeatureCovarianceNet, MeanNet, PairCovarianceNet
 from autodecoder.field.siren import Siren
 
 RTOL = 1e-5

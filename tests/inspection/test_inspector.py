@@ -1,13 +1,12 @@
 """inspection: per-point scores, aggregates, conformal p-values and thresholds, the Inspector estimator contract."""
 import math
 from dataclasses import replace
-import warnings
 
 import numpy as np
 import pytest
 from scipy import stats
 
-from inspection import Inspector, NotFittedError, aggregate, conformal_p_values, conformal_threshold, point_scores
+from inspection import Inspector, NotFittedError, aggregate, conformal_threshold, point_scores
 from inspection.calibration import Calibration
 from tests.inspection.spheres import SaturatingSphereField, SphereField, SphereModel, sphere_scan
 

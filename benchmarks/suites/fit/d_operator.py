@@ -101,7 +101,7 @@ def _covariance_steps(width, depth, latent, batch, features, seed=0):
     import torch
 
     from autodecoder.field.losses import covariance_dirichlet_loss_features, covariance_dirichlet_loss_pairs
-    from autodecoder.field.networks import FeatureCovarianceNet, PairCovarianceNet
+    from autodecoder.field.siren import FeatureCovarianceNet, PairCovarianceNet
     from autodecoder.field.sampling import Box, sample_pair_clusters
 
     torch.manual_seed(seed)

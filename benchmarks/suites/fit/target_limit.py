@@ -66,7 +66,7 @@ def _regress_siren(g, lo, delta, targets, steps, seed=0, batch=256, near_fractio
     import torch
     from scipy.ndimage import map_coordinates
 
-    from autodecoder.field.networks import MeanNet
+    from autodecoder.field.siren import MeanNet
     from autodecoder.field.schedule import cosine_decay
 
     torch.manual_seed(seed)

@@ -55,15 +55,7 @@ def add_arguments(p):
     p.add_argument("--no-rays", action="store_true", help="calibrate without the ray score (default: the "
                                                           "inspection's choice: with it, the scans have sensor origins)")
     p.add_argument("--diagnose", action="store_true", help="also the per-point analysis and pictures of the run")
-    p.add_argument("--folds", choices=("on", "off", "both"), default="off",
-                   help="calibrate without fold models (off: the default), with 2 fold models trained into the cached "
-                        "model (on: train_latent.py --calibration-folds 2), or both")
-    p.add_argument("--point-scores", default=None, metavar="LIST",
-                   help="also each of these point scores alone (NAME[:AGGREGATE],...; no ray score, one calibration "
-                        "each), a row each: the ablation suite's --trees")
-    p.add_argument("--cache", default=cache.CACHE, help="tree, collection and model (default: %(default)s)")
-    p.add_argument("--work", default=WORK, help="scored runs (default: %(default)s)")
-    p.add_argument("--progress", action="store_true", help="progress bars")
+    inspect_api.add_calibration_options(p, "tree, collection and model", WORK)
 
 
 def run(args):
