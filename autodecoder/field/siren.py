@@ -225,12 +225,9 @@ class MeanNet(nn.Module):
 
     Parameters
     ----------
-    width, depth : int
-        SIREN hidden width and number of hidden layers.
-    latent_dim : int
-        Latent code dimension (0: a single cloud).
-    omega0 : float
-        First-layer frequency.
+    width, depth, latent_dim, omega0
+        Those of the :class:`Siren` it holds: hidden width, hidden layers, latent code dimension (0: a single
+        cloud), first-layer frequency.
     """
 
     def __init__(self, width=128, depth=3, latent_dim=0, omega0=30.0):
@@ -252,14 +249,10 @@ class FeatureCovarianceNet(nn.Module):
 
     Parameters
     ----------
-    width, depth : int
-        SIREN hidden width and number of hidden layers.
     features : int
-        K, the number of features (the rank of the covariance).
-    latent_dim : int
-        Latent code dimension (0: a single cloud).
-    omega0 : float
-        First-layer frequency.
+        K, the number of features (the rank of the covariance): the :class:`Siren`'s outputs.
+    width, depth, latent_dim, omega0
+        Those of the :class:`Siren` it holds, as in :class:`MeanNet`.
     """
 
     kind = "feature"
@@ -296,12 +289,8 @@ class PairCovarianceNet(nn.Module):
 
     Parameters
     ----------
-    width, depth : int
-        SIREN hidden width and number of hidden layers.
-    latent_dim : int
-        Latent code dimension (0: a single cloud).
-    omega0 : float
-        First-layer frequency.
+    width, depth, latent_dim, omega0
+        Those of the :class:`Siren` h it holds, as in :class:`MeanNet`; h takes the 6 coordinates of a pair.
     """
 
     kind = "pair"
