@@ -152,7 +152,12 @@ def update(text, records, suites=None, name=DOC):
             kept[suite] = "not asked for (--suites)"
             continue
         path, record = records[suite]
-        body, used = render_block(suite, record, path)
+        try:
+            body, used = render_block(suite, record, path)
+        except (TypeError, ValueError, AttributeError, KeyError) as exc:  # a record whose entries are not what
+            # its suite writes (hand-edited, another version): one line naming the file
+            raise RecordError(f"{path}: its entries are not what a {suite} record holds ({type(exc).__name__}: "
+                              f"{exc})") from None
         pieces += [text[at:start], body]
         at = end
         regenerated[suite] = (path, used)

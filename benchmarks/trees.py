@@ -98,12 +98,14 @@ def tree_command(name, seed, cache_root, work, extra=(), trees=TREES):
 
 def reusable_record(argv, records):
     """The newest record in ``records`` (a tree's folder) whose command is ``python -m benchmarks`` ``argv``, or
-    None (no record, or only records of other commands)."""
+    None (no record, or only records of other commands); a :class:`benchmarks.results_doc.RecordError` naming a file
+    there that is not a run record."""
     from benchmarks.record import command_line
+    from benchmarks.results_doc import read_record
 
     suite = argv[argv.index("--records") + 2]
     for path in sorted(Path(records).glob(f"{suite}_*.json"), reverse=True):
-        record = json.loads(path.read_text())
+        record = read_record(path)  # a file there that is not a record: a RecordError naming it
         if record.get("command") == command_line(argv):
             return record
     return None

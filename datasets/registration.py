@@ -145,7 +145,6 @@ class Aligner:
                    scale_axes=(True, True, True)):
         """The aligner onto up to ``max_scans`` of ``scans`` (good training scans, objects with ``points``,
         ``normals`` or None, ``name``), a seeded choice, each point owned by its scan's name."""
-
         scans = list(scans)
         if not scans:
             raise ValueError("alignment needs good scans to align onto, got none")
@@ -435,7 +434,6 @@ def register_group(scans, rounds=GROUP_ROUNDS, seed=0, motion="rigid", return_tr
     transform of all rounds in ``extra['align']`` for a :class:`datasets.Scan`), and with ``return_transforms``
     also each scan's transform (4, 4). Fewer than 3 scans: returned as they are (identity transforms). ``tick``
     (optional) is called once per registration of a scan, for a progress bar over work of unknown length."""
-
     scans = list(scans)
     if len(scans) < 3:
         return (scans, [np.eye(4) for _ in scans]) if return_transforms else scans
@@ -568,7 +566,6 @@ def pose_spread(scans, max_scans=AUTO_SCANS, seed=0, tick=None):
     few degrees of hand placement give 1.3 and more (docs/results.md#parts-placed-by-hand-alignment-in-the-calibration-issue-27).
     Fewer than 3 scans: 1.0 (nothing to compare). ``tick`` (optional) is called once per registered scan.
     """
-
     scans = list(scans)
     if len(scans) < 3:
         return 1.0

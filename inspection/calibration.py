@@ -209,8 +209,20 @@ def migrate(record, source="<model>"):
         raise ValueError(f"{source}: calibration record of unsupported version {version!r} (this toolkit reads "
                          f"versions 1 to {CALIBRATION_VERSION})")
     record = dict(record)
-    while record["version"] < CALIBRATION_VERSION:
-        record = _UPGRADES[record["version"]](record)
+    try:
+        while record["version"] < CALIBRATION_VERSION:
+            record = _UPGRADES[record["version"]](record)
+    except (KeyError, TypeError, AttributeError) as exc:  # a damaged older record: one line naming the file
+        raise ValueError(f"{source}: damaged calibration record of version {version} ({type(exc).__name__}: "
+                         f"{exc})") from None
+    missing = [k for k in ("scores", "names", "aggregate", "point_score", "extra") if k not in record]
+    if not missing:
+        extra = record["extra"]
+        missing = ([f"extra[{k!r}]" for k in EXTRA_KEYS if k not in extra] if isinstance(extra, dict)
+                   else ["extra (not a dict)"])
+    if missing:
+        raise ValueError(f"{source}: damaged calibration record: no {', '.join(missing)}; calibrate the model "
+                         f"again")
     parts = record["extra"]["parts"]
     if parts:
         record["extra"] = {**record["extra"],

@@ -19,7 +19,7 @@ from .evidence import field_for, scan_name, stage
 from .scores import WEIGHED_SCORES
 from .scoring import ScanResult, score_scan, weigh_rays
 from .threshold import fit_threshold
-from .verdicts import LEVEL_RENDERED_NOTE, SIZE_RATIO, VerdictMixin  # noqa: F401 (named here since issue 47)
+from .verdicts import VerdictMixin
 
 _DEFAULTS = InspectionConfig()  # the parameters' defaults: InspectionConfig's, stated once
 

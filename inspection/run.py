@@ -95,7 +95,7 @@ def run_warnings(insp, batch):
         if check and check.get("fired"):
             lines.append((f"part {part}: " if part else "") + check["message"])
     if any(getattr(one, "level_rendered_", False) for one in (insp.parts_ or {"": insp}).values()):
-        from .estimator import LEVEL_RENDERED_NOTE
+        from .verdicts import LEVEL_RENDERED_NOTE
 
         lines.append(LEVEL_RENDERED_NOTE)
     return lines

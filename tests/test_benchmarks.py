@@ -504,14 +504,33 @@ def test_a_tree_gets_its_own_suites_options_and_a_finished_one_is_reused(tmp_pat
     argv_j, _, _ = trees.tree_command("j", 1, "c", tmp_path, extra, table)
     assert "--site-scans" not in argv_j
     records.mkdir(parents=True)
+    record = {"suite": "sensors", "commit": None, "date": "2026-01-01T00:00:00+00:00"}
     (records / "sensors_20260101T000000Z.json").write_text(json.dumps(
-        {"command": command_line(argv), "figures": {"done": 1}}))
+        {**record, "command": command_line(argv), "figures": {"done": 1}}))
     (records / "sensors_20260102T000000Z.json").write_text(json.dumps(
-        {"command": command_line([*argv, "--epochs", "2"]), "figures": {"done": 2}}))
+        {**record, "command": command_line([*argv, "--epochs", "2"]), "figures": {"done": 2}}))
     monkeypatch.setattr(trees.subprocess, "run", lambda *a, **k: pytest.fail("a reusable tree was run again"))
     figures, _, seconds = trees.run_tree("t", 1, "c", tmp_path, extra, table, reuse=True)
     assert figures == {"done": 1} and seconds == 0.0
-    assert trees.reusable_record(argv_j, records) is None
+    records_j = trees.tree_command("j", 1, "c", tmp_path, extra, table)[2]
+    records_j.mkdir(parents=True)
+    (records_j / "inspection_20260101T000000Z.json").write_text(json.dumps(
+        {**record, "suite": "inspection", "command": command_line([*argv_j, "--epochs", "2"]), "figures": {}}))
+    assert trees.reusable_record(argv_j, records_j) is None  # a record of another command is not reused
+
+
+def test_reuse_names_a_file_in_a_trees_records_that_is_not_a_record(tmp_path):
+    """benchmarks/trees.py: with reuse, a broken JSON file among a tree's records is a RecordError naming it, not a
+    bare JSONDecodeError."""
+    from benchmarks import trees
+    from benchmarks.results_doc import RecordError
+
+    table = {"t": ("sensors", ["--tree", "t"])}
+    argv, _, records = trees.tree_command("t", 0, "c", tmp_path, (), table)
+    records.mkdir(parents=True)
+    (records / "sensors_20260101T000000Z.json").write_text("{not json")
+    with pytest.raises(RecordError, match="sensors_20260101T000000Z.json: not a readable run record"):
+        trees.run_tree("t", 0, "c", tmp_path, (), table, reuse=True)
 
 
 def test_maps_suite_finds_the_scored_runs_only(tmp_path):

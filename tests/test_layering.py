@@ -271,7 +271,9 @@ def test_no_module_or_class_is_too_long():
 def test_the_size_check_sees_a_long_module_and_a_long_class(tmp_path):
     long_class = "class Big:\n" + "    x = 1\n" * MAX_CLASS_LINES
     (tmp_path / "big.py").write_text(long_class + "\n" * (MAX_MODULE_LINES - MAX_CLASS_LINES))
-    (tmp_path / "fine.py").write_text("class Small:\n" + "    x = 1\n" * (MAX_CLASS_LINES - 1))
+    # exactly at both limits: a class of MAX_CLASS_LINES lines in a module of MAX_MODULE_LINES lines
+    (tmp_path / "fine.py").write_text("class Small:\n" + "    x = 1\n" * (MAX_CLASS_LINES - 1)
+                                      + "\n" * (MAX_MODULE_LINES - MAX_CLASS_LINES))
     wrong = _oversized(sorted(tmp_path.glob("*.py")), root=tmp_path)
     assert wrong == [f"big.py: {MAX_MODULE_LINES + 1} lines (at most {MAX_MODULE_LINES})",
                      f"big.py: class Big {MAX_CLASS_LINES + 1} lines (at most {MAX_CLASS_LINES})"], wrong

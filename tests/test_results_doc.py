@@ -172,6 +172,19 @@ def test_a_file_that_is_not_a_record_is_one_error_naming_it(tmp_path, capsys, co
     assert doc.read_text() == DOC.read_text()  # not even the good record's block was written
 
 
+@pytest.mark.parametrize("key, value", [("commit", 12345), ("seconds", "12"), ("load", [1])])
+def test_a_record_with_entries_of_the_wrong_kind_is_one_error_naming_it(tmp_path, capsys, key, value):
+    """A record with every key but one of the wrong kind (hand-edited, another version) is exit 2 and one line
+    naming the file, the document untouched."""
+    doc = tmp_path / "results.md"
+    doc.write_text(DOC.read_text())
+    bad = _write(tmp_path / "records", "sensors_1.json", {**_record("sensors", _sensors_figures()), key: value})
+    assert benchmarks_main(["table", "--records", str(tmp_path / "records"), "--doc", str(doc)]) == 2
+    err = capsys.readouterr().err
+    assert str(bad) in err and "not what a sensors record holds" in err and err.count("\n") == 1
+    assert doc.read_text() == DOC.read_text()
+
+
 def test_the_write_is_whole_or_nothing(tmp_path, monkeypatch, capsys):
     doc = tmp_path / "results.md"
     doc.write_text(DOC.read_text())

@@ -61,7 +61,7 @@ def run(args):
               f"{r['rays_alone']:.3f}, defective flagged {r['defective']:.3f}, good flagged {r['good_text']}, "
               f"points-alone oracle {r['points_oracle']:.3f} ({r['seconds']:.0f} s; log {r['log']})", flush=True)
 
-    run_trees(jobs, args.cache, args.work, args.jobs, done=done, trees=RAY_TREES)
+    run_trees(jobs, args.cache, args.work, args.jobs, done=done, trees=RAY_TREES, reuse=args.reuse)
     return _report([dict(tree=name, seed=seed, **results[(name, seed)]) for name, seed in jobs])
 
 

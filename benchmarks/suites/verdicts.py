@@ -59,7 +59,7 @@ def run(args):
         _report(name, seed, results[(name, seed)])
 
     extra = ["--folds", args.folds] + (["--representation", args.representation] if args.representation else [])
-    run_trees(jobs, args.cache, args.work, args.jobs, extra, done=done)
+    run_trees(jobs, args.cache, args.work, args.jobs, extra, done=done, reuse=args.reuse)
     rows = [dict(tree=name, seed=seed, **results[(name, seed)]) for name, seed in jobs]
     print()
     print(format_table(rows, [("tree", "tree", ""), ("seed", "seed", "d"), ("auroc", "AUROC", ".3f"),

@@ -4,7 +4,8 @@ import pytest
 import trimesh
 
 from datasets.defects import (DEFECT_KINDS, HEIGHT_RANGE, RADIUS_RANGE, _refine_near, defect_for_view,
-                              defect_in_points, make_defect, patch_normal, pick_site, pick_spot)
+                              make_defect, patch_normal, pick_site, pick_spot)
+from datasets.point_defects import defect_in_points
 from datasets.scanner import VirtualScanner
 
 TOP = np.array([0.1, 0.05, 0.25])  # a point of the top face of the box below
@@ -200,3 +201,22 @@ def test_defect_in_points_same_seed_same_defect_and_its_size(sheet):
         defect_in_points(points, normals, SENSOR, "scratch", 1.0)
     with pytest.raises(ValueError, match="size"):
         defect_in_points(points, normals, SENSOR, "dent", 1.0, size=0)
+
+
+def test_bad_input_to_the_point_defects_is_one_clear_error(sheet):
+    """An empty cloud, normals not one per point, a radius or part size that is not a length, a negative noise, or a
+    centre with no point near: a ValueError saying which, never a numpy traceback or a silent number."""
+    points, normals = sheet
+    with pytest.raises(ValueError, match="pick_site: points"):
+        pick_site(np.zeros((0, 3)), np.zeros((0, 3)), SENSOR, 0.05)
+    with pytest.raises(ValueError, match="one normal per point"):
+        pick_site(points, normals[:-1], SENSOR, 0.05)
+    with pytest.raises(ValueError, match="a radius > 0"):
+        pick_site(points, normals, SENSOR, 0.0)
+    for diagonal in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="diagonal must be a finite length > 0"):
+            defect_in_points(points, normals, SENSOR, "dent", diagonal, seed=0)
+    with pytest.raises(ValueError, match="noise >= 0"):
+        defect_in_points(points, normals, SENSOR, "missing", 1.4, noise=-0.001, seed=0)
+    with pytest.raises(ValueError, match="no normal within"):
+        patch_normal(points, normals, [5.0, 5.0, 5.0], 0.01)

@@ -144,3 +144,16 @@ def test_a_record_of_an_unknown_version_is_one_clear_error():
     for version in (0, CALIBRATION_VERSION + 1, "2", None):
         with pytest.raises(ValueError, match=f"model.pt: calibration record of unsupported version {version!r}"):
             Calibration.from_dict({"version": version, "scores": [1.0]}, source="model.pt")
+
+
+def test_a_damaged_record_is_one_clear_error_naming_the_file(joint):
+    """A current record missing an entry, or an older one missing a field its upgrade reads, is a ValueError that
+    names the file and what is missing, not a KeyError."""
+    record = joint[0].calibration().as_dict()
+    del record["extra"]["reference"]
+    with pytest.raises(ValueError, match=r"model\.pt: damaged calibration record: no extra\['reference'\]"):
+        Calibration.from_dict(record, source="model.pt")
+    old = {k: v for k, v in joint[0].calibration().as_dict().items() if k != "aggregate"}
+    old["version"], old["extra"] = 1, {}
+    with pytest.raises(ValueError, match=r"model\.pt: damaged calibration record of version 1"):
+        Calibration.from_dict(old, source="model.pt")

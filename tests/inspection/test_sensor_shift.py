@@ -197,7 +197,7 @@ def test_a_scan_in_millimetres_is_told_its_size(calibrated, tmp_path):
 def test_a_level_from_rendered_views_only_is_said_on_every_verdict(tmp_path):
     """A calibration whose held-back scans are views rendered from templates says so in each reason."""
     from inspection import Inspector
-    from inspection.estimator import LEVEL_RENDERED_NOTE
+    from inspection.verdicts import LEVEL_RENDERED_NOTE
     from inspection.model_io import load_model_handle
 
     scans = [half_sphere(f"train/good/{i:03d}", "train", "good", seed=i) for i in range(6)]

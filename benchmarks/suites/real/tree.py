@@ -10,7 +10,7 @@ points kept, a few synthetic spurious returns on half the scans (points on the s
 the surface: what a real scanner's multipath and mixed pixels give; labelled 0, listed in the sidecar), and a
 random pose change of up to ``--jitter`` degrees about the part's centre (and a shift of up to ``--shift`` of its
 diagonal: parts placed by hand). Defects are made in the real points (the full-resolution view, before
-subsampling) by :func:`datasets.defects.defect_in_points`, so everything outside them is real data: dent / bump
+subsampling) by :func:`datasets.point_defects.defect_in_points`, so everything outside them is real data: dent / bump
 (the disc moved along the site's normal), missing (a ball removed, its back wall seen along the sensor's rays),
 foreign (a small sphere or box put on the surface), sized as ``datasets.defects``' mesh defects times ``--size``.
 """
@@ -81,7 +81,7 @@ def real_collection(args):
 def build_tree(tree, args):
     """Write the tree of PLY + JSON files (see the module docstring)."""
     from datasets.cloud_io import write_cloud
-    from datasets.defects import defect_in_points
+    from datasets.point_defects import defect_in_points
     from datasets.normals import estimate_normals
 
     t0 = time.perf_counter()
