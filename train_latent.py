@@ -67,8 +67,9 @@ def build_parser():
     p.add_argument("--calibration-folds", type=int, default=None, metavar="K",
                    help="after training, train K fold models, each without 1/K of the training scans, which it "
                         "scores as new scans for the inspection threshold (stored in the checkpoint; 0: none; "
-                        "default: the library's DEFAULT_FOLDS, 0: on the benchmarks they found fewer defects than the "
-                        "held-back scans' level, docs/results.md)")
+                        "default: one per training scan with at most 8 training scans, where the held-back scans "
+                        "are too few to set the threshold, else none: with more scans they found fewer defects "
+                        "than the held-back scans' level, docs/results.md)")
     p.add_argument("--checkpoint-every", type=int, default=0, metavar="N",
                    help="also write the checkpoint every N epochs (default: only at the end)")
     p.add_argument("--samples", type=int, default=None,
@@ -140,7 +141,7 @@ def run(args):
 
     options = options_from_args(args)
     if not args.quiet and int(os.environ.get("RANK", "0")) == 0:
-        options["announce"] = _outlook(options.get("calibration_folds") or 0)
+        options["announce"] = _outlook(options.get("calibration_folds"))
     with training_threads(args.threads):
         return train_collection_with_folds(args.data, args.out, **options)
 
@@ -151,9 +152,11 @@ def _outlook(folds):
     (:func:`inspection.threshold.calibration_outlook`: how many will calibrate, what that means for the threshold,
     what ``--calibration-folds`` or more scans would give)."""
     def say(train_names, calibration_names):
+        from autodecoder.latent.folds import default_folds
         from inspection.threshold import calibration_outlook
 
-        line = calibration_outlook(len(calibration_names), len(train_names), folds=folds)
+        k = default_folds(len(train_names)) if folds is None else folds  # None: the default (one part assumed)
+        line = calibration_outlook(len(calibration_names), len(train_names), folds=k)
         if line:
             print(f"note: {line}", flush=True)
     return say

@@ -296,6 +296,8 @@ def read_scores(results_dir):
         rows = list(csv.DictReader(fh))
     out = {k: np.array([r[k] for r in rows]) for k in ("name", "label", "defect")}
     out["verdict"] = np.array([r["verdict"] for r in rows])
+    if rows and "why" in rows[0]:  # the verdict in words (runs scored since issue 48)
+        out["why"] = np.array([r["why"] for r in rows])
     out["flagged"] = np.array([r["flagged"] == "true" for r in rows])
     for k in ("score", "score_points", "score_rays", "ray_nats", "rays_through"):
         if rows and k in rows[0]:
@@ -525,3 +527,52 @@ def field_terms_by_code(inspector, scans):
             one["defect_own"], one["defect_clean"] = float(np.median(own[~good])), float(np.median(clean[~good]))
         out.append(one)
     return out
+
+
+def coverage_figures(run_dir, data_path):
+    """What a scored run's calibrated model (``run_dir/model.pt``) says of coverage (issue 48): ``on_covered``
+    {defective test scan name: whether at least half of its labelled defect points lie on surface the good scans
+    covered, at the default coverage radius (:func:`inspection.coverage.covered_points`)}, and the run's
+    ``threshold``, ``far_interval``, ``alpha`` and ``heldback_names``."""
+    from datasets import ScanCollection
+    from inspection import calibrated_inspector, load_model_handle
+    from inspection.coverage import COVERAGE_LENGTHSCALES, coverage_radius, covered_points
+
+    handle = load_model_handle(Path(run_dir) / "model.pt")
+    insp = calibrated_inspector(handle)
+    radius = coverage_radius(insp.model, COVERAGE_LENGTHSCALES)
+    on_covered = {}
+    with ScanCollection(data_path) as c:
+        for scan in c.read_many(c.select(split="test", label="defective")):
+            mask = np.zeros(0, bool) if scan.point_labels is None else scan.point_labels.astype(bool)
+            if mask.any():
+                covered = covered_points(insp.reference_, scan.points[mask], scan.normals[mask], radius)
+                on_covered[str(scan.name)] = bool(covered.mean() >= 0.5)
+    return {"on_covered": on_covered, "threshold": float(insp.threshold_),
+            "far_interval": [float(v) for v in insp.decision_threshold_.far_interval], "alpha": float(insp.alpha),
+            "heldback_names": list(handle.heldback_names)}
+
+
+def proposed_views(model_path, data_path, n_views, split="test"):
+    """The sensor positions (n, 3), model frame, that ``nsspr-inspect coverage`` proposes for the scans of ``split``
+    of ``data_path`` under the calibrated model file (:func:`inspection.coverage_job.coverage_plan`)."""
+    from inspection.coverage_job import coverage_plan
+
+    plan = coverage_plan(model_path, data_path, n_views, split=split)
+    return np.array([v.position for v in plan.views]).reshape(-1, 3)
+
+
+def candidate_directions(n):
+    """(n, 3) unit vectors evenly over the sphere: the candidate view directions of the coverage planner
+    (:func:`inspection.coverage_views.sphere_directions`)."""
+    from inspection.coverage_views import sphere_directions
+
+    return sphere_directions(n)
+
+
+def default_folds(n_train):
+    """The fold models the trainer adds by default to a model of ``n_train`` training scans of one part
+    (:func:`autodecoder.latent.folds.default_folds`)."""
+    from autodecoder.latent.folds import default_folds as folds
+
+    return folds(n_train)

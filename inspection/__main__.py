@@ -1,9 +1,11 @@
 """Command line of the inspection package: calibrate a model on good scans, score scans, run the demo.
 
     python -m inspection calibrate --model model.pt --data good.h5 [--alpha 0.02] [--no-rays] [--[no-]align]
+                                   [--coverage auto|off|L]
     python -m inspection score --model model.pt --data tree.h5 --out results/ [--split test] [--align] [--jobs 4]
     python -m inspection watch --model model.pt --data drop_folder/ --out results/ [--once] [--settle 1]
                                [--report-every 10] [--report-seconds 60]
+    python -m inspection coverage --model model.pt [--data scans/] [--n 4] [--out coverage/]
     python -m inspection demo --out demo_output
 
 Heavy libraries are imported inside the commands, so --help is fast.
@@ -71,6 +73,10 @@ def _parser():
     align.add_argument("--no-align", dest="align", action="store_const", const=False,
                        help="never register (default: register when the training scans' poses spread; one line "
                             "says so)")
+    c.add_argument("--coverage", default="auto", metavar="auto|off|L",
+                   help="score each scan over its points on surface the good training scans covered (within L "
+                        "kernel lengthscales; a scan whose evidence lies elsewhere is 'uncertain'): auto (default: "
+                        "when the held-back good scans show uncovered surface), off, or L (docs/inspection.md)")
     c.add_argument("--quiet", action="store_true")
 
     s = sub.add_parser("score", help="score scans, write scores.csv, summary.json, roc.png, scores.png, maps/")
@@ -127,6 +133,16 @@ def _parser():
     w.add_argument("--window", type=_positive_int, default=DEFAULT_WINDOW, metavar="N",
                    help="the batch check looks at the last N scans (default %(default)s)")
     w.add_argument("--quiet", action="store_true", help="no line per scan (the summary line stays)")
+
+    v = sub.add_parser("coverage", help="where the good scans cover the part, and the good scans to take next: "
+                                        "OUT/coverage.png, coverage.ply, coverage.json")
+    v.add_argument("--model", required=True, help="a calibrated model")
+    v.add_argument("--data", default=None, help="scans whose surface should be covered (e.g. those told 'uncertain "
+                                                "- not covered'; default: the model's mean shape)")
+    v.add_argument("--split", default=None, help="only this split of DATA (default: every scan)")
+    v.add_argument("--n", type=_positive_int, default=4, help="views to propose (default %(default)s)")
+    v.add_argument("--out", default="coverage", help="output folder (default %(default)s)")
+    v.add_argument("--quiet", action="store_true")
 
     d = sub.add_parser("demo", help="the whole pipeline on the built-in part: synthesise, train, calibrate, score")
     d.add_argument("--out", default="demo_output")
@@ -197,9 +213,10 @@ def config_from_args(args):
     ray_options = parse_key_values(args.ray_options, "--ray-options") or None
     if ray_options and args.rays is False:
         raise ValueError("--ray-options needs --rays (or --rays-auto, the default), not --no-rays")
+    coverage = {"off": 0.0}.get(args.coverage, args.coverage)
     return InspectionConfig(alpha=args.alpha, aggregate=args.aggregate, point_score=args.point_score,
                             noise=args.noise, projection=projection, rays=args.rays,
-                            ray_options=ray_options, align=args.align).validated()
+                            ray_options=ray_options, align=args.align, coverage=coverage).validated()
 
 
 def main(argv=None):
@@ -229,6 +246,13 @@ def main(argv=None):
                 return 1
         elif args.command == "watch":
             return _watch(args)
+        elif args.command == "coverage":
+            from .coverage_job import coverage_plan, describe_plan, write_coverage
+
+            plan = coverage_plan(args.model, args.data, args.n, args.split, progress=not args.quiet)
+            write_coverage(plan, args.out)
+            print("\n".join(describe_plan(plan)) + f"\nwritten to {args.out}/ (coverage.png, coverage.ply, "
+                                                   f"coverage.json)")
         else:
             from .demo import run_demo
 

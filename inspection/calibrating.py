@@ -25,6 +25,7 @@ import numpy as np
 from datasets.validation import points_and_normals
 
 from .calibration import FittedState
+from .coverage import decide_coverage
 from .evidence import kept_points, scan_name
 from .loading import reading_of
 from .reference import REFERENCE_QUANTITY, LocalReference, fit_noise_model
@@ -131,6 +132,8 @@ def calibrate_selection(model, selection, config, origins_everywhere, cross_fit=
                                            selection.surface, settings)
     held = [scan_evidence(model, aligned(aligner, s)[0] if settings.align is True else s, i, settings, reference)
             for i, s in enumerate(_progress(selection.calibration, verbose, f"calibrate{desc}"))]
+    coverage, uncovered_share = decide_coverage(settings.coverage, reference, held)
+    settings = replace(settings, coverage=coverage)
     folded = fold_evidence(model, selection, settings, verbose, desc) if cross_fit else None
     if folded is not None:  # the fold models' out-of-sample scores replace the cross-fitted ones
         crossed, crossed_references, role = folded[0], folded[1], "fold"
@@ -155,6 +158,9 @@ def calibrate_selection(model, selection, config, origins_everywhere, cross_fit=
     results = [score_evidence(good, reference_j, settings, uncovered=out, terms=t, surface=reference)
                for good, reference_j, out, t in zip(goods, references, uncovered, terms)]
     how = selection.how
+    if uncovered_share is not None and coverage:
+        how += (f"; scored over covered surface (the held-back scans have {100 * uncovered_share:.1f} % of their "
+                f"points where no training scan saw the surface)")
     if crossed:
         how += (f" and {len(crossed)} training scans scored by fold models that never saw them" if role == "fold"
                 else f" and {len(crossed)} training scans cross-fitted")

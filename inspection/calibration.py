@@ -15,8 +15,9 @@ from .threshold import DEFAULT_ALPHA, fit_threshold
 
 CALIBRATION_KEY = "calibration"
 # 2: every record holds each entry of ``extra`` (``EXTRA_KEYS``), one role per score, its settings whole with ``align``
-# decided, and its per-location reference complete (version 1 records may lack any of these: :func:`migrate`)
-CALIBRATION_VERSION = 2
+# decided, and its per-location reference complete (version 1 records may lack any of these: :func:`migrate`);
+# 3: its settings hold ``coverage`` (a version 2 record scored every point: coverage 0)
+CALIBRATION_VERSION = 3
 EXTRA_KEYS = ("config", "reading", "parts", "level_rendered", "reference", "rays", "align")
 
 
@@ -267,8 +268,16 @@ def _from_version_1(record):
     return {**record, "version": 2, "extra": extra, "roles": roles}
 
 
+def _from_version_2(record):
+    """Version 2 -> 3: the settings get ``coverage`` 0, every point counted (:mod:`inspection.coverage`), as the
+    scores of a version 2 record were."""
+    extra = dict(record["extra"])
+    extra["config"] = {**extra["config"], "coverage": 0.0}
+    return {**record, "version": 3, "extra": extra}
+
+
 # version -> the function that upgrades a record of that version to the next
-_UPGRADES = {1: _from_version_1}
+_UPGRADES = {1: _from_version_1, 2: _from_version_2}
 
 
 def read_calibration(path):

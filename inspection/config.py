@@ -14,8 +14,14 @@ what it chose in its fitted attributes, never in the parameters):
 * ``align='auto'``: scans are registered when the training scans' poses spread: registering each of them onto the
   others lowers its point-to-plane residuals by a median factor above ``inspection.align.AUTO_RATIO``
   (:func:`inspection.align.pose_spread`; a part in a fixture gives 1.0); never without training scans.
+* ``coverage='auto'``: scans are scored over their covered points (``inspection.coverage.COVERAGE_LENGTHSCALES``)
+  when the held-back good scans show surface the good training scans did not cover, at least
+  ``inspection.coverage.COVERAGE_MIN_SHARE`` of their points (:func:`inspection.coverage.decide_coverage`); else
+  every point counts.
 """
 from dataclasses import asdict, dataclass, fields, replace
+
+import numpy as np
 
 from .threshold import DEFAULT_ALPHA, check_alpha
 
@@ -55,6 +61,10 @@ class InspectionConfig:
         Register every scan onto good training scans (rigid ICP, :mod:`inspection.align`) before scoring it, for
         parts not held in a fixture. The calibration scans are registered as new scans are, so that the threshold
         is drawn from scores of scans moved the same way as those it judges. ``'auto'``: module docstring.
+    coverage : 'auto' or float >= 0
+        Score each scan over its points on surface the good scans covered, within this many kernel lengthscales
+        (:mod:`inspection.coverage`; its evidence on other surface makes the verdict ``'uncertain'``); 0: every
+        point counts, as calibrations stored before coverage do. ``'auto'``: module docstring.
     """
 
     alpha: float = DEFAULT_ALPHA
@@ -65,6 +75,7 @@ class InspectionConfig:
     rays: object = "auto"
     ray_options: object = None
     align: object = "auto"
+    coverage: object = "auto"
 
     def validated(self):
         """This configuration with every value checked (ValueError naming the setting, the expected values and the
@@ -96,8 +107,17 @@ class InspectionConfig:
             ray_options = dict(self.ray_options)
         if self.align not in (True, False, "auto") or not isinstance(self.align, (bool, str)):
             raise ValueError(f"align must be True, False or 'auto', got {self.align!r}")
+        coverage = self.coverage
+        if coverage != "auto":
+            try:
+                coverage = float(self.coverage)
+            except (TypeError, ValueError):
+                coverage = float("nan")
+            if not (coverage >= 0 and np.isfinite(coverage)) or isinstance(self.coverage, bool):
+                raise ValueError(f"coverage must be 'auto' or a number >= 0 (kernel lengthscales; 0: every point "
+                                 f"counts), got {self.coverage!r}")
         return replace(self, alpha=float(self.alpha), noise=noise, projection=check_projection(self.projection),
-                       ray_options=ray_options)
+                       ray_options=ray_options, coverage=coverage)
 
     def decided(self, model, with_reference, with_origins):
         """These (validated) settings with ``point_score`` and ``rays`` decided for ``model`` (module docstring): for

@@ -36,7 +36,7 @@ class Inspector(VerdictMixin, BaseEstimator):
     model : latent model, field or callable
         See :func:`inspection.evidence.field_for`. Scans must be in the model's frame. A latent model records its
         training and held-back scans by name, which :meth:`fit` uses to sort the good scans it is given.
-    alpha, aggregate, point_score, noise, projection, rays, ray_options, align
+    alpha, aggregate, point_score, noise, projection, rays, ray_options, align, coverage
         :class:`inspection.config.InspectionConfig`'s fields, with its defaults; ``'auto'`` settings are decided by
         :meth:`fit` and recorded in ``settings_``, never in the parameters.
     verbose : bool
@@ -82,7 +82,7 @@ class Inspector(VerdictMixin, BaseEstimator):
 
     def __init__(self, model, alpha=_DEFAULTS.alpha, aggregate=_DEFAULTS.aggregate, point_score=_DEFAULTS.point_score,
                  noise=_DEFAULTS.noise, projection=_DEFAULTS.projection, rays=_DEFAULTS.rays,
-                 ray_options=_DEFAULTS.ray_options, align=_DEFAULTS.align, verbose=False):
+                 ray_options=_DEFAULTS.ray_options, align=_DEFAULTS.align, coverage=_DEFAULTS.coverage, verbose=False):
         self.model = model
         self.alpha = alpha
         self.aggregate = aggregate
@@ -92,6 +92,7 @@ class Inspector(VerdictMixin, BaseEstimator):
         self.rays = rays
         self.ray_options = ray_options
         self.align = align
+        self.coverage = coverage
         self.verbose = verbose
 
     @property
@@ -302,14 +303,15 @@ class Inspector(VerdictMixin, BaseEstimator):
 
     def predict_verdict(self, scans, uncertain=True, return_reasons=False):
         """The command line's verdict of each scan (in the model's frame, registered first as the calibration
-        says): ``'good'``, ``'uncertain'`` (its score lies within the threshold's own uncertainty: rescan it) or
-        ``'defective'``, exactly what ``nsspr-inspect score`` writes. ``uncertain=False``: the two classes of
-        :meth:`predict`. Returns the verdicts (n,) of str, and with ``return_reasons`` each in words
-        (:meth:`reasons_from_scores`, from the same scores)."""
+        says): ``'good'``, ``'uncertain'`` (its score lies within the threshold's own uncertainty, or its evidence
+        on surface no good scan saw: :meth:`verdicts_from_results`) or ``'defective'``, exactly what ``nsspr-inspect
+        score`` writes. ``uncertain=False``: the two classes of :meth:`predict`. Returns the verdicts (n,) of str,
+        and with ``return_reasons`` each in words."""
         scans = list(scans)
-        scores = self.anomaly_scores(scans)
-        verdicts = self.verdicts_from_scores(scores, scans, uncertain)
-        return (verdicts, self.reasons_from_scores(scores, scans, uncertain)) if return_reasons else verdicts
+        verdicts, reasons = self.verdicts_from_results([self.inspect(s, i) for i, s in enumerate(scans)], scans,
+                                                       uncertain)
+        verdicts = np.array(verdicts, dtype=str)
+        return (verdicts, reasons) if return_reasons else verdicts
 
     def p_values(self, scans):
         """p-values (n,) of scans; small = unlike the good calibration scans."""

@@ -85,8 +85,8 @@ def write_html_report(path, rows, summary, scan_views=(), title="Inspection repo
     ----------
     path : str or Path
     rows : list of dict
-        ``scores.csv``'s rows (name, split, label, defect, score, p_value, verdict, flagged, reason; with rays
-        score_points, score_rays, ray_nats and rays_through).
+        ``scores.csv``'s rows (name, split, label, defect, score, p_value, verdict, flagged, reason, uncovered,
+        why; with rays score_points, score_rays, ray_nats and rays_through).
     summary : dict
         ``summary.json``'s content (:func:`inspection.results.summarize_run`).
     scan_views : list of dict
@@ -215,10 +215,12 @@ def _table_html(rows, summary, viewed):
     cols = [("name", "scan"), ("score", "score"), ("p_value", "p-value"), ("verdict", "verdict")]
     if rays:
         cols += [("score_points", "point score"), ("score_rays", "ray score"), ("ray_nats", "ray evidence")]
+    if any(r.get("uncovered") is not None for r in rows):  # the share on surface no good scan saw (coverage)
+        cols += [("uncovered", "uncovered")]
     if labelled:
         cols += [("truth", "truth")]
     cols += [("reason", "reason"), ("view", "map")]
-    numeric = ("score", "p_value", "score_points", "score_rays", "ray_nats")
+    numeric = ("score", "p_value", "score_points", "score_rays", "ray_nats", "uncovered")
     head = "".join(f'<th data-col="{i}" data-type="{"num" if k in numeric else "text"}">{h}</th>'
                    for i, (k, h) in enumerate(cols))
     body = []

@@ -359,11 +359,11 @@ def inspect_scan(insp, scan, i=0, maps="none", maps_dir=None, uncertain=True):
     out = {"seconds": time.perf_counter() - t0}
     rays = one.settings_.rays
     flagged = bool(one.predict_from_scores([res.score])[0] == -1)
-    verdict = str(one.verdicts_from_scores([res.score], uncertain=uncertain)[0])
+    (verdict,), (why,) = one.verdicts_from_results([res], [scan], uncertain=uncertain)
     row = {"name": scan.name, "split": scan.split, "label": scan.label, "defect": scan.defect,
            "score": res.score, "p_value": float(one.p_values_from_scores([res.score])[0]), "verdict": verdict,
-           "reason": one.size_note(scan), "flagged": flagged,
-           "why": one.reasons_from_scores([res.score], [scan], uncertain=uncertain)[0]}
+           "reason": one.size_note(scan), "flagged": flagged, "why": why,
+           "uncovered": None if res.coverage is None else res.coverage.uncovered_share}
     if rays:
         through = res.rays.through_observed
         row.update(score_points=res.components["points"], score_rays=res.components["rays"],
@@ -376,7 +376,7 @@ def inspect_scan(insp, scan, i=0, maps="none", maps_dir=None, uncertain=True):
     if scan.point_labels is not None:  # the point metrics are those of the map a user sees
         out.update(point_labels=scan.point_labels, point_map=values, ray_map=ray_values)
     if mapped:
-        write_scan_maps(scan, values, ray_values, maps_dir)
+        write_scan_maps(scan, values, ray_values, maps_dir, None if res.coverage is None else res.coverage.covered)
         out["view"] = scan_view(scan.name, scan.points, values, ray_values, seed=i)  # report.html's 3D view
     return out
 

@@ -133,3 +133,45 @@ def plot_legend(path, cmap, vmin, vmax, label):
     _save(fig, path)
     plt.close(fig)
     return Path(path)
+
+
+def plot_coverage(path, plan, good_points=None, max_points=6000, seed=0):
+    """A picture of a :class:`inspection.coverage_views.CoveragePlan`: the target surface coloured by coverage (grey:
+    covered by the good scans; a colour per proposed view: the uncovered points it would cover; red: uncovered and
+    seen by no proposal) from two sides, with each proposed sensor's direction drawn from the part's centre and
+    numbered in the order to take them. ``good_points``: unused, kept for a later overlay. Written atomically."""
+    plt = _pyplot()
+    rng = np.random.default_rng(seed)
+    pts = plan.points
+    keep = np.arange(len(pts)) if len(pts) <= max_points else np.sort(rng.choice(len(pts), max_points, replace=False))
+    uncovered = np.flatnonzero(~plan.covered)  # every uncovered point is drawn: they are the point of the picture
+    keep = np.union1d(keep, uncovered if len(uncovered) <= 4 * max_points else uncovered[:4 * max_points])
+    colours = np.tile(np.array([0.78, 0.78, 0.78, 0.35]), (len(keep), 1))
+    palette = plt.get_cmap("tab10")
+    first = plan.first_view[keep]
+    todo = ~plan.covered[keep]
+    colours[todo] = (0.85, 0.1, 0.1, 0.9)
+    for k in range(len(plan.views)):
+        colours[first == k] = (*palette(k % 10)[:3], 0.9)
+    fig = plt.figure(figsize=(10, 5))
+    scale = max(float(np.ptp(pts, axis=0).max()), 1e-12)
+    for j, (elev, azim) in enumerate(((25, 45), (-35, 225))):
+        ax = fig.add_subplot(1, 2, j + 1, projection="3d")
+        order = np.argsort(todo)  # uncovered points drawn last, on top
+        p = pts[keep][order]
+        ax.scatter(p[:, 0], p[:, 1], p[:, 2], s=2, c=colours[order], depthshade=False)
+        for k, view in enumerate(plan.views):
+            d = view.position - plan.center
+            tip = plan.center + 0.75 * scale * d / np.linalg.norm(d)
+            ax.plot(*np.c_[plan.center, tip], color=palette(k % 10), lw=2)
+            ax.text(*tip, f"{k + 1}", color=palette(k % 10), fontsize=11, weight="bold")
+        ax.view_init(elev, azim)
+        ax.set_box_aspect(np.maximum(np.ptp(pts, axis=0), 1e-3 * scale))
+        ax.set_axis_off()
+    covered = 100 * (1 - plan.uncovered_share)
+    fig.suptitle(f"coverage by the good scans: {covered:.1f} % of {len(pts)} points (grey); uncovered in red, or "
+                 f"in the colour of the proposed view that covers it", fontsize=9)
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)
+    return Path(path)

@@ -233,6 +233,10 @@ class LocalReference:
             self._surface = (NearestNeighbours(distinct), normals, SELF_DISTANCE * max(diagonal, 1e-12))
         return self._surface
 
+    def distinct_surface(self):
+        """(index over the distinct surface points, their unit normals or None): what coverage measures against."""
+        return self._surface_tree()[:2]
+
     def surface_distance(self, points):
         """(m,) distance of each of (m, 3) points to the nearest distinct surface point (the good scans' own
         surface, :meth:`surface`), in the points' units."""

@@ -9,17 +9,19 @@ import numpy as np
 
 from datasets.atomic import atomic_path
 
-# ``verdict``: good, defective, uncertain (the score lies within the threshold's own uncertainty: rescan) or error;
-# ``flagged``: whether the score exceeds the threshold (true / false; empty for an error); ``reason``: why a scan
-# whose verdict is ``error`` could not be scored (empty for the others, whose rows carry their verdict in words as
-# ``why``, :meth:`inspection.Inspector.reasons_from_scores`: not a column here, it is derived from the score and the
-# threshold; report.html shows it, the ``watch`` journal keeps it)
-CSV_COLUMNS = ("name", "split", "label", "defect", "score", "p_value", "verdict", "flagged", "reason")
+# ``verdict``: good, defective, uncertain (the score lies within the threshold's own uncertainty, or its evidence on
+# surface no good scan saw: rescan, or add good scans of it) or error; ``flagged``: whether the score exceeds the
+# threshold (true / false; empty for an error); ``reason``: why a scan whose verdict is ``error`` could not be scored,
+# else a note on the scan itself (its size); ``uncovered``: the share of the scan's points on surface no good scan saw
+# from their side (inspection.coverage; empty when coverage does not apply): its score counts the others; ``why``:
+# the verdict in words (:meth:`inspection.Inspector.verdicts_from_results`), what report.html shows
+CSV_COLUMNS = ("name", "split", "label", "defect", "score", "p_value", "verdict", "flagged", "reason", "uncovered",
+               "why")
 # with rays: the score's two components (the point score; the rays' surprisal aggregate in nats, as the field gives
 # it), the rays' evidence that entered the score (nats, as good scans weigh it: inspection.ray_calibration) and the
 # share of the scan's returned rays that passed through its own surface (not tested: its sensor origin is off)
 RAY_CSV_COLUMNS = CSV_COLUMNS + ("score_points", "score_rays", "ray_nats", "rays_through")
-_FLOAT_COLUMNS = ("score", "score_points", "score_rays", "ray_nats", "rays_through")
+_FLOAT_COLUMNS = ("score", "score_points", "score_rays", "ray_nats", "rays_through", "uncovered")
 ERROR_VERDICT = "error"
 UNCERTAIN_VERDICT = "uncertain"  # the score lies within the threshold's own uncertainty: rescan
 VERDICTS = ("defective", UNCERTAIN_VERDICT, "good", ERROR_VERDICT)  # in the order a quality engineer reads them

@@ -28,15 +28,23 @@ def prepare_out(out, overwrite=False):
     return out
 
 
-def write_scan_maps(scan, values, rays, maps_dir):
+def write_scan_maps(scan, values, rays, maps_dir, covered=None):
     """One scan's anomaly map (``values``, (m,) patch residuals) and, with rays, its ray map (``rays``, (m,) or
-    None), as coloured PLY files; both from :func:`inspection.maps.map_values`."""
+    None), as coloured PLY files; both from :func:`inspection.maps.map_values`. With ``covered`` ((m,) bool,
+    :mod:`inspection.coverage`) and any point uncovered, also ``coverage/<scan>.ply``: grey where good scans covered
+    the surface, magenta where none saw it (the score leaves those points out)."""
+    from datasets import write_cloud
+
     from .maps import RAY_MAP_RANGE, safe_name, write_map
 
     write_map(maps_dir / f"{safe_name(scan.name)}.ply", scan.points, scan.normals, values)
     if rays is not None:
         write_map(maps_dir / "rays" / f"{safe_name(scan.name)}.ply", scan.points, scan.normals, rays,
                   vrange=RAY_MAP_RANGE)
+    if covered is not None and not np.all(covered):
+        colours = np.where(np.asarray(covered, dtype=bool)[:, None], np.uint8(180), np.array([230, 0, 200], np.uint8))
+        write_cloud(maps_dir / "coverage" / f"{safe_name(scan.name)}.ply", np.asarray(scan.points, np.float32),
+                    None if scan.normals is None else np.asarray(scan.normals, np.float32), colours.astype(np.uint8))
 
 
 def summarize_run(handle, insp, data, split, align, results):

@@ -11,6 +11,7 @@ import numpy as np
 from sklearn.exceptions import NotFittedError
 
 from .aggregates import aggregate as aggregate_scores
+from .coverage import MIN_COVERED_POINTS, Coverage, coverage_radius, covered_points
 from .evidence import ScanEvidence, gather_evidence, kept_points, stage
 from .loading import signed_for_scoring
 from .reference import REFERENCE_QUANTITY
@@ -31,6 +32,9 @@ class ScanResult:
     same per point (what the anomaly map adds) and ``score`` the combination (:mod:`inspection.combine`). ``stray``
     (m,) bool marks the scan's stray returns, left out of the score's aggregate
     (:func:`inspection.evidence.kept_points`) and of the anomaly map's patches (None: none looked for).
+    ``coverage`` (:class:`inspection.coverage.Coverage`, with a per-location point score and a field with a
+    lengthscale) says which points lie on surface the good scans covered: ``score`` and ``components["points"]``
+    count those (``components["points_all"]`` every point), the point scores and the maps every point.
     """
 
     score: float
@@ -41,6 +45,7 @@ class ScanResult:
     transform: np.ndarray = None
     stray: np.ndarray = None
     ray_point_nats: np.ndarray = None
+    coverage: Coverage = None
 
 
 def score_scan(model, scan, index, settings, reference=None, aligner=None, timings=None):
@@ -166,8 +171,17 @@ def score_evidence(evidence: ScanEvidence, reference, settings, timings=None, un
         else:
             values = point_scores(evidence.field, evidence.points, kind=settings.point_score, noise=settings.noise)
     with stage(timings, "aggregate"):
-        score = aggregate_scores(values[kept_points(evidence.stray, len(values))], settings.aggregate)
-    result = ScanResult(score, values, evidence.field, components={"points": score}, stray=evidence.stray)
+        kept = kept_points(evidence.stray, len(values))
+        score = aggregate_scores(values[kept], settings.aggregate)
+        coverage = None
+        if POINT_SCORES[settings.point_score].reference:
+            coverage = scan_coverage(reference, evidence, settings.coverage, score)
+        if coverage is not None and not coverage.counted_all:
+            score = aggregate_scores(values[kept & coverage.covered], settings.aggregate)
+    result = ScanResult(score, values, evidence.field, components={"points": score}, stray=evidence.stray,
+                        coverage=coverage)
+    if coverage is not None:
+        result.components["points_all"] = coverage.score_all
     if settings.rays:
         from .ray_evidence import ray_evidence
 
@@ -190,4 +204,21 @@ def weigh_rays(result, combination):
     result.ray_point_nats = result.rays.per_point(per_ray[:n], per_ray[n:])
     result.components["ray_nats"] = combination.nats(result.rays)
     result.score = combination.score(result.components["points"], result.rays)
+    if result.coverage is not None:
+        result.coverage.score_all = combination.score(result.components["points_all"], result.rays)
     return result
+
+
+def scan_coverage(reference, evidence, lengthscales, score_all):
+    """The :class:`inspection.coverage.Coverage` of a scan's ``evidence`` against ``reference``'s good surface at
+    ``lengthscales`` kernel lengthscales, or None (no reference, no lengthscale, or ``lengthscales`` 0).
+    ``score_all``: its score over every (kept) point. ``counted_all`` is set when fewer than
+    ``inspection.coverage.MIN_COVERED_POINTS`` (or 1 %) of its kept points are covered: then its score counts every
+    point, and its verdict is 'uncertain' whatever the score (:func:`inspection.coverage.coverage_verdict`)."""
+    radius = None if reference is None else coverage_radius(evidence.field, lengthscales)
+    if radius is None:
+        return None
+    covered = covered_points(reference, evidence.points, evidence.normals, radius)
+    kept = kept_points(evidence.stray, len(covered))
+    enough = max(MIN_COVERED_POINTS, int(np.ceil(0.01 * kept.sum())))
+    return Coverage(covered, radius, float(score_all), counted_all=bool((kept & covered).sum() < enough))

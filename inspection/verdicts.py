@@ -78,6 +78,25 @@ class VerdictMixin:
                 + (f"; {LEVEL_RENDERED_NOTE}" if getattr(one, "level_rendered_", False) else "")
                 for one, s, v, size in zip(ones, scores, verdicts, sizes)]
 
+    def verdicts_from_results(self, results, scans=None, uncertain=True):
+        """The verdicts and their reasons (two lists of str) of scans already inspected (their
+        :class:`inspection.scoring.ScanResult`): :meth:`verdicts_from_scores` and :meth:`reasons_from_scores` of their
+        scores, then what their coverage says (:func:`inspection.coverage.coverage_verdict`: a scan whose evidence
+        lies on surface no good scan saw is 'uncertain', never 'good'). ``uncertain=False``: the two classes, coverage
+        aside. Several part types: pass the ``scans``."""
+        from .coverage import coverage_verdict
+
+        results = list(results)
+        scores = [r.score for r in results]
+        verdicts = list(self.verdicts_from_scores(scores, scans, uncertain))
+        reasons = self.reasons_from_scores(scores, scans, uncertain)
+        if not uncertain:
+            return verdicts, reasons
+        ones = [self.for_scan(s) for s in scans] if getattr(self, "parts_", None) else [self] * len(results)
+        judged = [coverage_verdict(str(v), why, r.coverage, one.threshold_, r.score)
+                  for v, why, r, one in zip(verdicts, reasons, results, ones)]
+        return [v for v, _ in judged], [why for _, why in judged]
+
     def size_note(self, scan):
         """'' or, for a scan whose size cannot be the part's, one line saying so: its bounding box's diagonal is more
         than ``SIZE_RATIO`` times the good scans' (the per-location reference's points, the whole part) or less than

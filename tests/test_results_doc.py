@@ -261,6 +261,19 @@ def test_the_suites_renderers_know_their_figures():
         "other": 0.01, "nn_seconds_per_scan": 0.007, "peak_rss_mb": 900.0}}})
 
 
+def test_the_fewscans_renderer_sums_over_the_seeds_and_shows_the_loop():
+    def run(part, scans, seed, auroc, flagged, **kw):
+        return {"part": part, "scans": scans, "seed": seed, "auroc": auroc, "nn_auroc": 0.7, "flagged": flagged,
+                "uncertain": 10, "n_defective": 64, "good_defective": 0, "good_uncertain": 2, "n_good": 16,
+                "on_covered": 50, "covered_flagged": flagged, "missed_uncertain": 3, "missed": 4, **kw}
+
+    runs = [run("fandisk", 8, 0, 1.0, 0.9), run("fandisk", 8, 1, 0.9, 0.7)]
+    loop = [run("fandisk", 12, s, 0.95, 0.8, strategy=k) for s in (0, 1) for k in ("base", "proposed", "random")]
+    body = _renders_itself("fewscans", {"runs": runs, "loop": loop})
+    assert "| fandisk | 8 | 2 | 0.950 | 0.700 | 0.800 | 20 of 128 | 0 / 4 of 32 | 0.800 of 100 | 6 of 8 |" in body
+    assert "| all | proposed | 2 | 0.950 |" in body and "Closed loop" in body and "| fandisk | proposed" not in body
+
+
 def test_the_generic_renderer_shows_the_figures_tables_within_bounds():
     figures = {"mode": "io", "scans": 80, "rows": [{"name": f"r{i}", "seconds": i / 3, "log": "x"} for i in range(50)],
                "nested": {"a": {"x": 1.0}, "b": {"x": 2.0}}}

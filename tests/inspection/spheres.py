@@ -56,6 +56,27 @@ class SphereModel:
         return Projection()
 
 
+class ScaledSphereField(SphereField):
+    """The sphere double with a kernel lengthscale (0.1), as the toolkit's fields have: coverage applies to it."""
+
+    lengthscale = 0.1
+
+
+class ScaledSphereModel(SphereModel):
+    """:class:`SphereModel` whose projections are :class:`ScaledSphereField` s."""
+
+    lengthscale = ScaledSphereField.lengthscale
+
+    def project(self, points, normals=None, **options):
+        field = super().project(points, normals).field
+
+        class Projection:
+            pass
+
+        Projection.field = ScaledSphereField(field.center, field.radius)
+        return Projection()
+
+
 def sphere_scan(n=2000, seed=0, dent=0.0, noise=0.003, center=(0.1, -0.2, 0.05)):
     """Points on the upper half of a unit sphere (one view), optionally with a dent of depth ``dent`` at the pole."""
     rng = np.random.default_rng(seed)

@@ -12,7 +12,7 @@ from inspection.calibration import CALIBRATION_VERSION, EXTRA_KEYS, Calibration,
 from inspection.config import InspectionConfig
 from inspection.reference import LocalReference
 from inspection.threshold import fit_threshold
-from tests.inspection.spheres import SphereField, SphereModel, sphere_scan
+from tests.inspection.spheres import ScaledSphereModel, SphereField, SphereModel, sphere_scan
 
 
 def sphere_points(n=600, seed=0, dent=0.0):
@@ -133,11 +133,31 @@ def test_a_version_1_record_stored_whole_keeps_its_settings_and_parts_are_upgrad
     older = {**record, "version": 1, "roles": [],
              "extra": {"config": config, "reference": record["extra"]["reference"]}}
     upgraded = migrate(older)
-    assert upgraded["extra"]["config"] == {**record["extra"]["config"], "align": False}
+    # before registration existed: never registered; before coverage: every point counted
+    assert upgraded["extra"]["config"] == {**record["extra"]["config"], "align": False, "coverage": 0.0}
     assert upgraded["extra"]["reference"] == record["extra"]["reference"]  # complete already: kept as it is
     several = {**older, "extra": {**older["extra"], "reference": None, "parts": {"a": older, "b": older}}}
     parts = migrate(several)["extra"]["parts"]
     assert all(p["version"] == CALIBRATION_VERSION and p["roles"] == upgraded["roles"] for p in parts.values())
+
+
+def test_a_version_2_record_counts_every_point_as_it_was_calibrated(joint):
+    """A version-2 record (before coverage) upgrades to coverage 0: its scans are scored over every point, as its
+    calibration scores were; a fresh record stores the coverage it scored with."""
+    _, held, good, new = joint
+    insp = Inspector(ScaledSphereModel(), point_score="joint", alpha=0.2, coverage=0.5).fit(held,
+                                                                                             reference_scans=good)
+    assert all(insp.inspect(s).coverage is not None for s in new)  # a field with a lengthscale: coverage applies
+    record = insp.calibration().as_dict()
+    assert record["extra"]["config"]["coverage"] == 0.5  # the setting in force is stored
+    older = {**record, "version": 2,
+             "extra": {**record["extra"], "config": {k: v for k, v in record["extra"]["config"].items()
+                                                     if k != "coverage"}}}
+    upgraded = migrate(older)
+    assert upgraded["version"] == CALIBRATION_VERSION and upgraded["extra"]["config"]["coverage"] == 0.0
+    restored = Inspector.from_calibration(ScaledSphereModel(), Calibration.from_dict(older))
+    assert restored.settings_.coverage == 0.0
+    assert all(restored.inspect(s).coverage is None for s in new)
 
 
 def test_a_record_of_an_unknown_version_is_one_clear_error():

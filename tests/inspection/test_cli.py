@@ -249,7 +249,8 @@ def test_latent_model_end_to_end(tmp_path, capsys):
     assert main(["calibrate", "--model", str(model), "--data", str(data), "--alpha", "0.3", "--quiet",
                  "--projection", "steps=15,starts=1,max_candidates=4"]) == 0
     cal = read_calibration(model)
-    assert cal.roles.count("held-back") == 3 and cal.roles.count("cross-fitted") == 3
+    # 3 training scans: by default each is scored by the fold model that never saw it (leave-one-out)
+    assert cal.roles.count("held-back") == 3 and cal.roles.count("fold") == 3
     assert all(n.startswith("train/") for n in cal.names)
     assert cal.config().projection == {"steps": 15, "starts": 1, "max_candidates": 4}
     out = tmp_path / "res"

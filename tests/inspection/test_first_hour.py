@@ -99,10 +99,11 @@ def test_a_few_scan_training_says_so_before_the_work(first_hour):
     assert note < next(i for i, line in enumerate(out) if line.startswith("wrote "))
     line = out[note]
     assert "of the 8 good scans 5 train the model and 3 are held back" in line
-    # what that means for the threshold: the interval of the log-normal tail over 3 held-back and 5 cross-fitted
-    lo, hi = lognormal_far_interval(3, DEFAULT_ALPHA, df=2 + 4)
+    # few scans: by default a fold model per training scan scores it out of sample, so all 8 set the level
+    assert "and 5 fold models score the 5 training scans as new" in line
+    lo, hi = lognormal_far_interval(8, DEFAULT_ALPHA, df=7)
     assert f"between {format_rate(lo)} and {format_rate(hi)}" in line
-    assert "--calibration-folds 2 would" in line and "46 more good scans held back would make it exact" in line
+    assert "41 more good scans scored by fold models would make it exact" in line
     # and the progress of the steps before the epochs (the pose decision, reading the scans, their targets)
     err = first_hour["trained"][2]
     assert "pose: placed by hand?" in err and "GP targets" in err and "training" in err

@@ -133,14 +133,23 @@ def test_training_refuses_folds_it_cannot_make_before_training(tmp_path):
     assert not (tmp_path / "m.pt").exists()
 
 
-def test_by_default_no_fold_models_are_trained(tmp_path):
-    from autodecoder.latent.folds import DEFAULT_FOLDS, FOLDS_KEY
+def test_by_default_few_training_scans_get_one_fold_model_each_and_more_get_none(tmp_path):
+    """The default (no number asked for): leave-one-out fold models with 2 to FEW_SCANS training scans of each part,
+    none with more; asked for 0, none either way."""
+    from autodecoder.latent.folds import DEFAULT_FOLDS, FEW_SCANS, FOLDS_KEY, default_folds
     from autodecoder.latent.model import read_checkpoint
     from autodecoder.latent.folds import train_collection_with_folds as train_collection
 
+    assert DEFAULT_FOLDS == 0 and FEW_SCANS == 8
+    assert [default_folds(n) for n in (1, 2, 8, 9, 32)] == [0, 2, 8, 0, 0]
+    assert default_folds([3, 5]) == 3 and default_folds([3, 9]) == 0  # every part few, else none
     data = ScanCollection.create(tmp_path / "c.h5", [sphere_scan(f"t/{i}", 0.2, n=100, seed=i) for i in range(4)])
-    model = train_collection(data, tmp_path / "m.pt", calibration_fraction=0.25, quiet=True, **TINY)
-    assert DEFAULT_FOLDS == 0 and model.calibration_folds == [] and FOLDS_KEY not in read_checkpoint(tmp_path / "m.pt")
+    model = train_collection(data, tmp_path / "m.pt", calibration_fraction=0.25, quiet=True, fold_jobs=1, **TINY)
+    folds = model.calibration_folds  # 3 training scans: each scored by a model that never saw it
+    assert len(folds) == 3 and sorted(n for f in folds for n in f.scored_names) == sorted(model.train_names)
+    none = train_collection(data, tmp_path / "n.pt", calibration_fraction=0.25, quiet=True, calibration_folds=0,
+                            **TINY)
+    assert none.calibration_folds == [] and FOLDS_KEY not in read_checkpoint(tmp_path / "n.pt")
 
 
 def test_a_failing_fold_process_is_one_clear_error(tmp_path):
