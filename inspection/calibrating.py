@@ -158,12 +158,12 @@ def calibrate_selection(model, selection, config, origins_everywhere, cross_fit=
     results = [score_evidence(good, reference_j, settings, uncovered=out, terms=t, surface=reference)
                for good, reference_j, out, t in zip(goods, references, uncovered, terms)]
     how = selection.how
-    if uncovered_share is not None and coverage:
-        how += (f"; scored over covered surface (the held-back scans have {100 * uncovered_share:.1f} % of their "
-                f"points where no training scan saw the surface)")
     if crossed:
         how += (f" and {len(crossed)} training scans scored by fold models that never saw them" if role == "fold"
                 else f" and {len(crossed)} training scans cross-fitted")
+    if uncovered_share is not None and coverage:
+        how += (f"; scored over covered surface (the held-back scans have {100 * uncovered_share:.1f} % of their "
+                f"points where no training scan saw the surface)")
     scores, combination = calibration_scores(results, settings)
     return FittedState(settings, scores, [g.name for g in goods], ["held-back"] * len(held) + [role] * len(crossed),
                        how, reference, combination, aligner, note, level_rendered)

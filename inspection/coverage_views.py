@@ -15,7 +15,7 @@ surface (open3d's hidden point removal over the targets and the good scans' poin
 Positions are in the model's frame (the collection frame of the training scans), each looking at the part's centre:
 a fixtured part's sensor goes there; a part turned by hand is turned so that the sensor sees it from there.
 """
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -74,7 +74,6 @@ class CoveragePlan:
     standoff: float
     center: np.ndarray
     source: str = ""
-    extra: dict = field(default_factory=dict)
 
     @property
     def uncovered_share(self):
@@ -90,7 +89,7 @@ class CoveragePlan:
         return {"source": self.source, "points": int(len(self.points)), "uncovered_share": self.uncovered_share,
                 "remaining_share_after_views": self.remaining_share, "radius": float(self.radius),
                 "standoff": float(self.standoff), "center": [float(v) for v in self.center],
-                "views": [v.as_dict() for v in self.views], **self.extra}
+                "views": [v.as_dict() for v in self.views]}
 
 
 def sphere_directions(n):

@@ -135,11 +135,12 @@ def plot_legend(path, cmap, vmin, vmax, label):
     return Path(path)
 
 
-def plot_coverage(path, plan, good_points=None, max_points=6000, seed=0):
+def plot_coverage(path, plan, max_points=6000, seed=0):
     """A picture of a :class:`inspection.coverage_views.CoveragePlan`: the target surface coloured by coverage (grey:
     covered by the good scans; a colour per proposed view: the uncovered points it would cover; red: uncovered and
     seen by no proposal) from two sides, with each proposed sensor's direction drawn from the part's centre and
-    numbered in the order to take them. ``good_points``: unused, kept for a later overlay. Written atomically."""
+    numbered in the order to take them; at most ``max_points`` covered points drawn (a seeded subsample). Written
+    atomically."""
     plt = _pyplot()
     rng = np.random.default_rng(seed)
     pts = plan.points
