@@ -70,17 +70,6 @@ def in_common_frame(model_path, scans):
     return [model.normalise(s) for s in scans]
 
 
-def add_align_options(parser):
-    """``--align`` / ``--no-align`` on a suite's parser (``args.align``: True, False or None, the inspection's own
-    choice: registered when the training scans' poses spread), for :func:`calibrate_and_score`'s ``align``."""
-    align = parser.add_mutually_exclusive_group()
-    align.add_argument("--align", dest="align", action="store_const", const=True, default=None,
-                       help="calibrate and score with --align (every scan registered onto the training scans first)")
-    align.add_argument("--no-align", dest="align", action="store_const", const=False,
-                       help="with --no-align (default: the inspection's own choice, registered when the training "
-                            "scans' poses spread)")
-
-
 def calibrate_and_score(model_path, data_path, out_dir, *, rays=None, point_score=None, aggregate=None,
                         alpha=None, align=None, maps="flagged", progress=False, echo=print, folds=True):
     """The README's path on an uncalibrated copy of a model: ``python -m inspection calibrate`` on the model's training
@@ -140,30 +129,6 @@ def calibrate_and_score(model_path, data_path, out_dir, *, rays=None, point_scor
             if line.startswith(_ECHOED) or "not calibrated" in line:
                 echo(line)
     return summary
-
-
-def add_calibration_options(parser, cache_help, work, folds_help=""):
-    """The options of a suite that trains, calibrates and scores one tree (``inspection``, ``real``): ``--folds``
-    (:func:`fold_settings`), ``--point-scores`` (:func:`parse_point_scores`), ``--cache`` (``cache_help`` says what
-    it holds), ``--work`` (default ``work``) and ``--progress``. ``folds_help``: what ``both`` adds, if anything."""
-    from benchmarks import cache
-
-    parser.add_argument("--folds", choices=("on", "off", "both"), default="off",
-                        help="calibrate without fold models (off: the default, the held-back scans' level and the "
-                             "training scans cross-fitted), with 2 fold models trained into the cached model (on: "
-                             "train_latent.py --calibration-folds 2), or both" + folds_help)
-    parser.add_argument("--point-scores", default=None, metavar="LIST",
-                        help="also each of these point scores alone (NAME[:AGGREGATE],...; no ray score, one "
-                             "calibration each), a row each: the ablation suite's --trees")
-    parser.add_argument("--cache", default=cache.CACHE, help=f"{cache_help} (default: %(default)s)")
-    parser.add_argument("--work", default=work, help="scored runs (default: %(default)s)")
-    parser.add_argument("--progress", action="store_true", help="progress bars")
-
-
-def fold_settings(choice):
-    """The calibrations ``--folds`` asks for (``'on'``, ``'off'`` or ``'both'``): with the fold models (True),
-    without (False), in that order."""
-    return {"on": (True,), "off": (False,), "both": (False, True)}[choice]
 
 
 def parse_point_scores(text):
@@ -576,3 +541,42 @@ def default_folds(n_train):
     from autodecoder.latent.folds import default_folds as folds
 
     return folds(n_train)
+
+
+def scan_regions(model_path, data_path, out_dir, split="test", progress=False):
+    """Every scan of ``split`` of a model's training collection, calibrated the README's way on a copy of the model
+    (``out_dir/model.pt``), with its anomaly map and defect regions (:mod:`inspection.regions`) whatever its verdict.
+
+    Returns
+    -------
+    list of dict
+        Per scan: ``name``, ``label``, ``defect``, ``verdict``, ``points`` (m, 3, model frame), ``point_labels``
+        (m,) or None, ``point_deviation`` (m,) or None (the truth, in the scans' file units), ``areas`` (m,) (each
+        point's area as the regions measure it, file units), ``map`` (m,), ``region_ids`` (m,) (-1: none; None: no
+        region level) and ``regions`` (``DefectRegion.row()`` dicts, file units).
+    """
+    from datasets import ScanCollection
+    from inspection.job import calibrate, inspect_scan
+    from inspection.regions import point_areas
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    model = out_dir / "model.pt"
+    if not model.exists():
+        shutil.copyfile(model_path, out_dir / "model.tmp.pt")
+        calibrate(out_dir / "model.tmp.pt", data_path, progress=progress)
+        (out_dir / "model.tmp.pt").replace(model)
+    insp = _inspector(model)
+    runs = []
+    with ScanCollection(data_path) as c:
+        scale = float(c.frame.scale)
+        for i, scan in enumerate(s for s in c if s.split == split):
+            out = inspect_scan(insp, scan, i, maps="all", maps_dir=out_dir / "maps")
+            deviation = getattr(scan, "point_deviation", None)
+            runs.append({"name": scan.name, "label": scan.label, "defect": scan.defect,
+                         "verdict": out["row"]["verdict"], "points": np.asarray(scan.points, dtype=np.float64),
+                         "point_labels": scan.point_labels,
+                         "point_deviation": None if deviation is None else np.asarray(deviation) / scale,
+                         "areas": point_areas(scan.points) / scale ** 2, "map": out.get("point_map"),
+                         "region_ids": out.get("region_ids"), "regions": out.get("defects", [])})
+    return runs

@@ -180,7 +180,7 @@ def read_organized_cloud(path):
     return grid
 
 
-def write_cloud(path, points, normals=None, colors=None):
+def write_cloud(path, points, normals=None, colors=None, scalars=None):
     """Write a binary little-endian PLY file (plyfile) atomically (:func:`datasets.atomic.atomic_path`).
 
     Parameters
@@ -192,6 +192,9 @@ def write_cloud(path, points, normals=None, colors=None):
     normals : (N, 3) float array, optional
     colors : (N, 3) array, optional
         Floats in [0, 1] (rounded to 8-bit) or uint8 in [0, 255].
+    scalars : dict of str -> (N,) array, optional
+        Further per-vertex properties (e.g. a defect region id), each written with its array's dtype (int32 for
+        integers, float32 for floats).
 
     Returns
     -------
@@ -222,6 +225,14 @@ def write_cloud(path, points, normals=None, colors=None):
                 raise ValueError(f"{path}: float colors must be finite and in [0, 1]")
             colors = np.round(colors * 255).astype(np.uint8)
         fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    extra = {}
+    for name, values in (scalars or {}).items():
+        values = np.asarray(values).reshape(-1)
+        if len(values) != len(points) or not str(name).isidentifier():
+            raise ValueError(f"{path}: scalar property {name!r} needs a plain name and one value per point "
+                             f"({len(points)}), got {len(values)}")
+        extra[name] = values.astype("<i4" if np.issubdtype(values.dtype, np.integer) else "<f4")
+        fields.append((name, extra[name].dtype.str))
     body = np.empty(len(points), dtype=fields)
     names = [f[0] for f in fields]
     for k, name in enumerate(names[: 3 * len(columns)]):
@@ -229,6 +240,8 @@ def write_cloud(path, points, normals=None, colors=None):
     if colors is not None:
         for k, name in enumerate(("red", "green", "blue")):
             body[name] = colors[:, k]
+    for name, values in extra.items():
+        body[name] = values
     from plyfile import PlyData, PlyElement
 
     with atomic_path(path) as tmp:

@@ -1,8 +1,15 @@
 """The HDF5 scan collection: many scans in one versioned, chunked, compressed file (schema: docs/collection_format.md).
 
-Layout in one paragraph: all scans' points are concatenated into ``/points`` (P, 3) (likewise ``/normals`` and
-``/point_labels``), and scan ``i`` owns rows ``offsets[i]:offsets[i + 1]``; per-scan metadata lives in ``/scans/*``
-arrays of length S; the collection's frame and provenance are root attributes. Reading one scan reads one slice.
+Layout in one paragraph: all scans' points are concatenated into ``/points`` (P, 3) (likewise ``/normals``,
+``/point_labels`` and ``/point_deviation``), and scan ``i`` owns rows ``offsets[i]:offsets[i + 1]``; per-scan
+metadata lives in ``/scans/*`` arrays of length S; the collection's frame and provenance are root attributes. Reading
+one scan reads one slice.
+
+The per-point deviations (``Scan.point_deviation``: ground truth of how far each point lies off the good surface)
+are optional datasets of format version 1 (``/point_deviation``, ``/scans/has_deviation``): a file written before
+them reads with ``point_deviation=None``, and appending to it adds them (zeros, flag 0 for the scans it holds). They
+are in neither the content hashes nor the fingerprint: an annotation beside the data, like a sidecar, that must not
+change the key of the models cached for the data (docs/collection_format.md).
 """
 import hashlib
 import json
@@ -60,6 +67,26 @@ def _check_scan(scan, where):
         raise ValueError(f"{where}: scan {scan.name!r} has non-finite points or normals; drop them before storing")
     if scan.split not in SPLITS or scan.label not in LABELS:  # Scan checks this too, unless fields were reassigned
         raise ValueError(f"{where}: scan {scan.name!r} has split {scan.split!r} / label {scan.label!r}")
+    deviation = scan.point_deviation
+    if deviation is not None and (np.shape(deviation) != (len(scan),) or not np.all(np.isfinite(deviation))):
+        raise ValueError(f"{where}: scan {scan.name!r} has point deviations of shape {np.shape(deviation)} for "
+                         f"{len(scan)} points, or NaN / Inf ones")
+
+
+def _add_deviation_datasets(h5, big, small):
+    """Create ``/point_deviation`` (P,) and ``/scans/has_deviation`` (S,), zeros, in a file that lacks them (a new
+    one, or one written before they existed: its scans then have no deviations)."""
+    n_points, n_scans = h5["points"].shape[0], h5["scans/n_points"].shape[0]
+    h5.create_dataset("point_deviation", data=np.zeros(n_points, "<f4"), maxshape=(None,),
+                      chunks=(POINT_CHUNK_ROWS,), **big)
+    h5["scans"].create_dataset("has_deviation", data=np.zeros(n_scans, "u1"), maxshape=(None,),
+                               chunks=(SCAN_CHUNK_ROWS,), **small)
+
+
+def _filters(ds):
+    """The creation options (filters, no times) of dataset ``ds``, for a dataset added beside it."""
+    return dict(compression=ds.compression, compression_opts=ds.compression_opts, shuffle=ds.shuffle,
+                track_times=False)
 
 
 def _new_file_layout(h5, frame, provenance, compression):
@@ -84,6 +111,7 @@ def _new_file_layout(h5, frame, provenance, compression):
     g.create_dataset("sensor_origin", shape=(0, 3), maxshape=(None, 3), dtype="<f4", chunks=(SCAN_CHUNK_ROWS, 3),
                      **small)
     g.create_dataset("content_sha256", shape=(0,), maxshape=(None,), dtype="S64", chunks=(SCAN_CHUNK_ROWS,), **small)
+    _add_deviation_datasets(h5, big, small)
     h5.attrs["format"] = FORMAT_NAME
     h5.attrs["format_version"] = np.int64(FORMAT_VERSION)
     h5.attrs["frame_center"] = np.asarray(frame.center, dtype="<f8")
@@ -97,6 +125,8 @@ class _Appender:
 
     def __init__(self, h5, where):
         self.h5, self.where = h5, where
+        if "point_deviation" not in h5:  # a file written before the deviations: its scans have none
+            _add_deviation_datasets(h5, _filters(h5["point_labels"]), _filters(h5["scans/has_labels"]))
         self.names = set(h5["scans/name"].asstr()[()].tolist())
         self.buf = []
         self.buf_points = 0
@@ -123,18 +153,21 @@ class _Appender:
         def grow(ds, n):
             ds.resize(n, axis=0)
 
-        for key in ("points", "normals", "point_labels"):
+        for key in ("points", "normals", "point_labels", "point_deviation"):
             grow(h5[key], p1)
         h5["points"][p0:p1] = np.concatenate([s.points for s in scans])
         h5["normals"][p0:p1] = np.concatenate([s.normals for s in scans])
         h5["point_labels"][p0:p1] = np.concatenate(
             [s.point_labels if s.point_labels is not None else np.zeros(len(s), "u1") for s in scans])
-        for key in (*_STRING_FIELDS, "n_points", "has_labels", "sensor_origin", "content_sha256"):
+        h5["point_deviation"][p0:p1] = np.concatenate(
+            [s.point_deviation if s.point_deviation is not None else np.zeros(len(s), "<f4") for s in scans])
+        for key in (*_STRING_FIELDS, "n_points", "has_labels", "has_deviation", "sensor_origin", "content_sha256"):
             grow(g[key], s1)
         for key in _STRING_FIELDS:
             g[key][s0:s1] = np.array([getattr(s, key) for s in scans], dtype=object)
         g["n_points"][s0:s1] = counts
         g["has_labels"][s0:s1] = np.array([s.point_labels is not None for s in scans], dtype="u1")
+        g["has_deviation"][s0:s1] = np.array([s.point_deviation is not None for s in scans], dtype="u1")
         g["sensor_origin"][s0:s1] = np.array(
             [s.sensor_origin if s.sensor_origin is not None else np.full(3, np.nan) for s in scans], dtype="<f4")
         g["content_sha256"][s0:s1] = np.array(
@@ -201,6 +234,36 @@ def _open_h5(path):
     return h5
 
 
+def _scan_index(h5):
+    """The per-scan arrays of an open collection: (string fields {key: list}, n_points, offsets, has_labels,
+    has_deviation, sensor_origin, content hashes). ValueError unless they have S rows each and the offsets match the
+    counts and the point arrays."""
+    g = h5["scans"]
+    meta = {k: g[k].asstr()[()].tolist() for k in _STRING_FIELDS}
+    n_points, offsets = g["n_points"][()].astype(np.int64), g["offsets"][()].astype(np.int64)
+    has_labels, has_deviation = g["has_labels"][()].astype(bool), _deviation_flags(h5, len(n_points))
+    origin, hashes = g["sensor_origin"][()].astype(np.float32), g["content_sha256"][()]
+    s = len(n_points)
+    lengths = [len(offsets) - 1, len(has_labels), len(has_deviation), len(origin), len(hashes),
+               *map(len, meta.values())]
+    if not (all(n == s for n in lengths) and origin.shape[1:] == (3,) and offsets[0] == 0
+            and offsets[-1] == h5["points"].shape[0] and (n_points >= 0).all()
+            and np.array_equal(np.diff(offsets), n_points)):
+        raise ValueError("offsets, counts and per-scan arrays disagree")
+    return meta, n_points, offsets, has_labels, has_deviation, origin, hashes
+
+
+def _deviation_flags(h5, n_scans):
+    """(S,) bool: which scans have per-point deviations. A file written before they existed has neither dataset (all
+    False); a file with one of the two, or with ``/point_deviation`` shorter than ``/points``, is damaged."""
+    have = ("point_deviation" in h5, "scans/has_deviation" in h5)
+    if not any(have):
+        return np.zeros(n_scans, dtype=bool)
+    if not all(have) or h5["point_deviation"].shape != (h5["points"].shape[0],):
+        raise ValueError("/point_deviation and /scans/has_deviation disagree with each other or with /points")
+    return h5["scans/has_deviation"][()].astype(bool)
+
+
 def _data_fingerprint(frame, meta, offsets, has_labels, sensor_origin, hashes):
     """sha256 hex of a collection's data (:meth:`ScanCollection.fingerprint`): the format, the frame, the per-scan
     string fields, the offsets, which scans have labels, the sensor origins (NaN: none) and the content hashes."""
@@ -243,33 +306,15 @@ class ScanCollection:
         self.path = Path(path)
         self._h5 = _open_h5(self.path)
         try:
-            g = self._h5["scans"]
-            self._meta = {k: g[k].asstr()[()].tolist() for k in _STRING_FIELDS}
-            self._n_points = g["n_points"][()].astype(np.int64)
-            self._offsets = g["offsets"][()].astype(np.int64)
-            self._has_labels = g["has_labels"][()].astype(bool)
-            self._sensor_origin = g["sensor_origin"][()].astype(np.float32)
-            self._hashes = g["content_sha256"][()]
+            (self._meta, self._n_points, self._offsets, self._has_labels, self._has_deviation, self._sensor_origin,
+             self._hashes) = _scan_index(self._h5)
             self._frame = Frame(np.asarray(self._h5.attrs["frame_center"]), float(self._h5.attrs["frame_scale"]))
             self._provenance = json.loads(self._h5.attrs.get("provenance", "{}"))
             self.toolkit_version = str(self._h5.attrs.get("toolkit_version", ""))
-            consistent = self._consistent()
         except (OSError, KeyError, TypeError, ValueError) as e:  # JSONDecodeError is a ValueError
             self._h5.close()
             raise ValueError(f"{self.path}: damaged scan collection ({e})") from None
-        if not consistent:
-            self._h5.close()
-            raise ValueError(f"{self.path}: damaged scan collection (offsets, counts and per-scan arrays disagree)")
         self._index = {n: i for i, n in enumerate(self._meta["name"])}
-
-    def _consistent(self):
-        """Whether the per-scan arrays have S rows each and the offsets match the counts and the point arrays."""
-        s = len(self._n_points)
-        lengths = [len(self._offsets) - 1, len(self._has_labels), len(self._sensor_origin), len(self._hashes),
-                   *map(len, self._meta.values())]
-        return (all(n == s for n in lengths) and self._sensor_origin.shape[1:] == (3,) and self._offsets[0] == 0
-                and self._offsets[-1] == self._h5["points"].shape[0] and (self._n_points >= 0).all()
-                and np.array_equal(np.diff(self._offsets), self._n_points))
 
     # ---- writing -------------------------------------------------------------------------------------------------
     @classmethod
@@ -318,7 +363,8 @@ class ScanCollection:
         """Add scans to an existing collection atomically: copy to a temporary file, append, rename into place.
 
         The copy costs one read and write of the file, which is fine at our sizes (a few GB) and means a failure
-        mid-append leaves the original untouched. Scans must already be in the collection's frame.
+        mid-append leaves the original untouched. Scans must already be in the collection's frame. A file written
+        before the per-point deviations existed gets their datasets (zeros: its scans have none).
 
         Parameters
         ----------
@@ -396,6 +442,7 @@ class ScanCollection:
             points = h5["points"][a:b]
             normals = h5["normals"][a:b]
             labels = h5["point_labels"][a:b] if self._has_labels[i] else None
+            deviation = h5["point_deviation"][a:b] if self._has_deviation[i] else None
         except OSError as e:
             raise ScanReadError(f"cannot be read, the file is damaged ({e})", self.path, name, i) from None
         for key, arr in (("points", points), ("normals", normals)):
@@ -406,7 +453,7 @@ class ScanCollection:
         try:  # checks the shapes against each other, and the split and label
             scan = Scan(name=name, points=points, normals=normals, split=self._meta["split"][i],
                         label=self._meta["label"][i], defect=self._meta["defect"][i],
-                        part_id=self._meta["part_id"][i], point_labels=labels,
+                        part_id=self._meta["part_id"][i], point_labels=labels, point_deviation=deviation,
                         sensor_origin=None if np.isnan(origin).any() else origin.copy())
         except ValueError as e:
             raise ScanReadError(str(e).removeprefix(f"scan {name!r}: "), self.path, name, i) from None
@@ -472,12 +519,13 @@ class ScanCollection:
 
     def metadata(self):
         """One dict per scan, without arrays: index, name, split, label, defect, part_id, n_points, has_labels,
-        sensor_origin ([x, y, z] in the collection frame, or None)."""
+        has_deviation, sensor_origin ([x, y, z] in the collection frame, or None)."""
         out = []
         for i in range(len(self)):
             o = self._sensor_origin[i]
             out.append({"index": i, **{k: self._meta[k][i] for k in _STRING_FIELDS},
                         "n_points": int(self._n_points[i]), "has_labels": bool(self._has_labels[i]),
+                        "has_deviation": bool(self._has_deviation[i]),
                         "sensor_origin": None if np.isnan(o).any() else [float(x) for x in o]})
         return out
 
@@ -506,6 +554,8 @@ class ScanCollection:
 
         Cheap (reads no points: the per-scan hashes are computed at write time; :meth:`verify` re-checks them).
         Provenance and toolkit version are not part of it: the same data imported twice has the same fingerprint.
+        Nor are the per-point deviations (module docstring): a ground-truth annotation, which leaves the models
+        cached under the fingerprint valid.
         """
         return _data_fingerprint(self._frame, self._meta, self._offsets, self._has_labels, self._sensor_origin,
                                  self._hashes)

@@ -75,7 +75,8 @@ class Frame:
         return np.asarray(x, dtype=np.float64) / self.scale + self.center
 
     def apply(self, scan):
-        """The scan moved from file frame into this frame (points and sensor origin; normals unchanged).
+        """The scan moved from file frame into this frame (points and sensor origin; normals unchanged; the
+        per-point deviation, a length, times ``scale``).
 
         Parameters
         ----------
@@ -88,8 +89,9 @@ class Frame:
             A new scan; ``scan`` is not modified.
         """
         origin = None if scan.sensor_origin is None else self.to_collection(scan.sensor_origin)
+        deviation = None if scan.point_deviation is None else scan.point_deviation.astype(np.float64) * self.scale
         return replace(scan, points=self.to_collection(scan.points), normals=scan.normals.copy(),
-                       sensor_origin=origin, extra=dict(scan.extra))
+                       sensor_origin=origin, extra=dict(scan.extra), point_deviation=deviation)
 
     def as_dict(self):
         """JSON-ready ``{"center": [x, y, z], "scale": s}``."""

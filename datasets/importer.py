@@ -8,6 +8,11 @@ Tree layout (split, label and defect come from the folders)::
     ROOT/test/<defect>/*              label 'defective', defect '<defect>'
     ROOT/ground_truth/<defect>/<stem>.txt   (optional) one 0/1 per point of test/<defect>/<stem>.*; with several
                                             columns (Real3D-AD: x y z label) the last one is the label
+    ROOT/ground_truth/<defect>/<stem>.deviation.txt   (optional) one number per point, in the file's units: how far
+                                            the point lies off the good part's surface (``Scan.point_deviation``:
+                                            positive outside, 0 where no defect is); never a label file (a cloud
+                                            ``<stem>.deviation.*`` beside ``<stem>.*`` with that file is an error);
+                                            in a tree that has any, the good test parts' are 0 everywhere
     ROOT/<split>/*.{ply,...}          files directly in a split folder: 'good' for train/validation, 'unknown' in test
 
 A flat folder of clouds (no train/validation/test folder) becomes split 'test', label 'unknown', or the split and
@@ -43,6 +48,7 @@ from .sidecar import read_sensor_origin as _read_sensor_origin
 log = logging.getLogger(__name__)
 
 MIN_POINTS = 3  # fewer finite points cannot define a tangent plane, let alone a surface
+DEVIATION_SUFFIX = ".deviation.txt"  # ground_truth/<defect>/<stem> + this: a scan's per-point deviations
 
 
 @dataclass(frozen=True)
@@ -56,6 +62,8 @@ class ScanSource:
     defect: str
     ground_truth: Optional[Path] = None
     all_good: bool = False  # a good test part in a tree that has ground truth: every point labelled 0
+    deviation: Optional[Path] = None  # ground_truth/<defect>/<stem>.deviation.txt (DEVIATION_SUFFIX)
+    zero_deviation: bool = False  # a good test part in a tree that records deviations: every point's is 0
 
 
 # ---- finding files ---------------------------------------------------------------------------------------------------
@@ -130,6 +138,7 @@ def list_folder(root, exclude=None, split=None, label=None):
     if not split_dirs:
         clouds, skipped = cloud_files(root, exclude)
         sources = [ScanSource(p, p.stem, split or "test", label or "unknown", "") for p in clouds]
+    records_deviation = any((root / "ground_truth").glob(f"*/*{DEVIATION_SUFFIX}"))
     for sdir in split_dirs:
         split_here = sdir.name
         clouds, other = cloud_files(sdir)
@@ -143,11 +152,11 @@ def list_folder(root, exclude=None, split=None, label=None):
             clouds, other = cloud_files(cdir)
             skipped += other
             for p in clouds:
-                gt = root / "ground_truth" / cdir.name / f"{p.stem}.txt"
+                gt, dev = _truth_files(root / "ground_truth" / cdir.name, p, clouds)
                 all_good = good and split_here == "test" and (root / "ground_truth").is_dir()
                 sources.append(ScanSource(p, f"{split_here}/{cdir.name}/{p.stem}", split_here,
-                                          "good" if good else "defective", defect, gt if gt.is_file() else None,
-                                          all_good))
+                                          "good" if good else "defective", defect, gt, all_good, dev,
+                                          all_good and records_deviation))
     if not sources:
         also = f" (skipped {len(skipped)} other files)" if skipped else ""
         raise ValueError(f"{root}: no point-cloud files found (looked for {', '.join(CLOUD_SUFFIXES)} "
@@ -159,6 +168,20 @@ def list_folder(root, exclude=None, split=None, label=None):
             raise ValueError(f"{s.path}: same scan name {s.name!r} as {seen[s.name]} (one cloud per file stem)")
         seen[s.name] = s.path
     return FolderListing(sources, sorted(skipped))
+
+
+def _truth_files(truth, cloud, clouds):
+    """(label file or None, deviation file or None) of ``cloud`` in the ground-truth folder ``truth``.
+
+    ``<stem>.deviation.txt`` is the deviation file of the cloud ``<stem>``, never the label file of a cloud named
+    ``<stem>.deviation``: such a cloud beside ``<stem>`` is an error when that file exists (its name says both).
+    """
+    gt, dev = truth / f"{cloud.stem}.txt", truth / f"{cloud.stem}{DEVIATION_SUFFIX}"
+    base = cloud.stem[:-len(".deviation")] if cloud.stem.endswith(".deviation") else None
+    if base is not None and gt.is_file() and any(p.stem == base for p in clouds):
+        raise ValueError(f"{gt}: the per-point deviations of the cloud {base!r} or the labels of {cloud}? Rename "
+                         f"{cloud.name} (a cloud's stem must not end in '.deviation' beside the cloud it names)")
+    return (gt if gt.is_file() else None), (dev if dev.is_file() else None)
 
 
 def find_sources(root, exclude=None, split=None, label=None):
@@ -197,6 +220,21 @@ def _read_ground_truth(gt, n, cloud):
     return labels.astype(np.uint8)
 
 
+def _read_deviation(path, n, cloud):
+    """A ``<stem>.deviation.txt``: one finite number per point of ``cloud`` (n of them), as (n,) float64."""
+    try:
+        table = np.loadtxt(path, ndmin=2, dtype=np.float64)
+    except ValueError as e:
+        raise ValueError(f"{path}: not a column of numbers ({e})") from None
+    if table.shape[1] != 1 and len(table):
+        raise ValueError(f"{path}: {table.shape[1]} columns, expected one deviation per line")
+    if table.shape[0] != n:
+        raise ValueError(f"{path}: {table.shape[0]} deviations for the {n} points of {cloud}")
+    if not np.all(np.isfinite(table)):
+        raise ValueError(f"{path}: deviations must be finite numbers (NaN or Inf found)")
+    return table[:, 0] if len(table) else np.zeros(0)
+
+
 def load_source(src, voxel=None, n_points=None, seed=0, reading=None):
     """Read one scanner file into a Scan in file units, cleaned, with normals, optionally downsampled.
 
@@ -229,9 +267,10 @@ def load_source(src, voxel=None, n_points=None, seed=0, reading=None):
     Raises
     ------
     ValueError
-        Naming the file: no or too few finite points, all points identical, a bad sidecar or ground truth.
+        Naming the file: no or too few finite points, all points identical, a bad sidecar, ground truth or
+        deviation file (:data:`DEVIATION_SUFFIX`: a count that is not the cloud's, a value that is not a number).
     """
-    from .reading import Reading, downsample, mark_signs
+    from .reading import Reading, downsample, downsample_values, mark_signs
 
     if reading is None:
         reading = Reading(voxel=voxel, points=n_points, seed=seed)
@@ -242,6 +281,7 @@ def load_source(src, voxel=None, n_points=None, seed=0, reading=None):
         normals = None
     n_raw = len(points)
     labels = _read_ground_truth(src.ground_truth, n_raw, src.path) if src.ground_truth is not None else None
+    deviation = _read_deviation(src.deviation, n_raw, src.path) if src.deviation is not None else None
     ok = np.all(np.isfinite(points), axis=1)
     if normals is not None:
         lengths = np.linalg.norm(normals, axis=1)
@@ -256,6 +296,7 @@ def load_source(src, voxel=None, n_points=None, seed=0, reading=None):
         points = points[ok]
         normals = normals[ok] if normals is not None else None
         labels = labels[ok] if labels is not None else None
+        deviation = deviation[ok] if deviation is not None else None
     if np.ptp(points, axis=0).max() == 0:
         raise ValueError(f"{src.path}: all {len(points)} points are identical")
     origin = _read_sensor_origin(src.path, points)
@@ -263,6 +304,8 @@ def load_source(src, voxel=None, n_points=None, seed=0, reading=None):
         normals = normals / np.linalg.norm(normals, axis=1, keepdims=True)
     elif reading.normals == "before downsampling":
         normals = estimate_normals(points, origin)
+    if deviation is not None:  # a length, in file units like the points (the collection's frame scales both)
+        deviation = downsample_values(points, deviation, reading)
     if normals is not None:
         points, normals, labels = downsample(points, normals, labels, reading)
     else:  # normals estimated on the downsampled points (the public layouts)
@@ -273,8 +316,10 @@ def load_source(src, voxel=None, n_points=None, seed=0, reading=None):
         normals = estimate_normals(points, origin)
     if labels is None and src.all_good:
         labels = np.zeros(len(points), np.uint8)
+    if deviation is None and src.zero_deviation:
+        deviation = np.zeros(len(points))
     scan = Scan(name=src.name, points=points, normals=normals, split=src.split, label=src.label, defect=src.defect,
-                point_labels=labels, sensor_origin=origin)
+                point_labels=labels, sensor_origin=origin, point_deviation=deviation)
     scan.points = np.asarray(points, dtype=np.float64)  # keep file-unit precision until the frame is applied
     return mark_signs(scan, reading), n_dropped
 
@@ -363,8 +408,9 @@ def export_collection(path, out_dir, file_frame=False, overwrite=False):
     """Write each scan of a collection as ``out_dir/<name>.ply`` (the tree layout its names spell).
 
     Scans with per-point labels are coloured (defect points red, others grey) and, when defective, also get
-    ``out_dir/ground_truth/<defect>/<stem>.txt``; a known sensor origin goes to a ``<stem>.json`` sidecar. So an
-    exported tree imports back with the same structure.
+    ``out_dir/ground_truth/<defect>/<stem>.txt`` (and ``<stem>.deviation.txt`` when their deviations are known, in
+    the units of the points written); a known sensor origin goes to a ``<stem>.json`` sidecar. So an exported tree
+    imports back with the same structure.
 
     Parameters
     ----------
@@ -402,6 +448,11 @@ def export_collection(path, out_dir, file_frame=False, overwrite=False):
                     gt = out_dir / "ground_truth" / (scan.defect or "defect") / f"{target.stem}.txt"
                     gt.parent.mkdir(parents=True, exist_ok=True)
                     np.savetxt(gt, scan.point_labels, fmt="%d")
+            if scan.point_deviation is not None and scan.label == "defective":
+                deviation = scan.point_deviation / (c.frame.scale if file_frame else 1.0)
+                dev = out_dir / "ground_truth" / (scan.defect or "defect") / f"{target.stem}{DEVIATION_SUFFIX}"
+                dev.parent.mkdir(parents=True, exist_ok=True)
+                np.savetxt(dev, deviation.astype(np.float64), fmt="%.9g")
             write_cloud(target, points, scan.normals, colors)
             if origin is not None:
                 target.with_suffix(_SIDECAR_SUFFIX).write_text(
@@ -424,7 +475,8 @@ def collection_info(path):
             n = c.n_points
             lines.append(f"points per scan: min {n.min()}, median {np.median(n):g}, max {n.max()}, total {n.sum()}")
             lines.append(f"with point labels: {sum(m['has_labels'] for m in meta)}, with sensor origin: "
-                         f"{sum(m['sensor_origin'] is not None for m in meta)}")
+                         f"{sum(m['sensor_origin'] is not None for m in meta)}, with point deviations: "
+                         f"{sum(m['has_deviation'] for m in meta)}")
         stray = c.provenance.get("stray_points")
         if stray is not None:
             worst = ", ".join(f"{n} {k}" for n, k in stray["worst"])

@@ -27,9 +27,7 @@ def voxel_downsample(points, normals, labels, size):
     -------
     points (M, 3), normals (M, 3), labels (M,) or None, with voxels in lexicographic order of their integer keys.
     """
-    keys = np.floor((points - points.min(0)) / size).astype(np.int64)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
+    inverse, counts = _voxels(points, size)
     m = len(counts)
     out_p = np.stack([np.bincount(inverse, points[:, k], m) for k in range(3)], axis=1) / counts[:, None]
     out_n = np.stack([np.bincount(inverse, normals[:, k], m) for k in range(3)], axis=1)
@@ -43,6 +41,35 @@ def voxel_downsample(points, normals, labels, size):
         out_l = np.zeros(m, dtype=np.uint8)
         np.maximum.at(out_l, inverse, labels)
     return out_p, out_n, out_l
+
+
+def voxel_mean(points, values, size):
+    """The mean of a per-point quantity over each voxel of :func:`voxel_downsample`'s grid, in its voxels' order.
+
+    How a per-point length (a ground-truth deviation, :attr:`datasets.scan.Scan.point_deviation`) follows the
+    points: the voxel's point is the mean of its points, and on a surface smooth at the voxel's scale the mean
+    point's deviation is the mean of theirs.
+
+    Parameters
+    ----------
+    points : (N, 3) float64 array
+        The points given to :func:`voxel_downsample`.
+    values : (N,) float array
+    size : float > 0
+
+    Returns
+    -------
+    (M,) float64 array
+    """
+    inverse, counts = _voxels(points, size)
+    return np.bincount(inverse, np.asarray(values, dtype=np.float64), len(counts)) / counts
+
+
+def _voxels(points, size):
+    """(inverse (N,), counts (M,)): each point's voxel, numbered in lexicographic order of the integer keys."""
+    keys = np.floor((points - points.min(0)) / size).astype(np.int64)
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    return inverse.reshape(-1), counts
 
 
 def write_scans(scans, out, provenance, overwrite=False, drop_strays=False):
@@ -68,10 +95,11 @@ def write_scans(scans, out, provenance, overwrite=False, drop_strays=False):
 
 
 def _without(scan, mask):
-    """The scan without the points where ``mask`` is True (labels follow)."""
+    """The scan without the points where ``mask`` is True (labels and deviations follow)."""
     keep = ~mask
     out = replace(scan, points=scan.points[keep], normals=scan.normals[keep],
-                  point_labels=None if scan.point_labels is None else scan.point_labels[keep])
+                  point_labels=None if scan.point_labels is None else scan.point_labels[keep],
+                  point_deviation=None if scan.point_deviation is None else scan.point_deviation[keep])
     out.points = np.asarray(scan.points[keep], dtype=np.float64)  # file-unit precision, as load_source keeps it
     return out
 

@@ -8,7 +8,8 @@ import numpy as np
 from datasets.defects import DEFECT_KINDS, HEIGHT_RANGE, RADIUS_RANGE, patch_normal, pick_site
 
 
-def defect_in_points(points, normals, sensor, kind, diagonal, noise=0.0, seed=None, size=1.0):
+def defect_in_points(points, normals, sensor, kind, diagonal, noise=0.0, seed=None, size=1.0,
+                     with_deviation=False):
     """Make one defect in a scan's own points (a real scan, with no mesh to cut): everything outside it stays as
     measured.
 
@@ -40,6 +41,8 @@ def defect_in_points(points, normals, sensor, kind, diagonal, noise=0.0, seed=No
     seed : int, numpy Generator or None
     size : float > 0
         Both sizes times this.
+    with_deviation : bool
+        Also return each point's deviation (below). Draws nothing: the defect is the same either way.
 
     Returns
     -------
@@ -50,6 +53,14 @@ def defect_in_points(points, normals, sensor, kind, diagonal, noise=0.0, seed=No
     info : dict
         ``kind``, ``center``, ``normal`` (lists), ``radius``, and ``height`` (dent / bump), ``depth`` (missing) or
         ``shape`` (foreign): JSON-serialisable.
+    deviation : (n,) float64 array
+        Only with ``with_deviation``: the ground truth of how far each point lies off the scan's surface, in the
+        points' units (``Scan.point_deviation``): ``(x_i - p_i) . n_i``, the displacement of the labelled point
+        ``p_i`` along its own unit normal ``n_i`` (which faces the sensor: outward), where ``x_i`` is its new place
+        before the range noise a missing or foreign defect adds (the noise is the sensor's, not the defect's): so
+        negative for a dent or a missing pit, positive for a bump or a foreign object (on a flat patch, a dent's is
+        ``-height (1 - (r/R)^2)^2``), and 0 on the points left as they were. The measured points stand for the good
+        surface: their own noise is in it.
     """
     if kind not in DEFECT_KINDS:
         raise ValueError(f"unknown defect kind {kind!r}; expected one of {DEFECT_KINDS}")
@@ -58,10 +69,19 @@ def defect_in_points(points, normals, sensor, kind, diagonal, noise=0.0, seed=No
     if not (np.isfinite(diagonal) and float(diagonal) > 0 and float(noise) >= 0):
         raise ValueError(f"diagonal must be a finite length > 0 (the part's bounding-box diagonal) and noise >= 0 (a "
                          f"standard deviation), got {diagonal!r} and {noise!r}")
-    rng = np.random.default_rng(seed)
     points = np.asarray(points, dtype=np.float64)
     normals = np.asarray(normals, dtype=np.float64)
-    sensor = np.asarray(sensor, dtype=np.float64)
+    out, exact, labels, info = _defect(points, normals, np.asarray(sensor, dtype=np.float64), kind, diagonal, noise,
+                                       np.random.default_rng(seed), size)
+    if not with_deviation:
+        return out, labels, info
+    unit = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+    deviation = np.where(labels > 0, np.einsum("ij,ij->i", exact - points, unit), 0.0)
+    return out, labels, info, deviation
+
+
+def _defect(points, normals, sensor, kind, diagonal, noise, rng, size):
+    """:func:`defect_in_points`' defect: (points, the same before the range noise, labels, info)."""
     radius = rng.uniform(*RADIUS_RANGE) * diagonal * size
     height = rng.uniform(*HEIGHT_RANGE) * diagonal * size
     i = pick_site(points, normals, sensor, radius, seed=rng, max_normal_deg=35.0, min_facing=0.6, min_share=0.6)
@@ -77,7 +97,7 @@ def defect_in_points(points, normals, sensor, kind, diagonal, noise=0.0, seed=No
         out[moving] += ((height if kind == "bump" else -height) * profile)[:, None] * n0
         labels[moving] = 1
         info["height"] = height
-        return out, labels, info
+        return out, out, labels, info
     dirs = points - sensor
     dist = np.linalg.norm(dirs, axis=1)
     dirs /= dist[:, None]
@@ -88,9 +108,11 @@ def defect_in_points(points, normals, sensor, kind, diagonal, noise=0.0, seed=No
         idx = np.flatnonzero(inside)[hit]
         t = t_exit[hit] + rng.normal(0.0, noise, len(idx))
         out[idx] = sensor + t[:, None] * dirs[idx]
+        exact = out.copy()
+        exact[idx] = sensor + t_exit[hit][:, None] * dirs[idx]
         labels[idx] = 1
         info["depth"] = radius
-        return out, labels, info
+        return out, exact, labels, info
     shape = ("sphere", "box")[rng.integers(2)]
     if shape == "sphere":
         r_obj, sink = 0.8 * radius, 0.4 * radius
@@ -104,9 +126,11 @@ def defect_in_points(points, normals, sensor, kind, diagonal, noise=0.0, seed=No
     hit = np.isfinite(t_hit) & (t_hit < dist)
     t = t_hit[hit] + rng.normal(0.0, noise, hit.sum())
     out[hit] = sensor + t[:, None] * dirs[hit]
+    exact = out.copy()
+    exact[hit] = sensor + t_hit[hit][:, None] * dirs[hit]
     labels[hit] = 1
     info["shape"] = shape
-    return out, labels, info
+    return out, exact, labels, info
 
 
 def _ray_sphere(origin, dirs, center, radius):

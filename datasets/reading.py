@@ -177,6 +177,30 @@ def downsample(points, normals, labels, reading):
     return points, normals, labels
 
 
+def downsample_values(points, values, reading):
+    """A per-point quantity (a ground-truth deviation) through :func:`downsample` of the same ``points``: the
+    voxel's mean (:func:`datasets.ingest.voxel_mean`) or the subset's rows, row for row with the points it returns.
+
+    Parameters
+    ----------
+    points : (N, 3) float64 array
+        The points given to :func:`downsample`.
+    values : (N,) float array
+    reading : Reading
+
+    Returns
+    -------
+    (M,) array
+    """
+    from .ingest import voxel_mean
+
+    if reading.voxel is not None:
+        return voxel_mean(points, values, reading.voxel)
+    if reading.points is not None:
+        return values[subset(points, reading.points, reading.seed)]
+    return values
+
+
 def mark_signs(scan, reading):
     """Mark ``scan`` (in place) as one whose normal signs the good surface decides when it is scored, when
     ``reading`` says so for a scan without a sensor origin (``scan.extra[SIGNS_KEY]``). Returns ``scan``."""

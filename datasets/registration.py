@@ -541,11 +541,15 @@ def apply_transform(T, points, normals=None):
 def moved_by(scan, T):
     """A copy of a scan-like object (a :class:`datasets.Scan`) moved by the transform ``T`` (4, 4; rigid or affine,
     :func:`apply_transform`): points, normals and sensor origin; the transform recorded in ``extra['align']`` when
-    the scan has an ``extra`` dict (composed after one already there: the scan's total motion)."""
+    the scan has an ``extra`` dict (composed after one already there: the scan's total motion). A per-point deviation
+    (a length along the normal n) is divided by |L^-T n| (L: T's linear part), its plane's stretch along it."""
     from dataclasses import replace
 
     points, normals = apply_transform(T, scan.points, getattr(scan, "normals", None))
     changes = dict(points=points, normals=normals)
+    if getattr(scan, "point_deviation", None) is not None and normals is not None:
+        inverse = np.linalg.inv(np.asarray(T, dtype=np.float64)[:3, :3])
+        changes["point_deviation"] = scan.point_deviation / np.linalg.norm(scan.normals @ inverse, axis=1)
     if hasattr(scan, "sensor_origin"):
         origin = scan.sensor_origin
         changes["sensor_origin"] = (None if origin is None else

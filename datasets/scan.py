@@ -30,6 +30,13 @@ class Scan:
         Per-point ground truth, 1 where the point lies on a defect.
     sensor_origin : (3,) float32 array, optional
         Where the sensor was, in the same frame as ``points``.
+    extra : dict
+        Anything else (a pose, a defect's centre); not stored in a collection.
+    point_deviation : (N,) float32 array, optional
+        Per-point ground truth of how far each point lies off the good part's surface: its signed distance to it,
+        in the same units as ``points`` (a length: a frame's scale scales it), positive outside (material added: a
+        bump, a foreign object), negative inside (a dent, a missing pit), 0 on points no defect touched. None when
+        unknown (real scans). Like ``point_labels``, every copy, subset or move of a scan carries it.
     """
 
     name: str
@@ -42,6 +49,7 @@ class Scan:
     point_labels: Optional[np.ndarray] = None
     sensor_origin: Optional[np.ndarray] = None
     extra: dict = field(default_factory=dict)
+    point_deviation: Optional[np.ndarray] = None  # last, so that positional construction stays as it was
 
     def __post_init__(self):
         self.points = np.ascontiguousarray(self.points, dtype=np.float32)
@@ -59,6 +67,14 @@ class Scan:
             self.point_labels = np.ascontiguousarray(self.point_labels, dtype=np.uint8).reshape(-1)
             if len(self.point_labels) != len(self.points):
                 raise ValueError(f"{where}: {len(self.point_labels)} point labels for {len(self.points)} points")
+        if self.point_deviation is not None:
+            self.point_deviation = np.ascontiguousarray(self.point_deviation, dtype=np.float32).reshape(-1)
+            if len(self.point_deviation) != len(self.points):
+                raise ValueError(f"{where}: {len(self.point_deviation)} point deviations for {len(self.points)} "
+                                 f"points")
+            bad = int(np.count_nonzero(~np.isfinite(self.point_deviation)))
+            if bad:
+                raise ValueError(f"{where}: {bad} point deviations are NaN or Inf (of {len(self.points)})")
         if self.sensor_origin is not None:
             self.sensor_origin = np.asarray(self.sensor_origin, dtype=np.float32).reshape(3)
 

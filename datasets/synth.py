@@ -77,8 +77,10 @@ def synthesise(mesh, n_train=32, n_test_good=16, n_test_defective=16, defects=DE
     -------
     scans : list of Scan
         In the collection frame ``frame`` (points, sensor origins), named ``train/good/000``, ``test/dent/003``, ...;
-        test scans carry per-point labels (all zeros for good ones); ``extra`` holds the pose (4, 4) of the part in
-        file units and, for defects, the defect's centre and radius in file units.
+        test scans carry per-point labels (all zeros for good ones) and per-point deviations
+        (:func:`_point_deviation`: collection units; all zeros for good ones; training and validation scans have
+        neither, None); ``extra`` holds the pose (4, 4) of the part in file units and, for defects, the defect's
+        centre and radius in file units.
     frame : Frame
         ``Frame.fit(mesh.vertices)``: the part's bounding box mapped to a cube of side 1 centred at 0.
 
@@ -140,11 +142,13 @@ def synthesise(mesh, n_train=32, n_test_good=16, n_test_defective=16, defects=DE
         if kind == "good":
             result = scanner.scan(scanner.random_view(seed=rng, **view_options), seed=rng, **options)
             labels = np.zeros(len(result.points), dtype=np.uint8) if split == "test" else None
+            deviation = np.zeros(len(result.points), dtype=np.float32) if split == "test" else None
             extra = {"pose": result.pose}
         else:
             result, labels, defect = _defective_scan(mesh, scanner, kind, rng, view_options, options,
                                                      min_defect_fraction, min_defect_points, max_attempts, name,
                                                      defect_size)
+            deviation = _point_deviation(mesh, result, labels)
             extra = {"pose": result.pose, "defect_center": defect.center, "defect_radius": defect.radius}
         origin = result.sensor_origin
         if origin_standoff is not None or origin_tilt_deg > 0:
@@ -152,8 +156,9 @@ def synthesise(mesh, n_train=32, n_test_good=16, n_test_defective=16, defects=DE
                                     origin_standoff or (1.0, 1.0), origin_tilt_deg, rng)
         scan = Scan(name=name, points=result.points, normals=result.normals, split=split,
                     label="good" if kind == "good" else "defective", defect="" if kind == "good" else kind,
-                    part_id=part_id, point_labels=labels, sensor_origin=origin, extra=extra)
-        scans.append(frame.apply(scan))
+                    part_id=part_id, point_labels=labels, sensor_origin=origin, extra=extra,
+                    point_deviation=deviation)
+        scans.append(frame.apply(scan))  # the deviation, a length, scaled with the points
     return scans, frame
 
 
@@ -180,3 +185,20 @@ def _defective_scan(mesh, scanner, kind, rng, view_options, options, min_fractio
         best = max(best, int(labels.sum()))
     raise ValueError(f"{name}: no view out of {max_attempts} showed the {kind} defect on at least {needed} points "
                      f"(best {best}); use a larger defect or more points")
+
+
+def _point_deviation(mesh, result, labels):
+    """(n,) float64: each labelled point's signed distance to the good part ``mesh`` (mesh units, positive outside:
+    ``Scan.point_deviation``), taken at its noise-free hit (the range noise is the sensor's, not the defect's); 0 on
+    the points no defect touched. Draws nothing, so the scans are those of a synthesis without it.
+
+    A labelled point the sensor saw through a hole (``missing`` on a thin wall) lies on a surface the good part has
+    (its far side): its deviation is about 0.
+    """
+    import trimesh
+
+    deviation = np.zeros(len(labels))
+    on = labels.astype(bool)
+    if on.any():  # trimesh's sign is positive inside
+        deviation[on] = -trimesh.proximity.signed_distance(mesh, result.to_mesh_frame(result.clean_points[on]))
+    return deviation

@@ -108,7 +108,8 @@ def run_synth(args):
 
 
 def _write_tree(out, scans, frame, provenance):
-    """MVTec-style tree: <split>/<good|defect>/<NNN>.ply, ground_truth/<defect>/<NNN>.txt (0/1 per point).
+    """MVTec-style tree: <split>/<good|defect>/<NNN>.ply, ground_truth/<defect>/<NNN>.txt (0/1 per point) and
+    <NNN>.deviation.txt (each point's deviation, in the clouds' units: :data:`datasets.importer.DEVIATION_SUFFIX`).
 
     Written into a temporary folder beside ``out`` and renamed into place, so a reader never sees half a tree.
     """
@@ -122,6 +123,8 @@ def _write_tree(out, scans, frame, provenance):
                 truth = tmp / "ground_truth" / scan.defect / f"{Path(scan.name).name}.txt"
                 truth.parent.mkdir(parents=True, exist_ok=True)
                 truth.write_text("".join(f"{v}\n" for v in scan.point_labels.tolist()))
+                truth.with_name(f"{truth.stem}.deviation.txt").write_text(
+                    "".join(f"{v:.9g}\n" for v in scan.point_deviation.tolist()))
         # The frame maps the part's file units to the cloud coordinates: keep it with the clouds.
         meta = {"frame": frame.as_dict(), "provenance": provenance,
                 "sensor_origins": {s.name: [float(v) for v in s.sensor_origin] for s in scans}}

@@ -96,6 +96,10 @@ def _parser():
     s.add_argument("--two-class", action="store_true",
                    help="good or defective only (default: a scan whose score lies within the threshold's own "
                         "uncertainty is 'uncertain': rescan it)")
+    s.add_argument("--tolerance", default=None, metavar="DEV[,AREA]",
+                   help="also call a scan defective when one of its defect regions departs from where good parts "
+                        "put the surface by more than DEV over more than AREA, in the scans' units (e.g. "
+                        "0.2mm,4mm2); defects.csv and scores.csv say which decided")
     s.add_argument("--overwrite", action="store_true", help="write into an existing folder that is not a results "
                                                             "folder")
     s.add_argument("--jobs", type=_positive_int, default=1,
@@ -239,7 +243,7 @@ def main(argv=None):
             summary = score(args.model, args.data, args.out, split=None if args.split == "all" else args.split,
                             alpha=args.alpha, maps=args.maps, align=args.align,
                             progress=not args.quiet, overwrite=args.overwrite, uncertain=not args.two_class,
-                            jobs=args.jobs, max_defective_share=args.max_defective_share)
+                            jobs=args.jobs, max_defective_share=args.max_defective_share, tolerance=args.tolerance)
             if summary.get("n_errors"):
                 print(f"error: {summary['n_errors']} scan(s) could not be scored (verdict 'error' in "
                       f"{args.out}/scores.csv)", file=sys.stderr)

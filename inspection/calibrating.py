@@ -29,6 +29,7 @@ from .coverage import decide_coverage
 from .evidence import kept_points, scan_name
 from .loading import reading_of
 from .reference import REFERENCE_QUANTITY, LocalReference, fit_noise_model
+from .regions import good_map_maxima
 from .scores import POINT_SCORES, WEIGHED_SCORES, fit_term_variances, noise_floor, reference_terms
 from .scoring import aligned, scan_evidence, score_evidence, sized
 from .selection import model_parts, select_scans
@@ -165,8 +166,9 @@ def calibrate_selection(model, selection, config, origins_everywhere, cross_fit=
         how += (f"; scored over covered surface (the held-back scans have {100 * uncovered_share:.1f} % of their "
                 f"points where no training scan saw the surface)")
     scores, combination = calibration_scores(results, settings)
+    maxima = good_map_maxima(results, references, settings, combination) if needs_reference else None
     return FittedState(settings, scores, [g.name for g in goods], ["held-back"] * len(held) + [role] * len(crossed),
-                       how, reference, combination, aligner, note, level_rendered)
+                       how, reference, combination, aligner, note, level_rendered, maxima)
 
 
 def _decided(model, selection, config, origins_everywhere):

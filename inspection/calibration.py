@@ -17,8 +17,9 @@ CALIBRATION_KEY = "calibration"
 # 2: every record holds each entry of ``extra`` (``EXTRA_KEYS``), one role per score, its settings whole with ``align``
 # decided, and its per-location reference complete (version 1 records may lack any of these: :func:`migrate`);
 # 3: its settings hold ``coverage`` (a version 2 record scored every point: coverage 0)
-CALIBRATION_VERSION = 3
-EXTRA_KEYS = ("config", "reading", "parts", "level_rendered", "reference", "rays", "align")
+# 4: ``extra['regions']``, the good calibration scans' largest map values (:mod:`inspection.regions`)
+CALIBRATION_VERSION = 4
+EXTRA_KEYS = ("config", "reading", "parts", "level_rendered", "reference", "rays", "align", "regions")
 
 
 @dataclass
@@ -46,6 +47,11 @@ class FittedState:
         One line when the calibration decided to register the scans ('' otherwise, and for a stored record).
     level_rendered : bool
         Whether the threshold's level rests on views rendered from clean templates alone.
+    region_maxima : (n,) float array or None
+        The largest anomaly map value of each good calibration scan (:func:`inspection.regions.map_maximum`), in
+        the order of ``scores``: what the region level is drawn from (None: not measured, no regions).
+    region_roles : list of str or None
+        Their roles (None: ``roles``; they differ once a site's scans set the level, which adds no map maxima).
     """
 
     settings: object
@@ -58,6 +64,8 @@ class FittedState:
     aligner: object = None
     alignment_note: str = ""
     level_rendered: bool = False
+    region_maxima: object = None
+    region_roles: object = None
 
 
 @dataclass
@@ -87,8 +95,9 @@ class Calibration:
         ``reading`` (how scanner files are read, :mod:`inspection.loading`; or None), ``parts`` (a model of several
         part types: one record per part as a dict; else None), and for a single part ``level_rendered``,
         ``reference`` (:meth:`LocalReference.as_dict` or None), ``rays`` (``{"components": ...}``, the
-        :class:`inspection.combine.Combination`, or None) and ``align`` (the :class:`inspection.align.Aligner` or
-        None).
+        :class:`inspection.combine.Combination`, or None), ``align`` (the :class:`inspection.align.Aligner` or
+        None) and ``regions`` (``{"maxima": [...], "roles": [...]}``, the good calibration scans' largest map
+        values and their roles, or None: no regions).
     roles : list of str
         For each score, ``'held-back'`` (a good scan the model did not train on), ``'fold'`` (a training scan scored
         by a fold model that never trained on it), ``'cross-fitted'`` (a training scan scored by the model as if
@@ -151,8 +160,11 @@ class Calibration:
             from .combine import Combination
 
             combination = Combination.from_dict(extra["rays"]["components"])
+        regions = extra["regions"]
+        maxima = None if regions is None else np.asarray(regions["maxima"], dtype=np.float64)
         return FittedState(settings, np.asarray(self.scores, dtype=np.float64), list(self.names), list(self.roles),
-                           self.source, reference, combination, aligner, "", bool(extra["level_rendered"]))
+                           self.source, reference, combination, aligner, "", bool(extra["level_rendered"]), maxima,
+                           None if regions is None else list(regions["roles"]))
 
     @classmethod
     def from_state(cls, state, alpha, source, fingerprint, reading=None, parts=None):
@@ -179,7 +191,10 @@ class Calibration:
                  "level_rendered": bool(state.level_rendered) if single else False,
                  "reference": state.reference.as_dict() if single and state.reference is not None else None,
                  "rays": {"components": state.combination.as_dict()} if single and settings.rays else None,
-                 "align": state.aligner.as_dict() if single and state.aligner is not None else None}
+                 "align": state.aligner.as_dict() if single and state.aligner is not None else None,
+                 "regions": ({"maxima": np.asarray(state.region_maxima, dtype=np.float64).tolist(),
+                              "roles": list(state.roles if state.region_roles is None else state.region_roles)}
+                             if single and state.region_maxima is not None else None)}
         return cls(scores=np.asarray(state.scores, dtype=np.float64).tolist(), names=list(state.names),
                    roles=list(state.roles), aggregate=settings.aggregate, point_score=settings.point_score,
                    noise=settings.noise, alpha=float(alpha), source=source, fingerprint=fingerprint, extra=extra)
@@ -276,8 +291,14 @@ def _from_version_2(record):
     return {**record, "version": 3, "extra": extra}
 
 
+def _from_version_3(record):
+    """Version 3 -> 4: no ``regions`` (a version 3 calibration did not measure its good scans' maps): the model
+    scores as calibrated and reports no defect regions until it is calibrated again."""
+    return {**record, "version": 4, "extra": {**record["extra"], "regions": None}}
+
+
 # version -> the function that upgrades a record of that version to the next
-_UPGRADES = {1: _from_version_1, 2: _from_version_2}
+_UPGRADES = {1: _from_version_1, 2: _from_version_2, 3: _from_version_3}
 
 
 def read_calibration(path):

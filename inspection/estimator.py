@@ -19,6 +19,7 @@ from .evidence import field_for, scan_name, stage
 from .scores import WEIGHED_SCORES
 from .scoring import ScanResult, score_scan, weigh_rays
 from .threshold import fit_threshold
+from .regions import RegionMixin
 from .verdicts import VerdictMixin
 
 _DEFAULTS = InspectionConfig()  # the parameters' defaults: InspectionConfig's, stated once
@@ -26,7 +27,7 @@ _DEFAULTS = InspectionConfig()  # the parameters' defaults: InspectionConfig's, 
 __all__ = ["Inspector", "NotFittedError", "ScanResult", "field_for", "DEFAULT_AGGREGATE", "DEFAULT_PROJECTION"]
 
 
-class Inspector(VerdictMixin, BaseEstimator):
+class Inspector(VerdictMixin, RegionMixin, BaseEstimator):
     """Defect detector over scans: per-point scores under the projected field, one score per scan, and a threshold
     calibrated on good scans (:mod:`inspection.threshold`: split-conformal when there are at least 1 / alpha - 1 of
     them, else a log-normal tail fitted to their scores; either way a false-alarm rate of ``alpha`` on average).
@@ -163,6 +164,8 @@ class Inspector(VerdictMixin, BaseEstimator):
         self.aligner_, self.alignment_note_, self.level_rendered_ = state.aligner, state.alignment_note, \
             bool(state.level_rendered)
         self.calibration_source_ = state.source
+        self.region_maxima_ = state.region_maxima
+        self.region_roles_ = list(state.roles if state.region_roles is None else state.region_roles)
         return self._set(state.scores, state.names, state.roles)
 
     def _set(self, scores, names, roles):
@@ -201,7 +204,8 @@ class Inspector(VerdictMixin, BaseEstimator):
                  for p, one in (getattr(self, "parts_", None) or {}).items()}
         state = FittedState(self.settings_, self.calibration_scores_, self.calibration_names_, self.calibration_roles_,
                             source, getattr(self, "reference_", None), getattr(self, "combination_", None),
-                            getattr(self, "aligner_", None), "", getattr(self, "level_rendered_", False))
+                            getattr(self, "aligner_", None), "", getattr(self, "level_rendered_", False),
+                            getattr(self, "region_maxima_", None), getattr(self, "region_roles_", None))
         return Calibration.from_state(state, self.alpha, source, fingerprint, getattr(self, "reading_", None), parts)
 
     def summary(self):

@@ -316,7 +316,7 @@ def check_align(insp, path):
                           f"(scoring then registers every scan by itself)")
 
 
-def inspect_scan(insp, scan, i=0, maps="none", maps_dir=None, uncertain=True):
+def inspect_scan(insp, scan, i=0, maps="none", maps_dir=None, uncertain=True, tolerance=None):
     """One scan inspected by the calibrated ``insp`` (registered first as its calibration and its model say) into
     its ``scores.csv`` row, and its anomaly map written when ``maps`` asks for one.
 
@@ -334,6 +334,8 @@ def inspect_scan(insp, scan, i=0, maps="none", maps_dir=None, uncertain=True):
         Where the maps go (needed unless ``maps`` is 'none').
     uncertain : bool
         The 'uncertain' verdict (False: good or defective only).
+    tolerance : inspection.tolerance.Tolerance, optional
+        Also judge the scan's defect regions against it (:func:`inspection.tolerance.judged`).
 
     Returns
     -------
@@ -341,12 +343,16 @@ def inspect_scan(insp, scan, i=0, maps="none", maps_dir=None, uncertain=True):
         ``row``: the scores.csv columns (``name``, ``split``, ``label``, ``defect``, ``score``, ``p_value``,
         ``verdict``, ``reason``, ``flagged``, ``why``; with rays also ``score_points``, ``score_rays``, ``ray_nats``,
         ``rays_through``), or :func:`error_row`'s for a scan that cannot be scored (a ValueError: its first line is
-        the reason), and nothing else then. For a scored scan also ``seconds`` (the inspection's), with
+        the reason), and nothing else then; the row also has ``regions`` (how many defect regions,
+        :mod:`inspection.regions`; None when not looked for: a good verdict without maps 'all' or a tolerance),
+        ``tolerance`` and ``decided_by`` (:func:`inspection.tolerance.judged`). For a scored scan also ``seconds``
+        (the inspection's), ``defects`` (one ``defects.csv`` row per region), with
         ground-truth point labels ``point_labels``, ``point_map`` and ``ray_map`` (the map's values,
         :func:`inspection.maps.map_values`), and with a map written ``view`` (its 3D view for report.html).
     """
     from .html_report import scan_view
     from .maps import map_values
+    from .tolerance import judged
 
     if maps not in ("none", "flagged", "all") or (maps != "none" and maps_dir is None):
         raise ValueError(f"maps must be 'none', or 'flagged' or 'all' with a maps_dir, got {maps!r}")
@@ -370,13 +376,23 @@ def inspect_scan(insp, scan, i=0, maps="none", maps_dir=None, uncertain=True):
                    ray_nats=res.components.get("ray_nats"),
                    rays_through=float(np.mean(through)) if through is not None and len(through) else 0.0)
     out["row"] = row
+    regions, region_ids = [], None
+    if verdict != "good" or maps == "all" or tolerance is not None:
+        regions, region_ids = one.regions_of_result(scan, res)
+        row["regions"] = len(regions) if region_ids is not None else None
+    row.update(judged(verdict, why, regions, tolerance))
+    verdict = row["verdict"]
+    out["defects"] = [{"name": scan.name, **r.row()} for r in regions]
+    if scan.point_labels is not None:
+        out["region_ids"] = region_ids
     mapped = maps == "all" or (maps == "flagged" and verdict != "good")
     if scan.point_labels is not None or mapped:
         values, ray_values = map_values(one.settings_, scan, res)
     if scan.point_labels is not None:  # the point metrics are those of the map a user sees
         out.update(point_labels=scan.point_labels, point_map=values, ray_map=ray_values)
     if mapped:
-        write_scan_maps(scan, values, ray_values, maps_dir, None if res.coverage is None else res.coverage.covered)
+        write_scan_maps(scan, values, ray_values, maps_dir, None if res.coverage is None else res.coverage.covered,
+                        region_ids)
         out["view"] = scan_view(scan.name, scan.points, values, ray_values, seed=i)  # report.html's 3D view
     return out
 

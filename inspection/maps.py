@@ -151,13 +151,15 @@ def safe_name(name):
     return out.strip(".") or "scan"
 
 
-def write_map(path, points, normals, values, vrange=MAP_RANGE):
+def write_map(path, points, normals, values, vrange=MAP_RANGE, regions=None):
     """Write the scan coloured by ``values`` (standardized residuals; ray scores with ``RAY_MAP_RANGE``) to a
-    binary PLY (atomically)."""
+    binary PLY (atomically); with ``regions`` ((m,) int, :mod:`inspection.regions`' ids, -1 outside any) also a
+    vertex property ``region``."""
     from datasets import write_cloud
 
     return write_cloud(Path(path), np.asarray(points, dtype=np.float32),
-                       None if normals is None else np.asarray(normals, dtype=np.float32), colours(values, vrange=vrange))
+                       None if normals is None else np.asarray(normals, dtype=np.float32), colours(values, vrange=vrange),
+                       None if regions is None else {"region": np.asarray(regions, dtype=np.int32)})
 
 
 def write_legend(path, vrange=MAP_RANGE, label=MAP_LABEL):

@@ -16,7 +16,11 @@ from datasets.atomic import atomic_path
 # from their side (inspection.coverage; empty when coverage does not apply): its score counts the others; ``why``:
 # the verdict in words (:meth:`inspection.Inspector.verdicts_from_results`), what report.html shows
 CSV_COLUMNS = ("name", "split", "label", "defect", "score", "p_value", "verdict", "flagged", "reason", "uncovered",
-               "why")
+               "why", "regions", "tolerance", "decided_by")
+# defects.csv: one row per defect region (inspection.regions.DefectRegion.row), lengths in the scans' units
+DEFECT_COLUMNS = ("name", "region", "type", "deviation", "deviation_sd", "area", "area_low", "area_high", "extent",
+                  "volume", "volume_sd", "fill", "points", "peak", "x", "y", "z", "scan_x", "scan_y", "scan_z",
+                  "feature")
 # with rays: the score's two components (the point score; the rays' surprisal aggregate in nats, as the field gives
 # it), the rays' evidence that entered the score (nats, as good scans weigh it: inspection.ray_calibration) and the
 # share of the scan's returned rays that passed through its own surface (not tested: its sensor origin is off)
@@ -45,6 +49,17 @@ def write_scores_csv(path, rows, columns=CSV_COLUMNS):
         p_value = "" if r.get("p_value") is None else f"{r['p_value']:.6g}"
         flagged = "" if r["verdict"] == ERROR_VERDICT else str(_flagged(r)).lower()
         writer.writerow({**r, **floats, "p_value": p_value, "flagged": flagged, "reason": r.get("reason", "")})
+    return atomic_write_text(path, buf.getvalue())
+
+
+def write_defects_csv(path, rows):
+    """``defects.csv``: one row per defect region (``DEFECT_COLUMNS``; floats to 6 significant digits, an unknown
+    volume empty). Written atomically."""
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=DEFECT_COLUMNS, extrasaction="ignore", lineterminator="\n")
+    writer.writeheader()
+    for r in rows:
+        writer.writerow({k: ("" if v is None else f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
     return atomic_write_text(path, buf.getvalue())
 
 

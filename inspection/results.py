@@ -28,16 +28,17 @@ def prepare_out(out, overwrite=False):
     return out
 
 
-def write_scan_maps(scan, values, rays, maps_dir, covered=None):
+def write_scan_maps(scan, values, rays, maps_dir, covered=None, regions=None):
     """One scan's anomaly map (``values``, (m,) patch residuals) and, with rays, its ray map (``rays``, (m,) or
     None), as coloured PLY files; both from :func:`inspection.maps.map_values`. With ``covered`` ((m,) bool,
     :mod:`inspection.coverage`) and any point uncovered, also ``coverage/<scan>.ply``: grey where good scans covered
-    the surface, magenta where none saw it (the score leaves those points out)."""
+    the surface, magenta where none saw it (the score leaves those points out). ``regions`` ((m,) int or None):
+    each point's defect region id (-1: none), a vertex property ``region`` of the anomaly map."""
     from datasets import write_cloud
 
     from .maps import RAY_MAP_RANGE, safe_name, write_map
 
-    write_map(maps_dir / f"{safe_name(scan.name)}.ply", scan.points, scan.normals, values)
+    write_map(maps_dir / f"{safe_name(scan.name)}.ply", scan.points, scan.normals, values, regions=regions)
     if rays is not None:
         write_map(maps_dir / "rays" / f"{safe_name(scan.name)}.ply", scan.points, scan.normals, rays,
                   vrange=RAY_MAP_RANGE)
@@ -71,6 +72,7 @@ def summarize_run(handle, insp, data, split, align, results):
                  "weighing": None if parted else insp.combination_.rays.describe()}}
     # the joint score's two terms' variances on the good calibration scans (field, good points), what weighs them
     extra["term_variances"] = None if parted else insp.term_variances()
+    extra["regions"] = _regions_summary(insp, results.get("defects", []))
     if parted:  # thresholds per part: summary['parts']; scores compare within a part only
         extra["parts"] = insp.summary()
     summary = summarize(results["rows"], None if parted else insp.threshold_, insp.alpha, results["point_labels"],
@@ -84,15 +86,29 @@ def summarize_run(handle, insp, data, split, align, results):
     return summary
 
 
+def _regions_summary(insp, defects):
+    """summary.json's ``regions``: the region level (per part for a model of several; None: a calibration that
+    does not measure its good scans' maps), the number of regions in defects.csv and per type."""
+    from collections import Counter
+
+    parts = insp.parts_ or {"": insp}
+    levels = {p: one.region_level() for p, one in sorted(parts.items())}
+    return {"level": levels[""] if not insp.parts_ else levels, "n_regions": len(defects),
+            "by_type": dict(sorted(Counter(d["type"] for d in defects).items())),
+            "units": "the scans' own (lengths, areas and volumes as in the scan files)"}
+
+
 def write_results(out, insp, results, summary):
-    """scores.csv, summary.json, roc.png (scans with known labels), scores.png and the maps' legends."""
+    """scores.csv, defects.csv, summary.json, roc.png (scans with known labels), scores.png and the maps'
+    legends."""
     from .maps import RAY_MAP_LABEL, RAY_MAP_RANGE, write_legend
     from .plots import plot_roc, plot_score_histograms
-    from .report import CSV_COLUMNS, RAY_CSV_COLUMNS, write_json, write_scores_csv
+    from .report import CSV_COLUMNS, RAY_CSV_COLUMNS, write_defects_csv, write_json, write_scores_csv
 
     rays = insp.settings_.rays
     rows = results["rows"]
     write_scores_csv(out / "scores.csv", rows, RAY_CSV_COLUMNS if rays else CSV_COLUMNS)
+    write_defects_csv(out / "defects.csv", results.get("defects", []))
     write_json(out / "summary.json", summary)
     scored = [r for r in rows if r["verdict"] != "error"]
     labels = np.array([r["label"] for r in scored])

@@ -14,7 +14,7 @@ from .results import prepare_out, summarize_run, write_results
 
 
 def score(model, data, out, split="test", alpha=None, maps="flagged", align=False, progress=True, overwrite=False,
-          echo=print, uncertain=True, jobs=1, max_defective_share=None):
+          echo=print, uncertain=True, jobs=1, max_defective_share=None, tolerance=None):
     """Score scans against a calibrated model and write report.html, scores.csv, summary.json, roc.png, scores.png,
     maps/.
 
@@ -51,6 +51,13 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
         raise InspectionError(f"--maps must be flagged, all or none, got {maps!r}")
     if not isinstance(jobs, int) or jobs < 1:
         raise InspectionError(f"--jobs must be a whole number >= 1, got {jobs!r}")
+    if isinstance(tolerance, str):
+        from .tolerance import Tolerance
+
+        try:
+            tolerance = Tolerance.parse(tolerance)
+        except ValueError as exc:
+            raise InspectionError(str(exc)) from None
     handle = load_model_handle(model)
     insp = calibrated_inspector(handle, data, alpha, progress, echo, True if align else "auto")
     aligned = calibrated_aligned(insp)
@@ -68,7 +75,7 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
     out = prepare_out(out, overwrite=overwrite)
     calibration = insp.calibration() if handle.calibration is None else handle.calibration
     spec = (handle.path, calibration, alpha)  # what a worker process builds its inspector from
-    results = _inspect_scans(insp, scans, maps, out / "maps", progress, uncertain, jobs, spec)
+    results = _inspect_scans(insp, scans, maps, out / "maps", progress, uncertain, jobs, spec, tolerance)
     batch = check_run(insp, scans, results["rows"], DEFAULT_MAX_DEFECTIVE_SHARE if max_defective_share is None
                       else max_defective_share, uncertain)  # before the counts: it can retell verdicts
     results["rows"] += [error_row(name, reason) for name, reason in info["failed"]]
@@ -101,7 +108,7 @@ def run_warnings(insp, batch):
     return lines
 
 
-def _inspect_scans(insp, scans, maps, maps_dir, progress, uncertain=True, jobs=1, worker_spec=None):
+def _inspect_scans(insp, scans, maps, maps_dir, progress, uncertain=True, jobs=1, worker_spec=None, tolerance=None):
     """Inspect every scan (registered first when the calibration aligns) and write the anomaly maps ``maps`` asks for. A scan that
     cannot be scored (a ValueError naming it) gets an ``'error'`` row and the others go on.
 
@@ -117,19 +124,21 @@ def _inspect_scans(insp, scans, maps, maps_dir, progress, uncertain=True, jobs=1
     from tqdm import tqdm
 
     results = {"rows": [], "point_labels": [], "point_maps": [], "ray_maps": [], "seconds": [], "maps": 0,
-               "views": []}  # views: report.html's 3D views (inspection.html_report.scan_view), one per map
+               "views": [], "defects": [], "region_ids": []}  # views: report.html's 3D views (inspection.html_report.scan_view), one per map
     jobs = min(int(jobs), len(scans))
     if jobs <= 1:
-        outs = (inspect_scan(insp, scan, i, maps, maps_dir, uncertain)
+        outs = (inspect_scan(insp, scan, i, maps, maps_dir, uncertain, tolerance)
                 for i, scan in enumerate(tqdm(scans, desc="inspect", unit="scan", disable=not progress)))
     else:
-        outs = _inspect_in_workers(worker_spec, scans, maps, maps_dir, progress, uncertain, jobs, insp)
+        outs = _inspect_in_workers(worker_spec, scans, maps, maps_dir, progress, uncertain, jobs, insp, tolerance)
     for one in outs:
         results["rows"].append(one["row"])
         if "seconds" not in one:  # an error row
             continue
         results["seconds"].append(one["seconds"])
+        results["defects"] += one.get("defects", [])
         if "point_labels" in one:
+            results["region_ids"].append(one.get("region_ids"))
             results["point_labels"].append(one["point_labels"])
             results["point_maps"].append(one["point_map"])
             if one["ray_map"] is not None:
@@ -164,11 +173,11 @@ def _start_worker(spec):
     _WORKER["insp"] = Inspector.from_calibration(handle.model, calibration, alpha)
 
 
-def _worker_inspect(scan, i, maps, maps_dir, uncertain):
-    return inspect_scan(_WORKER["insp"], scan, i, maps, maps_dir, uncertain)
+def _worker_inspect(scan, i, maps, maps_dir, uncertain, tolerance=None):
+    return inspect_scan(_WORKER["insp"], scan, i, maps, maps_dir, uncertain, tolerance)
 
 
-def _inspect_in_workers(spec, scans, maps, maps_dir, progress, uncertain, jobs, insp):
+def _inspect_in_workers(spec, scans, maps, maps_dir, progress, uncertain, jobs, insp, tolerance=None):
     """:func:`inspection.job.inspect_scan` of every scan in ``jobs`` processes; returns their outputs in the input
     order.
 
@@ -193,7 +202,8 @@ def _inspect_in_workers(spec, scans, maps, maps_dir, progress, uncertain, jobs, 
                                initargs=(pickle.dumps(spec),))
     bar = tqdm(total=len(scans), desc=f"inspect ({jobs} processes)", unit="scan", disable=not progress)
     try:
-        futures = [pool.submit(_worker_inspect, scan, i, maps, maps_dir, uncertain) for i, scan in enumerate(scans)]
+        futures = [pool.submit(_worker_inspect, scan, i, maps, maps_dir, uncertain, tolerance)
+                   for i, scan in enumerate(scans)]
         for fut in futures:
             fut.add_done_callback(lambda f: None if f.cancelled() else bar.update())
         threads = torch.get_num_threads()
@@ -203,7 +213,7 @@ def _inspect_in_workers(spec, scans, maps, maps_dir, progress, uncertain, jobs, 
                 for i in reversed(range(len(scans))):
                     if not futures[i].cancel():  # the workers have reached this scan: the rest is theirs
                         break
-                    outs[i] = inspect_scan(insp, scans[i], i, maps, maps_dir, uncertain)
+                    outs[i] = inspect_scan(insp, scans[i], i, maps, maps_dir, uncertain, tolerance)
                     bar.update()
         finally:
             torch.set_num_threads(threads)

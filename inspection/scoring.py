@@ -35,6 +35,7 @@ class ScanResult:
     ``coverage`` (:class:`inspection.coverage.Coverage`, with a per-location point score and a field with a
     lengthscale) says which points lie on surface the good scans covered: ``score`` and ``components["points"]``
     count those (``components["points_all"]`` every point), the point scores and the maps every point.
+    ``evidence``: the :class:`inspection.evidence.ScanEvidence` it was scored from (the defect regions measure it).
     """
 
     score: float
@@ -46,6 +47,7 @@ class ScanResult:
     stray: np.ndarray = None
     ray_point_nats: np.ndarray = None
     coverage: Coverage = None
+    evidence: ScanEvidence = None
 
 
 def score_scan(model, scan, index, settings, reference=None, aligner=None, timings=None):
@@ -179,7 +181,7 @@ def score_evidence(evidence: ScanEvidence, reference, settings, timings=None, un
         if coverage is not None and not coverage.counted_all:
             score = aggregate_scores(values[kept & coverage.covered], settings.aggregate)
     result = ScanResult(score, values, evidence.field, components={"points": score}, stray=evidence.stray,
-                        coverage=coverage)
+                        coverage=coverage, evidence=evidence)
     if coverage is not None:
         result.components["points_all"] = coverage.score_all
     if settings.rays:

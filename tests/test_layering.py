@@ -119,7 +119,8 @@ def test_light_modules_import_no_heavy_library(module):
 
 # ------------------------------------------------------------------------------------------------------ benchmarks
 BENCHMARK_CORE = ("benchmarks", "benchmarks.record", "benchmarks.cache", "benchmarks.metrics", "benchmarks.baselines",
-                  "benchmarks.inspect_api", "benchmarks.table", "benchmarks.surface_metrics", "benchmarks.suites")
+                  "benchmarks.inspect_api", "benchmarks.table", "benchmarks.surface_metrics", "benchmarks.suites",
+                  "benchmarks.options")
 LIBRARY = ("datasets", "autodecoder", "inspection", "train_latent")
 # the inspection modules a benchmark module other than benchmarks.inspect_api may import: {module: who may}
 INSPECTION_OUTSIDE_API = {"inspection.threshold": None, "inspection.training": ("benchmarks.cache",)}

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks import baselines, cache, inspect_api, metrics
+from benchmarks import baselines, cache, inspect_api, metrics, options
 from benchmarks.table import format_table, verdicts_table
 
 DESCRIPTION = ("a new user's first run per part (synthesise, train, score at the defaults): object AUROC per defect "
@@ -70,7 +70,7 @@ def add_arguments(p):
                         "benchmarks.cache.family_collection), test scans of the variant VALUE (stretch: 1.0 the "
                         "nominal part, inside the range of 0.8-0.9 and 1.1-1.2, never trained on; 1.3 just outside "
                         "it); compare with the same part without --family (its own model)")
-    inspect_api.add_align_options(p)
+    options.add_align_options(p)
     rays = p.add_mutually_exclusive_group()
     rays.add_argument("--rays", dest="rays", action="store_const", const=True, default=None,
                       help="calibrate with the ray score (default: the inspection's choice, the rays when every "
@@ -101,7 +101,7 @@ def add_arguments(p):
     p.add_argument("--template-points", type=int, default=10000, help="--templates: points per template")
     p.add_argument("--views", type=int, default=16, help="--templates: training views per template")
     p.add_argument("--validation-views", type=int, default=4, help="--templates: held-back views per template")
-    inspect_api.add_calibration_options(p, "collections and models", WORK, folds_help=", one row each")
+    options.add_calibration_options(p, "collections and models", WORK, folds_help=", one row each")
 
 
 def run(args):
@@ -199,7 +199,7 @@ def _single(part, args):
     one = {"collection": str(data), "model": str(model), "train_seconds": info["train_seconds"],
            "fold_seconds": _fold_seconds(model)}
     rows = []
-    for folds in inspect_api.fold_settings(args.folds):
+    for folds in options.fold_settings(args.folds):
         run_dir = Path(args.work) / data.parent.name / (_run_name(args) + ("" if folds else "_nofolds"))
         summary = inspect_api.calibrate_and_score(model, data, run_dir, rays=args.rays, align=args.align,
                                                   progress=args.progress, folds=folds,
@@ -321,7 +321,7 @@ def _templates(part, args):
     model = cache.trained_model(data, root=args.cache, **_train_options(args))
     out = {"collection": str(data), "model": str(model), "fold_seconds": _fold_seconds(model)}
     rows = []
-    for folds in inspect_api.fold_settings(args.folds):
+    for folds in options.fold_settings(args.folds):
         run_dir = Path(args.work) / data.parent.name / (_run_name(args) + ("" if folds else "_nofolds"))
         summary = inspect_api.calibrate_and_score(model, data, run_dir, rays=args.rays, maps="none", folds=folds,
                                                   progress=args.progress, echo=lambda line: print(f"  {part}: {line}"))

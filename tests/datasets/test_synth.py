@@ -121,7 +121,8 @@ def test_cli_tree_format(tmp_path):
     out = tmp_path / "tree"
     assert main(["synth", *CLI_SMALL, "--out", str(out), "--format", "tree", "--defects", "dent,foreign"]) == 0
     assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*.*")) == [
-        "ground_truth/dent/000.txt", "ground_truth/foreign/000.txt", "synth.json", "test/dent/000.ply",
+        "ground_truth/dent/000.deviation.txt", "ground_truth/dent/000.txt", "ground_truth/foreign/000.deviation.txt",
+        "ground_truth/foreign/000.txt", "synth.json", "test/dent/000.ply",
         "test/foreign/000.ply", "test/good/000.ply", "train/good/000.ply", "train/good/001.ply"]
     truth = np.loadtxt(out / "ground_truth" / "dent" / "000.txt")
     assert len(truth) == 800 and set(np.unique(truth)) == {0.0, 1.0}

@@ -354,3 +354,36 @@ def test_calibrating_on_a_damaged_good_scan_names_the_file_once_and_the_scan(wor
         f["points"][offset, 1] += 0.01
     err = _error(["calibrate", "--model", str(model), "--data", str(data), "--quiet"], capsys)
     assert err.count(str(data)) == 1 and "train/good/004" in err and "content_sha256" in err
+
+
+def test_score_writes_the_defect_regions_and_judges_a_tolerance(workdir, tmp_path):
+    """defects.csv (one row per region), the regions' count and the tolerance's judgement in scores.csv, a region id
+    per point in the maps, the region level in summary.json."""
+    from plyfile import PlyData
+
+    from inspection.maps import safe_name
+    from inspection.report import DEFECT_COLUMNS
+
+    model = tmp_path / "model.pt"
+    model.write_bytes((workdir / "model.pt").read_bytes())
+    assert main(["calibrate", "--model", str(model), "--data", str(workdir / "tree.h5"), "--alpha", "0.3",
+                 "--quiet"]) == 0
+    out = tmp_path / "results"
+    assert main(["score", "--model", str(model), "--data", str(workdir / "tree.h5"), "--out", str(out), "--maps",
+                 "all", "--tolerance", "0.001mm", "--quiet"]) == 0
+    rows = list(csv.DictReader(open(out / "scores.csv")))
+    defects = list(csv.DictReader(open(out / "defects.csv")))
+    assert tuple(csv.reader(open(out / "defects.csv")).__next__()) == DEFECT_COLUMNS
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["regions"]["level"] > 0 and summary["regions"]["n_regions"] == len(defects)
+    for r in rows:
+        mine = [d for d in defects if d["name"] == r["name"]]
+        assert int(r["regions"]) == len(mine)
+        ids = PlyData.read(str(out / "maps" / f"{safe_name(r['name'])}.ply"))["vertex"]["region"]
+        assert sorted(set(ids.tolist()) - {-1}) == sorted(int(d["region"]) for d in mine)
+        out_of_tolerance = any(abs(float(d["deviation"])) > 0.001 for d in mine)
+        assert r["tolerance"] == ("out" if out_of_tolerance else "within")
+        if out_of_tolerance:
+            assert r["verdict"] == "defective" and r["decided_by"] in ("tolerance", "both")
+    assert main(["score", "--model", str(model), "--data", str(workdir / "tree.h5"), "--out", str(tmp_path / "x"),
+                 "--tolerance", "wide"]) != 0  # a tolerance that is not one: one line, before any work

@@ -17,7 +17,7 @@ grazing, sparse, stray, rarely covered by training), with pictures in the run's 
 """
 from pathlib import Path
 
-from benchmarks import cache, inspect_api
+from benchmarks import cache, inspect_api, options
 from benchmarks.suites.real.diagnosis import diagnose
 from benchmarks.suites.real.reading import BUNNY, SENSOR_DISTANCE
 from benchmarks.suites.real.scoring import score
@@ -37,7 +37,7 @@ def add_arguments(p):
     p.add_argument("--jitter", type=float, default=2.0, help="pose change, degrees (default: %(default)s)")
     p.add_argument("--shift", type=float, default=0.0, help="and a shift of up to this fraction of the part's "
                                                             "diagonal, per scan (parts placed by hand; default none)")
-    inspect_api.add_align_options(p)
+    options.add_align_options(p)
     p.add_argument("--standoff", type=float, default=SENSOR_DISTANCE,
                    help="the sensor origin the sidecars record: this many metres along the view's axis from the "
                         "view's centre, as a user writes a nominal stand-off (default %(default)s: the sweep's "
@@ -55,7 +55,7 @@ def add_arguments(p):
     p.add_argument("--no-rays", action="store_true", help="calibrate without the ray score (default: the "
                                                           "inspection's choice: with it, the scans have sensor origins)")
     p.add_argument("--diagnose", action="store_true", help="also the per-point analysis and pictures of the run")
-    inspect_api.add_calibration_options(p, "tree, collection and model", WORK)
+    options.add_calibration_options(p, "tree, collection and model", WORK)
 
 
 def run(args):

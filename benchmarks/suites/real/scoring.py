@@ -4,7 +4,7 @@ import time
 
 import numpy as np
 
-from benchmarks import baselines, inspect_api, metrics
+from benchmarks import baselines, inspect_api, metrics, options
 from benchmarks.suites.real.tree import KINDS
 from benchmarks.table import format_table
 
@@ -16,7 +16,7 @@ def score(data, model, run_dir, args):
     from benchmarks.table import verdicts_table
 
     verdict_rows = []
-    for folds in inspect_api.fold_settings(args.folds):
+    for folds in options.fold_settings(args.folds):
         one_dir = run_dir if folds else run_dir.with_name(run_dir.name + "_nofolds")
         t0 = time.perf_counter()
         summary = inspect_api.calibrate_and_score(model, data, one_dir, rays=False if args.no_rays else None,

@@ -4,6 +4,8 @@ as the datasets importer reads them and imported (cached by its parameters: ``be
     train/good/*.ply, test/good/*.ply, test/{bump,dent,foreign,missing}/*.ply    points only (no normals), metres
     <same stem>.json    {"sensor_origin": [x, y, z], "view": ..., "stray_points": [...], "rotation_deg": ...}
     ground_truth/<defect>/<stem>.txt    one 0/1 per point
+    ground_truth/<defect>/<stem>.deviation.txt    one number per point, metres: how far it lies off the good surface
+        (``defect_in_points``' deviation: positive outside, 0 off the defect and on the spurious returns)
 
 Every scan is one real view, a fresh random subset of its points (4,000 by default) with the scanner's own stray
 points kept, a few synthetic spurious returns on half the scans (points on the sensor's ray, 5-30 mm in front of
@@ -103,11 +105,12 @@ def build_tree(tree, args):
         rng = np.random.default_rng([args.seed, n])
         v = views[(i + offsets[split] + (KINDS.index(kind) if kind in KINDS else 0)) % len(views)]
         pts, labels, info = v["points"], np.zeros(len(v["points"]), np.uint8), {}
-        if kind in KINDS:
-            pts, labels, info = defect_in_points(pts, v["normals"], v["sensor"], kind, diagonal, v["noise"], rng,
-                                                 args.size)
+        deviation = np.zeros(len(pts))
+        if kind in KINDS:  # the deviation draws nothing: the scans are those of the trees built before it
+            pts, labels, info, deviation = defect_in_points(pts, v["normals"], v["sensor"], kind, diagonal,
+                                                            v["noise"], rng, args.size, with_deviation=True)
         keep = np.sort(rng.choice(len(pts), min(args.points, len(pts)), replace=False))
-        pts, labels = pts[keep], labels[keep]
+        pts, labels, deviation = pts[keep], labels[keep], deviation[keep]
         n_stray = int(rng.integers(1, args.strays + 1)) if args.strays and rng.random() < 0.5 else 0
         stray = spurious_returns(pts, v["sensor"], n_stray, rng)
         at = np.sort(rng.choice(len(pts) + n_stray, n_stray, replace=False))
@@ -116,6 +119,8 @@ def build_tree(tree, args):
         merged[order], merged[at] = pts, stray
         lab = np.zeros(len(merged), np.uint8)
         lab[order] = labels
+        dev = np.zeros(len(merged))  # a length: the pose change below leaves it as it is
+        dev[order] = deviation
         rot = random_rotation(args.jitter, rng)
         shift = np.zeros(3)
         if args.shift:
@@ -134,6 +139,7 @@ def build_tree(tree, args):
         if kind in KINDS:
             gt = tree / "ground_truth" / kind / f"{stem}.txt"
             _write_text(gt, "\n".join(str(int(x)) for x in lab) + "\n")
+            _write_text(gt.with_name(f"{stem}.deviation.txt"), "\n".join(f"{x:.9g}" for x in dev) + "\n")
     print(f"wrote {len(plan)} scans in {time.perf_counter() - t0:.0f} s")
 
 

@@ -1,0 +1,133 @@
+"""Defects as a quality engineer reports them: each defect region found, typed and measured, against the synthesis'
+truth (issue 49).
+
+Per part and seed: the collection and model of a new user's first run (the ``inspection`` suite's: 32 good training
+scans, 16 good and 16 per defect type test scans; ``--parts real``: the ``real`` suite's bunny tree, its defects made
+in real points), calibrated the README's way, every test scan's anomaly map and defect regions
+(:func:`benchmarks.inspect_api.scan_regions`). Printed per run:
+
+- **AU-PRO** at 0.3 false-positive rate (:func:`benchmarks.metrics.au_pro`, as MVTec 3D-AD scores the maps);
+- **found**: the share of true defects overlapped by a region with IoU >= 0.3 (:func:`benchmarks.metrics.region_overlap`);
+- **type**: the share of found defects whose region has the defect's type;
+- **depth err / area err**: median relative error of a found region's deviation and area against the truth: the
+  largest |true deviation| of the defect's points (``Scan.point_deviation``, recorded by the synthesis) and the area
+  of its points that moved by at least ``FOOTPRINT_FRACTION`` of it, each point's area as the regions measure it
+  (the same definition of a footprint as the regions', applied to the truth). Defects whose points did not move
+  (seen through a hole onto good surface behind) have no depth and are left out of both;
+- **false / good scan**: regions on good test scans per good scan (regions are looked for on every scan here; the
+  toolkit reports them for scans it does not call good);
+- per type: found, typed right.
+"""
+import json
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks import cache, inspect_api, metrics
+from benchmarks.table import format_table
+
+DESCRIPTION = ("defect regions (issue 49): AU-PRO, the share of defects found (IoU >= 0.3), type accuracy, depth and "
+               "area errors against the synthesis' truth, false regions per good scan")
+WORK = "results/defects"
+KINDS = ("bump", "dent", "missing", "foreign")
+FOOTPRINT_FRACTION = 0.1  # inspection.regions' (a test checks they agree)
+
+
+def add_arguments(p):
+    p.add_argument("--parts", default="fandisk,cup,real", help="comma-separated: synthetic parts (fandisk, cup, "
+                                                                 "bunny, builtin, enclosure, a mesh file) and 'real' "
+                                                                 "(the real bunny tree) (default: %(default)s)")
+    p.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (default: %(default)s)")
+    p.add_argument("--cache", default=cache.CACHE, help="collections and models (default: %(default)s)")
+    p.add_argument("--work", default=WORK, help="calibrated models and maps (default: %(default)s)")
+    p.add_argument("--progress", action="store_true", help="progress bars")
+
+
+def run(args):
+    rows = []
+    for part in [p.strip() for p in args.parts.split(",") if p.strip()]:
+        for seed in [int(s) for s in args.seeds.split(",")]:
+            data, model = _tree(part, seed, args)
+            runs = inspect_api.scan_regions(model, data, Path(args.work) / f"{part}_s{seed}", progress=args.progress)
+            rows.append({"part": part, "seed": seed, **region_figures(runs)})
+            print(format_table([_flat(rows[-1])], _COLUMNS), flush=True)
+    print(format_table([_flat(r) for r in rows], _COLUMNS))
+    return {"runs": rows}
+
+
+def _tree(part, seed, args):
+    """(collection, model) of ``part`` at ``seed``: the inspection suite's synthetic tree, or the real suite's."""
+    if part == "real":  # the real suite's tree (built by it: suites do not import each other)
+        trees = [p.parent / "bunny.h5" for p in sorted((Path(args.cache) / "real").glob("bunny_*/params.json"))
+                 if json.loads(p.read_text())["params"].get("seed") == seed and (p.parent / "bunny.h5").exists()]
+        if not trees:
+            raise SystemExit(f"defects: no real bunny tree of seed {seed} in {args.cache}/real: build it with "
+                             f"`python -m benchmarks real --seed {seed}`")
+        return trees[0], cache.trained_model(trees[0], root=args.cache, seed=0)
+    data = cache.synth_collection(part, seed, root=args.cache, progress=args.progress, **cache.COLLECTION_DEFAULTS)
+    return data, cache.trained_model(data, root=args.cache, seed=seed)
+
+
+def truth_size(deviation, labels, areas):
+    """(depth, area) of a defect's truth: the largest |deviation| of its labelled points and the area of those that
+    moved by at least ``FOOTPRINT_FRACTION`` of it (None, None when none moved)."""
+    moved = np.abs(np.asarray(deviation, dtype=np.float64))[labels]
+    depth = float(moved.max()) if len(moved) else 0.0
+    if depth <= 0:
+        return None, None
+    return depth, float(np.asarray(areas)[labels][moved >= FOOTPRINT_FRACTION * depth].sum())
+
+
+def region_figures(runs):
+    """The figures of one run (module docstring) from :func:`benchmarks.inspect_api.scan_regions`' scans."""
+    scored = [r for r in runs if r["map"] is not None and r["region_ids"] is not None]
+    points = [r["points"] for r in scored]
+    labels = [np.asarray(r["point_labels"], dtype=bool) for r in scored]
+    ids = [np.asarray(r["region_ids"]) for r in scored]
+    au_pro = metrics.au_pro(points, [l.astype(int) for l in labels], [r["map"] for r in scored], max_fpr=0.3)
+    defective = [i for i, r in enumerate(scored) if r["label"] == "defective" and labels[i].any()]
+    # one true region per defective scan: the synthesis makes one defect a scan (a foreign object's points stand
+    # apart from the surface around it, and would otherwise count as several)
+    overlap = metrics.region_overlap([points[i] for i in defective], [labels[i].astype(int) for i in defective],
+                                     [ids[i] for i in defective], min_iou=0.3, link=np.inf)
+    per_kind = {k: {"defects": 0, "found": 0, "typed": 0} for k in KINDS}
+    depth_err, area_err = [], []
+    for match in overlap["matches"]:
+        scan = scored[defective[match["scan"]]]
+        kind = per_kind.setdefault(scan["defect"], {"defects": 0, "found": 0, "typed": 0})
+        kind["defects"] += 1
+        if not match["detected"]:
+            continue
+        kind["found"] += 1
+        region = next(g for g in scan["regions"] if g["region"] == match["predicted"])
+        kind["typed"] += region["type"] == scan["defect"]
+        if scan["point_deviation"] is not None:
+            truth = np.zeros(len(scan["points"]), dtype=bool)
+            truth[match["points"]] = True
+            depth, area = truth_size(scan["point_deviation"], truth, scan["areas"])
+            if depth:
+                depth_err.append(abs(abs(region["deviation"]) - depth) / depth)
+                area_err.append(abs(region["area"] - area) / area if area > 0 else np.nan)
+    good = [i for i, r in enumerate(scored) if r["label"] == "good"]
+    found = sum(k["found"] for k in per_kind.values())
+    return {"au_pro": au_pro, "found": overlap["detected"], "typed": sum(k["typed"] for k in per_kind.values()) /
+            found if found else float("nan"),
+            "depth_error": float(np.nanmedian(depth_err)) if depth_err else float("nan"),
+            "area_error": float(np.nanmedian(area_err)) if area_err else float("nan"), "measured": len(depth_err),
+            "false_per_good": metrics.false_regions_per_scan([ids[i] for i in good], [labels[i] for i in good])
+            if good else float("nan"), "good_scans": len(good), "per_kind": per_kind}
+
+
+_COLUMNS = [("part", "part", ""), ("seed", "seed", ">"), ("au_pro", "AU-PRO", ".3f"), ("found", "found", ".3f"),
+            ("typed", "type", ".3f"), ("depth_error", "depth err", ".3f"), ("area_error", "area err", ".3f"),
+            ("false_per_good", "false/good", ".3f")] + [(k, k, "") for k in KINDS]
+
+
+def _flat(row):
+    return {**{k: v for k, v in row.items() if k != "per_kind"},
+            **{k: f"{v['found']}/{v['defects']} found, {v['typed']} typed" for k, v in row["per_kind"].items()
+               if k in KINDS}}
+
+
+def dump(rows, path):
+    Path(path).write_text(json.dumps(rows, indent=1, default=float))
