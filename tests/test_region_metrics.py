@@ -188,3 +188,15 @@ def test_false_regions_per_scan_counts_regions_on_normal_points_only():
         metrics.false_regions_per_scan(predicted, labels[:2])
     with pytest.raises(ValueError, match="no scan"):
         metrics.false_regions_per_scan([], [])
+
+
+def test_the_defects_suite_measures_the_truth_as_the_regions_measure_a_footprint():
+    from benchmarks.suites import defects
+    from inspection.regions import FOOTPRINT_FRACTION
+
+    assert defects.FOOTPRINT_FRACTION == FOOTPRINT_FRACTION
+    deviation = np.array([0.0, -0.5, -0.04, -0.2, 0.3])
+    labels = np.array([False, True, True, True, False])
+    areas = np.array([1.0, 2.0, 4.0, 8.0, 16.0])
+    assert defects.truth_size(deviation, labels, areas) == (0.5, 10.0)  # -0.04 moved less than 10 % of 0.5
+    assert defects.truth_size(np.zeros(5), labels, areas) == (None, None)

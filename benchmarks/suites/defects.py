@@ -128,6 +128,3 @@ def _flat(row):
             **{k: f"{v['found']}/{v['defects']} found, {v['typed']} typed" for k, v in row["per_kind"].items()
                if k in KINDS}}
 
-
-def dump(rows, path):
-    Path(path).write_text(json.dumps(rows, indent=1, default=float))
