@@ -274,3 +274,40 @@ def fewscans_lines(figures, record=None):
         lines += markdown_table(grouped(overall, "what"),
                                 [(k, "added views" if k == "what" else h, f) for k, h, f in columns]) + [""]
     return lines[:-1] if lines else None
+
+
+@renderer("defects")
+def defects_lines(figures, record=None):
+    """Per part, over its seeds: mean AU-PRO, defects found (IoU >= 0.3), type accuracy, median depth and area
+    errors, false regions per good scan (looked for on every scan / shown), and per true type found and typed right."""
+    runs = figures.get("runs") or []
+    if not runs:
+        return None
+
+    def mean(rows, key):
+        values = [r[key] for r in rows if isinstance(r.get(key), (int, float)) and not math.isnan(r[key])]
+        return sum(values) / len(values) if values else None
+
+    parts = {}
+    for run in runs:
+        parts.setdefault(run["part"], []).append(run)
+    rows = []
+    for part, group in parts.items():
+        kinds = {}
+        for run in group:
+            for kind, counts in run["per_kind"].items():
+                total = kinds.setdefault(kind, {"defects": 0, "found": 0, "typed": 0})
+                for key in total:
+                    total[key] += counts[key]
+        rows.append({"part": part, "seeds": ", ".join(str(r["seed"]) for r in sorted(group, key=lambda r: r["seed"])),
+                     **{k: mean(group, k) for k in ("au_pro", "found", "typed", "depth_error", "area_error",
+                                                     "false_per_good", "false_shown")},
+                     "kinds": ", ".join(f"{k} {c['typed']}/{c['found']}/{c['defects']}" for k, c in sorted(kinds.items()))})
+    columns = [("part", "part", ""), ("seeds", "seeds", ""), ("au_pro", "AU-PRO (0.3 FPR)", ".3f"),
+               ("found", "found (IoU >= 0.3)", ".3f"), ("typed", "type right", ".3f"),
+               ("depth_error", "depth error (median)", ".3f"), ("area_error", "area error (median)", ".3f"),
+               ("false_per_good", "false regions / good scan (all / shown)", ".3f"), ("false_shown", "", ".3f"),
+               ("kinds", "per type: typed right / found / defects", "")]
+    lines = markdown_table(rows, columns)
+    lines[0] = lines[0].replace("| false regions / good scan (all / shown) |  |", "| false regions / good scan, all | shown |")
+    return lines

@@ -148,7 +148,7 @@ def synthesise(mesh, n_train=32, n_test_good=16, n_test_defective=16, defects=DE
             result, labels, defect = _defective_scan(mesh, scanner, kind, rng, view_options, options,
                                                      min_defect_fraction, min_defect_points, max_attempts, name,
                                                      defect_size)
-            deviation = _point_deviation(mesh, result, labels)
+            deviation = _point_deviation(mesh, result, labels, defect)
             extra = {"pose": result.pose, "defect_center": defect.center, "defect_radius": defect.radius}
         origin = result.sensor_origin
         if origin_standoff is not None or origin_tilt_deg > 0:
@@ -187,18 +187,36 @@ def _defective_scan(mesh, scanner, kind, rng, view_options, options, min_fractio
                      f"(best {best}); use a larger defect or more points")
 
 
-def _point_deviation(mesh, result, labels):
-    """(n,) float64: each labelled point's signed distance to the good part ``mesh`` (mesh units, positive outside:
+def _point_deviation(mesh, result, labels, defect=None):
+    """(n,) float64: how far each labelled point lies off the good part ``mesh`` (mesh units, positive outside:
     ``Scan.point_deviation``), taken at its noise-free hit (the range noise is the sensor's, not the defect's); 0 on
     the points no defect touched. Draws nothing, so the scans are those of a synthesis without it.
 
-    A labelled point the sensor saw through a hole (``missing`` on a thin wall) lies on a surface the good part has
-    (its far side): its deviation is about 0.
+    For a dent or a bump (``defect`` given), the point's offset from the tangent plane of the face it was moved
+    from: the displacement (:func:`datasets.defects.make_defect`'s profile along the defect's normal) times the
+    cosine between that normal and the face's. Not the distance to the nearest face of the good part: a dent deeper
+    than a thin wall moves both of its faces (pressed sheet metal), and its points lie nearer the far face's old place
+    than their own. Otherwise (missing, foreign) the signed distance to the good part: a labelled point the sensor
+    saw through a hole (``missing`` on a thin wall) lies on a surface the good part has (its far side), about 0.
     """
     import trimesh
 
     deviation = np.zeros(len(labels))
     on = labels.astype(bool)
-    if on.any():  # trimesh's sign is positive inside
-        deviation[on] = -trimesh.proximity.signed_distance(mesh, result.to_mesh_frame(result.clean_points[on]))
+    if not on.any():
+        return deviation
+    points = result.to_mesh_frame(result.clean_points[on])
+    if defect is not None and defect.kind in ("dent", "bump"):
+        normal = np.asarray(defect.normal, dtype=np.float64)
+        offset = points - defect.center
+        along = offset @ normal
+        lateral = np.linalg.norm(offset - along[:, None] * normal, axis=1)
+        moved = np.zeros(len(points))
+        for _ in range(8):  # the profile is of the point's distance from the centre before it moved: a fixed point
+            before = np.sqrt(lateral ** 2 + (along - moved) ** 2)
+            moved = defect.height * np.clip(1.0 - (before / defect.radius) ** 2, 0.0, None) ** 2
+        _, _, faces = trimesh.proximity.closest_point(mesh, points - moved[:, None] * normal)
+        deviation[on] = moved * (np.asarray(mesh.face_normals)[faces] @ normal)
+        return deviation
+    deviation[on] = -trimesh.proximity.signed_distance(mesh, points)  # trimesh's sign is positive inside
     return deviation

@@ -100,6 +100,9 @@ def _parser():
                    help="also call a scan defective when one of its defect regions departs from where good parts "
                         "put the surface by more than DEV over more than AREA, in the scans' units (e.g. "
                         "0.2mm,4mm2); defects.csv and scores.csv say which decided")
+    s.add_argument("--features", default=None, metavar="CSV",
+                   help="named features of the part (a CSV file with a header name,x,y,z in the part's frame, the "
+                        "scans' units): defects.csv names each region's nearest")
     s.add_argument("--overwrite", action="store_true", help="write into an existing folder that is not a results "
                                                             "folder")
     s.add_argument("--jobs", type=_positive_int, default=1,
@@ -243,7 +246,8 @@ def main(argv=None):
             summary = score(args.model, args.data, args.out, split=None if args.split == "all" else args.split,
                             alpha=args.alpha, maps=args.maps, align=args.align,
                             progress=not args.quiet, overwrite=args.overwrite, uncertain=not args.two_class,
-                            jobs=args.jobs, max_defective_share=args.max_defective_share, tolerance=args.tolerance)
+                            jobs=args.jobs, max_defective_share=args.max_defective_share, tolerance=args.tolerance,
+                            features=args.features)
             if summary.get("n_errors"):
                 print(f"error: {summary['n_errors']} scan(s) could not be scored (verdict 'error' in "
                       f"{args.out}/scores.csv)", file=sys.stderr)

@@ -18,17 +18,17 @@ from datetime import datetime, timezone
 
 import numpy as np
 
+from .html_page import EMPHASIS, PAGE, SCRIPT, STATUS_HEAD, STYLE
 from .maps import MAP_CMAP, MAP_LABEL, MAP_RANGE, RAY_MAP_LABEL, RAY_MAP_RANGE
 from .report import VERDICTS, verdict_counts
 
 VIEW_POINTS = 3000  # points shown per scan in the 3D view
-EMPHASIS = 3.0  # patch residual above which a point is drawn larger (3 standard deviations)
 RAY_EMPHASIS = 0.5  # ray map: P(blocked) above which a point is drawn larger
 VERDICT_COLOURS = {"good": "#2e7d32", "defective": "#c62828", "uncertain": "#ef6c00", "error": "#6d4c41"}
 LABEL_COLOURS = {"good": "#2e7d32", "defective": "#c62828", "unknown": "#757575"}
 
 
-def scan_view(name, points, values, ray_values=None, n_points=VIEW_POINTS, seed=0):
+def scan_view(name, points, values, ray_values=None, n_points=VIEW_POINTS, seed=0, regions=None):
     """One scan's 3D view data: a seeded subsample of its points with their map values.
 
     Every point above :data:`EMPHASIS` (or, with rays, whose ray value is above :data:`RAY_EMPHASIS`) is kept, up
@@ -44,14 +44,17 @@ def scan_view(name, points, values, ray_values=None, n_points=VIEW_POINTS, seed=
         Per-point patch residuals (the PLY map's values, :func:`inspection.maps.map_values`; scale ``MAP_RANGE``).
     ray_values : (m,) array, optional
         Per-point ray map (scale ``RAY_MAP_RANGE``).
+    regions : (m,) int array, optional
+        Each point's defect region id (:mod:`inspection.regions`; -1: none): a region's points are kept like the
+        emphasised ones, so that selecting it shows it.
     n_points : int
         How many points to keep at most.
     seed : int
 
     Returns
     -------
-    dict with ``name``, ``n`` (points in the scan), ``points`` (k, 3) float32, ``values`` (k,) float32 and
-    ``ray_values`` (k,) float32 or None
+    dict with ``name``, ``n`` (points in the scan), ``points`` (k, 3) float32, ``values`` (k,) float32,
+    ``ray_values`` (k,) float32 or None and ``regions`` (k,) int16 or None
     """
     points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
     values = np.asarray(values, dtype=np.float32).reshape(-1)
@@ -60,6 +63,9 @@ def scan_view(name, points, values, ray_values=None, n_points=VIEW_POINTS, seed=
     rays = None if ray_values is None else np.asarray(ray_values, dtype=np.float32).reshape(-1)
     if rays is not None and len(rays) != len(points):
         raise ValueError(f"ray_values must have one entry per point ({len(points)}), got {len(rays)}")
+    ids = None if regions is None else np.asarray(regions, dtype=np.int16).reshape(-1)
+    if ids is not None and len(ids) != len(points):
+        raise ValueError(f"regions must have one entry per point ({len(points)}), got {len(ids)}")
     if n_points < 1:
         raise ValueError(f"n_points must be >= 1, got {n_points}")
     m = len(points)
@@ -68,6 +74,8 @@ def scan_view(name, points, values, ray_values=None, n_points=VIEW_POINTS, seed=
         hot = values > EMPHASIS
         if rays is not None:
             hot |= rays > RAY_EMPHASIS
+        if ids is not None:
+            hot |= ids >= 0
         hot_idx, cold_idx = np.flatnonzero(hot), np.flatnonzero(~hot)
         hot_idx = rng.permutation(hot_idx)[:n_points // 2]
         cold_idx = rng.choice(cold_idx, size=min(len(cold_idx), n_points - len(hot_idx)), replace=False)
@@ -75,10 +83,10 @@ def scan_view(name, points, values, ray_values=None, n_points=VIEW_POINTS, seed=
     else:
         keep = np.arange(m)
     return {"name": str(name), "n": int(m), "points": points[keep], "values": values[keep],
-            "ray_values": None if rays is None else rays[keep]}
+            "ray_values": None if rays is None else rays[keep], "regions": None if ids is None else ids[keep]}
 
 
-def write_html_report(path, rows, summary, scan_views=(), title="Inspection report"):
+def write_html_report(path, rows, summary, scan_views=(), title="Inspection report", defects=()):
     """Write the run's page to ``path`` (atomically); returns the path.
 
     Parameters
@@ -92,13 +100,16 @@ def write_html_report(path, rows, summary, scan_views=(), title="Inspection repo
     scan_views : list of dict
         The scans to show in 3D (:func:`scan_view`), in any order.
     title : str
+    defects : list of dict
+        ``defects.csv``'s rows (:meth:`inspection.regions.DefectRegion.row` with the scan's ``name``): a table
+        whose rows select their region in the 3D view (as does the page's address with ``#region=<scan>|<id>``).
     """
     from .report import atomic_write_text
 
-    return atomic_write_text(path, report_html(rows, summary, scan_views, title))
+    return atomic_write_text(path, report_html(rows, summary, scan_views, title, defects))
 
 
-def report_html(rows, summary, scan_views=(), title="Inspection report"):
+def report_html(rows, summary, scan_views=(), title="Inspection report", defects=()):
     """The page of :func:`write_html_report` as a string."""
     import plotly.offline
 
@@ -115,12 +126,13 @@ def report_html(rows, summary, scan_views=(), title="Inspection report"):
         _decision_html(rows, summary),
         _plots_html(figures),
         _viewer_html(rows, views),
+        _regions_html(defects, {v["name"] for v in views}),
         _table_html(rows, summary, {v["name"] for v in views}),
         _settings_html(summary),
     ])
-    return _PAGE.format(title=html.escape(title), style=_STYLE, plotly=plotly.offline.get_plotlyjs(),
-                        data=json.dumps(data, separators=(",", ":"), default=_json_default).replace("</", "<\\/"),
-                        body=body, script=_SCRIPT, status_head=_STATUS_HEAD)
+    return PAGE.format(title=html.escape(title), style=STYLE, plotly=plotly.offline.get_plotlyjs(),
+                       data=json.dumps(data, separators=(",", ":"), default=_json_default).replace("</", "<\\/"),
+                       body=body, script=SCRIPT, status_head=STATUS_HEAD)
 
 
 # ----------------------------------------------------------------------------------------------- page sections
@@ -207,6 +219,29 @@ def _viewer_html(rows, views):
             f'{n_shown:,} points a scan are shown (every point above the emphasis threshold up to half of them, a '
             f'seeded random sample of the rest); the PLY maps hold every point. {len(views)} scan'
             f'{"s" if len(views) != 1 else ""} shown here, highest score first.</p></section>')
+
+
+def _regions_html(defects, viewed):
+    """The defect regions' table (:mod:`inspection.regions`): a row per region, its link selecting it in the 3D
+    view when its scan has one."""
+    if not defects:
+        return ""
+    cols = [("type", "type"), ("deviation", "deviation"), ("deviation_sd", "sd"), ("area", "area"),
+            ("extent", "extent"), ("volume", "volume"), ("x", "x"), ("y", "y"), ("z", "z")]
+    body = []
+    for d in defects:
+        name = str(d["name"])
+        link = (f'<a href="#maps" class="region3d" data-name="{_e(name)}" data-region="{int(d["region"])}">'
+                f'{_e(name)} #{int(d["region"])}</a>' if name in viewed else f'{_e(name)} #{int(d["region"])}')
+        cells = "".join(f"<td>{_e(d[k])}</td>" if k == "type" else f'<td class="num">{_num(d.get(k), 4)}</td>'
+                        for k, _ in cols)
+        body.append(f"<tr><td>{link}</td>{cells}</tr>")
+    head = "".join(f"<th>{h}</th>" for h in ["region"] + [h for _, h in cols])
+    return ('<section id="regions"><h2>Defect regions</h2><p class="note">Lengths, areas and volumes in the scans\' '
+            'own units (deviation: from where good parts put the surface, + outside); x, y, z: the centroid in the '
+            'part\'s frame. Click a region to show it in the 3D view.</p>'
+            f'<table id="region-table"><thead><tr>{head}</tr></thead><tbody>{"".join(body)}</tbody></table>'
+            '</section>')
 
 
 def _table_html(rows, summary, viewed):
@@ -359,6 +394,8 @@ def _view_json(v):
            "xyz": _b64(np.asarray(v["points"], dtype=np.float32)), "v": _b64(values)}
     if v.get("ray_values") is not None:
         out["r"] = _b64(np.nan_to_num(np.asarray(v["ray_values"], dtype=np.float32), nan=0.0))
+    if v.get("regions") is not None:
+        out["g"] = base64.b64encode(np.asarray(v["regions"], dtype="<i2").tobytes()).decode("ascii")
     return out
 
 
@@ -418,178 +455,3 @@ def _json_default(o):
 
 
 # ------------------------------------------------------------------------------------------------------ page
-_STATUS_HEAD = """<script>
-window.reportStatus = {ready: false, errors: [], plots: {}};
-window.onerror = function (msg, src, line, col, err) {
-  window.reportStatus.errors.push(String(msg) + (line ? " (line " + line + ")" : ""));
-};
-window.addEventListener("unhandledrejection", function (e) {
-  window.reportStatus.errors.push("unhandled rejection: " + String(e.reason));
-});
-</script>"""
-
-_STYLE = """
-body { font-family: system-ui, -apple-system, "Segoe UI", Roboto, sans-serif; margin: 0; color: #212121; }
-header { background: #263238; color: #fff; padding: 14px 24px; }
-header h1 { margin: 0 0 6px 0; font-size: 22px; }
-header .verdicts { font-size: 18px; }
-header .sub { font-size: 12px; color: #cfd8dc; margin-top: 6px; }
-.pill { display: inline-block; padding: 2px 10px; border-radius: 12px; color: #fff; font-weight: 600;
-        margin-right: 4px; }
-section { padding: 6px 24px 12px 24px; }
-h2 { font-size: 18px; border-bottom: 1px solid #cfd8dc; padding-bottom: 4px; }
-.note { color: #546e7a; font-size: 13px; }
-.warn { background: #fff3e0; border-left: 4px solid #ef6c00; padding: 6px 10px; }
-.plots { display: flex; flex-wrap: wrap; gap: 12px; }
-.plot { flex: 1 1 460px; min-width: 360px; }
-.view3d { width: 100%; height: 560px; border: 1px solid #cfd8dc; }
-.viewer-bar { margin-bottom: 8px; }
-.viewer-bar select { font-size: 14px; max-width: 60%; }
-#scan-info { margin-left: 12px; font-size: 14px; }
-table { border-collapse: collapse; font-size: 13px; }
-#verdict-table th { cursor: pointer; background: #eceff1; user-select: none; }
-#verdict-table th.asc::after { content: " \\25B2"; } #verdict-table th.desc::after { content: " \\25BC"; }
-th, td { padding: 3px 10px; border-bottom: 1px solid #eceff1; text-align: left; }
-td.num { text-align: right; font-variant-numeric: tabular-nums; }
-.verdict { font-weight: 600; }
-tr.v-defective { background: #ffebee; } tr.v-uncertain { background: #fff3e0; } tr.v-error { background: #efebe9; }
-table.kv th { background: none; font-weight: 600; }
-#report-status { display: none; }
-"""
-
-_SCRIPT = """
-(function () {
-  var S = window.reportStatus;
-  var D = JSON.parse(document.getElementById("report-data").textContent);
-  var CONFIG = {displaylogo: false, responsive: true};
-  function f32(b64) {
-    var s = atob(b64), u = new Uint8Array(s.length);
-    for (var i = 0; i < s.length; i++) u[i] = s.charCodeAt(i);
-    return new Float32Array(u.buffer);
-  }
-  function column(xyz, c) {
-    var out = new Float32Array(xyz.length / 3);
-    for (var i = 0; i < out.length; i++) out[i] = xyz[3 * i + c];
-    return out;
-  }
-  function cloud(xyz, v, emph, range, label, scene, bar_x) {
-    // two traces: the points at or below the emphasis threshold, and those above it, drawn larger on top
-    var n = v.length, lo = [], hi = [];
-    for (var i = 0; i < n; i++) (v[i] > emph ? hi : lo).push(i);
-    function part(idx, size, name, scale) {
-      var x = new Float32Array(idx.length), y = new Float32Array(idx.length), z = new Float32Array(idx.length),
-          c = new Float32Array(idx.length);
-      idx.forEach(function (j, k) { x[k] = xyz[3 * j]; y[k] = xyz[3 * j + 1]; z[k] = xyz[3 * j + 2]; c[k] = v[j]; });
-      return {type: "scatter3d", mode: "markers", name: name, scene: scene, showlegend: false, x: x, y: y, z: z,
-              marker: {size: size, color: c, colorscale: D.scale.colorscale, cmin: range[0], cmax: range[1],
-                       showscale: scale, opacity: 1,
-                       colorbar: {title: {text: label, side: "right"}, x: bar_x, len: 0.8, thickness: 14}},
-              hovertemplate: "%{marker.color:.2f}<extra>" + name + "</extra>"};
-    }
-    return [part(lo, 2, "points", true), part(hi, 5, "emphasised", false)];
-  }
-  var current = 0, drawn3d = false;
-  function viewLayout(rays) {
-    var axis = {showticklabels: false, title: {text: ""}, showbackground: true, backgroundcolor: "#f5f5f5"};
-    var scene = {aspectmode: "data", xaxis: axis, yaxis: axis, zaxis: axis};
-    var layout = {margin: {l: 0, r: 0, t: 30, b: 0}, uirevision: "keep", showlegend: false,
-                  scene: Object.assign({domain: {x: rays ? [0, 0.46] : [0, 0.9], y: [0, 1]}}, scene)};
-    if (rays) layout.scene2 = Object.assign({domain: {x: [0.52, 0.96], y: [0, 1]}}, scene);
-    if (rays) layout.annotations = [
-      {text: "anomaly map", showarrow: false, x: 0.2, y: 1.0, xref: "paper", yref: "paper"},
-      {text: "ray map", showarrow: false, x: 0.74, y: 1.0, xref: "paper", yref: "paper"}];
-    return layout;
-  }
-  function showScan(i) {
-    var el = document.getElementById("view3d");
-    if (!el || !D.views.length) return Promise.resolve();
-    current = (i + D.views.length) % D.views.length;
-    var v = D.views[current];
-    document.getElementById("scan-select").value = String(current);
-    document.getElementById("scan-info").textContent = v.k.toLocaleString() + " of " + v.n.toLocaleString() +
-      " points shown, " + v.hot + " above " + %(emphasis)s + " sd";
-    var rays = !!v.r, xyz = f32(v.xyz);
-    var traces = cloud(xyz, f32(v.v), D.scale.emphasis, D.scale.range, "patch residual (sd)", "scene", rays ? 0.47 : 0.92);
-    if (rays) traces = traces.concat(cloud(xyz, f32(v.r), D.scale.ray_emphasis, D.scale.ray_range, "P(blocked)",
-                                           "scene2", 0.97));
-    var layout = viewLayout(rays);
-    layout.title = {text: v.name, font: {size: 14}};
-    return Plotly.react(el, traces, layout, CONFIG).then(function (gd) {
-      return new Promise(function (resolve) {
-        requestAnimationFrame(function () { requestAnimationFrame(function () {
-          var sc = gd._fullLayout.scene && gd._fullLayout.scene._scene, gl = sc && sc.glplot && sc.glplot.gl;
-          S.plots.view3d = {traces: gd.data.length, scan: v.name, canvases: gd.querySelectorAll("canvas").length,
-                            webgl: !!(gl && !gl.isContextLost() && gl.drawingBufferWidth > 0),
-                            objects: sc && sc.glplot ? sc.glplot.objects.length : 0, points: v.k};
-          drawn3d = true;
-          resolve(gd);
-        }); });
-      });
-    });
-  }
-  var promises = [];
-  Object.keys(D.figures).forEach(function (k) {
-    var fig = D.figures[k], el = document.getElementById("plot-" + k);
-    promises.push(Plotly.newPlot(el, fig.data, fig.layout, CONFIG).then(function (gd) {
-      S.plots[k] = {traces: gd.data.length, svg: gd.querySelectorAll("svg.main-svg").length};
-    }));
-  });
-  if (D.views.length) {
-    promises.push(showScan(0));
-    document.getElementById("scan-select").addEventListener("change", function (e) { showScan(+e.target.value); });
-    document.getElementById("prev").addEventListener("click", function () { showScan(current - 1); });
-    document.getElementById("next").addEventListener("click", function () { showScan(current + 1); });
-    document.querySelectorAll("a.show3d").forEach(function (a) {
-      a.addEventListener("click", function () { showScan(D.view_of[a.getAttribute("data-name")]); });
-    });
-  }
-  // sortable table: click a heading; numbers by data-sort, text by content
-  var table = document.getElementById("verdict-table");
-  if (table) table.querySelectorAll("th").forEach(function (th) {
-    th.addEventListener("click", function () {
-      var col = +th.getAttribute("data-col"), num = th.getAttribute("data-type") === "num";
-      var asc = !th.classList.contains("asc");
-      table.querySelectorAll("th").forEach(function (h) { h.classList.remove("asc", "desc"); });
-      th.classList.add(asc ? "asc" : "desc");
-      var body = table.tBodies[0], rows = Array.prototype.slice.call(body.rows);
-      rows.sort(function (a, b) {
-        var x = a.cells[col], y = b.cells[col], r;
-        if (num) {
-          var p = x.hasAttribute("data-sort") ? +x.getAttribute("data-sort") : -Infinity;
-          var q = y.hasAttribute("data-sort") ? +y.getAttribute("data-sort") : -Infinity;
-          r = p - q;
-        } else r = x.textContent.localeCompare(y.textContent);
-        return asc ? r : -r;
-      });
-      rows.forEach(function (r) { body.appendChild(r); });
-    });
-  });
-  Promise.all(promises).then(function () {
-    S.ready = true;
-    S.views = D.views.length;
-  }, function (err) {
-    S.errors.push("plot failed: " + String(err));
-  }).then(function () {
-    document.getElementById("report-status").textContent = JSON.stringify(S);
-  });
-})();
-""".replace("%(emphasis)s", repr(EMPHASIS))
-
-_PAGE = """<!DOCTYPE html>
-<html lang="en">
-<head>
-<meta charset="utf-8">
-<meta name="viewport" content="width=device-width, initial-scale=1">
-<title>{title}</title>
-<style>{style}</style>
-{status_head}
-<script>{plotly}</script>
-</head>
-<body>
-{body}
-<pre id="report-status"></pre>
-<script type="application/json" id="report-data">{data}</script>
-<script>{script}</script>
-</body>
-</html>
-"""

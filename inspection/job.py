@@ -316,7 +316,7 @@ def check_align(insp, path):
                           f"(scoring then registers every scan by itself)")
 
 
-def inspect_scan(insp, scan, i=0, maps="none", maps_dir=None, uncertain=True, tolerance=None):
+def inspect_scan(insp, scan, i=0, maps="none", maps_dir=None, uncertain=True, tolerance=None, features=None):
     """One scan inspected by the calibrated ``insp`` (registered first as its calibration and its model say) into
     its ``scores.csv`` row, and its anomaly map written when ``maps`` asks for one.
 
@@ -336,6 +336,8 @@ def inspect_scan(insp, scan, i=0, maps="none", maps_dir=None, uncertain=True, to
         The 'uncertain' verdict (False: good or defective only).
     tolerance : inspection.tolerance.Tolerance, optional
         Also judge the scan's defect regions against it (:func:`inspection.tolerance.judged`).
+    features : dict of str -> (3,) array, optional
+        Named places of the part (:func:`inspection.regions.read_features`): each region's nearest is its feature.
 
     Returns
     -------
@@ -378,7 +380,7 @@ def inspect_scan(insp, scan, i=0, maps="none", maps_dir=None, uncertain=True, to
     out["row"] = row
     regions, region_ids = [], None
     if verdict != "good" or maps == "all" or tolerance is not None:
-        regions, region_ids = one.regions_of_result(scan, res)
+        regions, region_ids = one.regions_of_result(scan, res, features)
         row["regions"] = len(regions) if region_ids is not None else None
     row.update(judged(verdict, why, regions, tolerance))
     verdict = row["verdict"]
@@ -393,7 +395,8 @@ def inspect_scan(insp, scan, i=0, maps="none", maps_dir=None, uncertain=True, to
     if mapped:
         write_scan_maps(scan, values, ray_values, maps_dir, None if res.coverage is None else res.coverage.covered,
                         region_ids)
-        out["view"] = scan_view(scan.name, scan.points, values, ray_values, seed=i)  # report.html's 3D view
+        out["view"] = scan_view(scan.name, scan.points, values, ray_values, seed=i,
+                                regions=region_ids)  # report.html's 3D view
     return out
 
 

@@ -14,7 +14,7 @@ from .results import prepare_out, summarize_run, write_results
 
 
 def score(model, data, out, split="test", alpha=None, maps="flagged", align=False, progress=True, overwrite=False,
-          echo=print, uncertain=True, jobs=1, max_defective_share=None, tolerance=None):
+          echo=print, uncertain=True, jobs=1, max_defective_share=None, tolerance=None, features=None):
     """Score scans against a calibrated model and write report.html, scores.csv, summary.json, roc.png, scores.png,
     maps/.
 
@@ -58,6 +58,13 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
             tolerance = Tolerance.parse(tolerance)
         except ValueError as exc:
             raise InspectionError(str(exc)) from None
+    if features is not None and not isinstance(features, dict):
+        from .regions import read_features
+
+        try:
+            features = read_features(features)
+        except ValueError as exc:
+            raise InspectionError(str(exc)) from None
     handle = load_model_handle(model)
     insp = calibrated_inspector(handle, data, alpha, progress, echo, True if align else "auto")
     aligned = calibrated_aligned(insp)
@@ -75,7 +82,7 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
     out = prepare_out(out, overwrite=overwrite)
     calibration = insp.calibration() if handle.calibration is None else handle.calibration
     spec = (handle.path, calibration, alpha)  # what a worker process builds its inspector from
-    results = _inspect_scans(insp, scans, maps, out / "maps", progress, uncertain, jobs, spec, tolerance)
+    results = _inspect_scans(insp, scans, maps, out / "maps", progress, uncertain, jobs, spec, (tolerance, features))
     batch = check_run(insp, scans, results["rows"], DEFAULT_MAX_DEFECTIVE_SHARE if max_defective_share is None
                       else max_defective_share, uncertain)  # before the counts: it can retell verdicts
     results["rows"] += [error_row(name, reason) for name, reason in info["failed"]]
@@ -83,7 +90,8 @@ def score(model, data, out, split="test", alpha=None, maps="flagged", align=Fals
     summary["batch_check"] = batch
     summary["warnings"] = run_warnings(insp, batch)
     write_results(out, insp, results, summary)
-    write_html_report(out / "report.html", results["rows"], summary, results["views"])  # the page of it all
+    write_html_report(out / "report.html", results["rows"], summary, results["views"],
+                      defects=results["defects"])  # the page of it all
     echo(format_table(results["rows"], summary))
     for line in summary["warnings"]:
         echo(f"warning: {line}")
@@ -108,7 +116,8 @@ def run_warnings(insp, batch):
     return lines
 
 
-def _inspect_scans(insp, scans, maps, maps_dir, progress, uncertain=True, jobs=1, worker_spec=None, tolerance=None):
+def _inspect_scans(insp, scans, maps, maps_dir, progress, uncertain=True, jobs=1, worker_spec=None,
+                   regions=(None, None)):
     """Inspect every scan (registered first when the calibration aligns) and write the anomaly maps ``maps`` asks for. A scan that
     cannot be scored (a ValueError naming it) gets an ``'error'`` row and the others go on.
 
@@ -116,6 +125,8 @@ def _inspect_scans(insp, scans, maps, maps_dir, progress, uncertain=True, jobs=1
     context, one torch thread each), each of which builds its inspector once from ``worker_spec`` = (model path,
     calibration, alpha) (:func:`_inspect_in_workers`). A scan's scoring is deterministic (its projection is seeded), so the rows
     are those of one process, in the input order whatever the order the workers finish in.
+
+    ``regions``: (tolerance, features) for :func:`inspection.job.inspect_scan`.
 
     Returns a dict: ``rows`` (one per scan, the CSV columns), ``point_labels``, ``point_maps`` (the anomaly maps'
     values, :func:`inspection.maps.map_values`) and ``ray_maps``
@@ -127,10 +138,10 @@ def _inspect_scans(insp, scans, maps, maps_dir, progress, uncertain=True, jobs=1
                "views": [], "defects": [], "region_ids": []}  # views: report.html's 3D views (inspection.html_report.scan_view), one per map
     jobs = min(int(jobs), len(scans))
     if jobs <= 1:
-        outs = (inspect_scan(insp, scan, i, maps, maps_dir, uncertain, tolerance)
+        outs = (inspect_scan(insp, scan, i, maps, maps_dir, uncertain, *regions)
                 for i, scan in enumerate(tqdm(scans, desc="inspect", unit="scan", disable=not progress)))
     else:
-        outs = _inspect_in_workers(worker_spec, scans, maps, maps_dir, progress, uncertain, jobs, insp, tolerance)
+        outs = _inspect_in_workers(worker_spec, scans, maps, maps_dir, progress, uncertain, jobs, insp, regions)
     for one in outs:
         results["rows"].append(one["row"])
         if "seconds" not in one:  # an error row
@@ -173,11 +184,11 @@ def _start_worker(spec):
     _WORKER["insp"] = Inspector.from_calibration(handle.model, calibration, alpha)
 
 
-def _worker_inspect(scan, i, maps, maps_dir, uncertain, tolerance=None):
-    return inspect_scan(_WORKER["insp"], scan, i, maps, maps_dir, uncertain, tolerance)
+def _worker_inspect(scan, i, maps, maps_dir, uncertain, regions=(None, None)):
+    return inspect_scan(_WORKER["insp"], scan, i, maps, maps_dir, uncertain, *regions)
 
 
-def _inspect_in_workers(spec, scans, maps, maps_dir, progress, uncertain, jobs, insp, tolerance=None):
+def _inspect_in_workers(spec, scans, maps, maps_dir, progress, uncertain, jobs, insp, regions=(None, None)):
     """:func:`inspection.job.inspect_scan` of every scan in ``jobs`` processes; returns their outputs in the input
     order.
 
@@ -202,7 +213,7 @@ def _inspect_in_workers(spec, scans, maps, maps_dir, progress, uncertain, jobs, 
                                initargs=(pickle.dumps(spec),))
     bar = tqdm(total=len(scans), desc=f"inspect ({jobs} processes)", unit="scan", disable=not progress)
     try:
-        futures = [pool.submit(_worker_inspect, scan, i, maps, maps_dir, uncertain, tolerance)
+        futures = [pool.submit(_worker_inspect, scan, i, maps, maps_dir, uncertain, regions)
                    for i, scan in enumerate(scans)]
         for fut in futures:
             fut.add_done_callback(lambda f: None if f.cancelled() else bar.update())
@@ -213,7 +224,7 @@ def _inspect_in_workers(spec, scans, maps, maps_dir, progress, uncertain, jobs, 
                 for i in reversed(range(len(scans))):
                     if not futures[i].cancel():  # the workers have reached this scan: the rest is theirs
                         break
-                    outs[i] = inspect_scan(insp, scans[i], i, maps, maps_dir, uncertain, tolerance)
+                    outs[i] = inspect_scan(insp, scans[i], i, maps, maps_dir, uncertain, *regions)
                     bar.update()
         finally:
             torch.set_num_threads(threads)

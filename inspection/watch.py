@@ -10,6 +10,7 @@ The results folder ``OUT`` holds:
   (kill -9) and restarted scores each file exactly once. A file that changes afterwards (same name, new size or
   time: a rescan) is scored again.
 * ``verdicts.csv``: the same verdicts as a table, rewritten atomically from the journal after each line (never torn).
+* ``defects.csv``: the defect regions of the files not told good (:mod:`inspection.regions`), rewritten with it.
 * ``maps/<name>.ply``: each scan's anomaly map (``--maps``), written atomically before its journal line.
 * ``report.html``: the page ``score`` writes (:mod:`inspection.html_report`: the decision, the verdict table of every
   file in the journal, the score histogram, the 3D maps of the ``REPORT_VIEWS`` most anomalous scans scored since the
@@ -38,6 +39,7 @@ from .errors import InspectionError
 
 JOURNAL = "verdicts.jsonl"
 TABLE = "verdicts.csv"
+DEFECTS = "defects.csv"  # the defect regions of the files not told good (inspection.regions), one row each
 REPORT = "report.html"
 LOCK = ".watch.lock"
 _SIDECAR = ".json"
@@ -291,6 +293,9 @@ class Watcher:
                      size=st.st_size, mtime_ns=st.st_mtime_ns,
                      time=datetime.now(timezone.utc).isoformat(timespec="seconds"),
                      seconds=round(time.perf_counter() - t0, 3))
+        if one is not None and one.get("defects"):  # its defect regions, named by the file like its row
+            entry["defects"] = [{k: _json_safe(v) for k, v in {**d, "name": path.name}.items()}
+                                for d in one["defects"]]
         if one is not None and "view" in one:
             from .maps import safe_name
 
@@ -340,9 +345,10 @@ class Watcher:
             self.write_report()
 
     def _write_table(self):
-        from .report import write_scores_csv
+        from .report import write_defects_csv, write_scores_csv
 
         write_scores_csv(self.out / TABLE, self.entries, self.columns)
+        write_defects_csv(self.out / DEFECTS, [d for e in self.entries for d in e.get("defects", [])])
 
     def write_report(self, force=False):
         """Rewrite ``OUT/report.html`` (atomically) from the journal when a verdict came since it was last written
@@ -363,7 +369,7 @@ class Watcher:
         batch = None if self.batch is None else {**self.batch.as_dict(), "window": self.window}
         summary.update(batch_check=batch, warnings=run_warnings(self.insp, batch))
         write_html_report(self.out / REPORT, rows, summary, [v for _, v in self.views.values()],
-                          title=f"Watch: {self.folder}")
+                          title=f"Watch: {self.folder}", defects=[d for e in self.entries for d in e.get("defects", [])])
         self._unreported, self._reported_at = 0, time.monotonic()
         return True
 

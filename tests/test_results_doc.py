@@ -274,6 +274,17 @@ def test_the_fewscans_renderer_sums_over_the_seeds_and_shows_the_loop():
     assert "| all | proposed | 2 | 0.950 |" in body and "Closed loop" in body and "| fandisk | proposed" not in body
 
 
+def test_the_defects_renderer_lists_each_run_and_sums_the_types():
+    kinds = {"bump": {"defects": 16, "found": 16, "typed": 15}, "dent": {"defects": 16, "found": 14, "typed": 14}}
+    runs = [{"part": "fandisk", "seed": s, "au_pro": 0.95, "found": 0.9, "typed": 0.95, "depth_error": 0.1,
+             "area_error": 0.05, "false_per_good": 0.0625, "false_shown": 0.0, "per_kind": kinds, "matched": []}
+            for s in (0, 1)]
+    body = _renders_itself("defects", {"runs": runs})
+    assert "| fandisk | 0, 1 | 0.950 | 0.900 | 0.950 | 0.100 | 0.050 | 0.062 | 0.000 | bump 30/32/32, dent 28/28/32 |" \
+        in body
+    assert "| false regions / good scan, all | shown |" in body
+
+
 def test_the_generic_renderer_shows_the_figures_tables_within_bounds():
     figures = {"mode": "io", "scans": 80, "rows": [{"name": f"r{i}", "seconds": i / 3, "log": "x"} for i in range(50)],
                "nested": {"a": {"x": 1.0}, "b": {"x": 2.0}}}

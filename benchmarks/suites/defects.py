@@ -14,8 +14,8 @@ in real points), calibrated the README's way, every test scan's anomaly map and 
   of its points that moved by at least ``FOOTPRINT_FRACTION`` of it, each point's area as the regions measure it
   (the same definition of a footprint as the regions', applied to the truth). Defects whose points did not move
   (seen through a hole onto good surface behind) have no depth and are left out of both;
-- **false / good scan**: regions on good test scans per good scan (regions are looked for on every scan here; the
-  toolkit reports them for scans it does not call good);
+- **false / good scan**: regions on good test scans per good scan, looked for on every scan (``false/good``) and
+  as the toolkit shows them, on the good scans it does not call good (``shown``);
 - per type: found, typed right.
 """
 import json
@@ -91,7 +91,7 @@ def region_figures(runs):
     overlap = metrics.region_overlap([points[i] for i in defective], [labels[i].astype(int) for i in defective],
                                      [ids[i] for i in defective], min_iou=0.3, link=np.inf)
     per_kind = {k: {"defects": 0, "found": 0, "typed": 0} for k in KINDS}
-    depth_err, area_err = [], []
+    depth_err, area_err, matched = [], [], []
     for match in overlap["matches"]:
         scan = scored[defective[match["scan"]]]
         kind = per_kind.setdefault(scan["defect"], {"defects": 0, "found": 0, "typed": 0})
@@ -101,6 +101,7 @@ def region_figures(runs):
         kind["found"] += 1
         region = next(g for g in scan["regions"] if g["region"] == match["predicted"])
         kind["typed"] += region["type"] == scan["defect"]
+        depth = area = None
         if scan["point_deviation"] is not None:
             truth = np.zeros(len(scan["points"]), dtype=bool)
             truth[match["points"]] = True
@@ -108,23 +109,28 @@ def region_figures(runs):
             if depth:
                 depth_err.append(abs(abs(region["deviation"]) - depth) / depth)
                 area_err.append(abs(region["area"] - area) / area if area > 0 else np.nan)
+        matched.append({"defect": scan["defect"], "truth_depth": depth, "truth_area": area, "iou": match["iou"],
+                        **{k: region[k] for k in ("type", "deviation", "area", "fill", "ray_share", "peak")}})
     good = [i for i, r in enumerate(scored) if r["label"] == "good"]
+    told = [i for i in good if scored[i]["verdict"] != "good"]  # the good scans whose regions a user is shown
     found = sum(k["found"] for k in per_kind.values())
     return {"au_pro": au_pro, "found": overlap["detected"], "typed": sum(k["typed"] for k in per_kind.values()) /
             found if found else float("nan"),
             "depth_error": float(np.nanmedian(depth_err)) if depth_err else float("nan"),
             "area_error": float(np.nanmedian(area_err)) if area_err else float("nan"), "measured": len(depth_err),
             "false_per_good": metrics.false_regions_per_scan([ids[i] for i in good], [labels[i] for i in good])
-            if good else float("nan"), "good_scans": len(good), "per_kind": per_kind}
+            if good else float("nan"),
+            "false_shown": sum(int(np.max(ids[i], initial=-1)) + 1 for i in told) / len(good) if good else float("nan"),
+            "good_scans": len(good), "per_kind": per_kind, "matched": matched}
 
 
 _COLUMNS = [("part", "part", ""), ("seed", "seed", ">"), ("au_pro", "AU-PRO", ".3f"), ("found", "found", ".3f"),
             ("typed", "type", ".3f"), ("depth_error", "depth err", ".3f"), ("area_error", "area err", ".3f"),
-            ("false_per_good", "false/good", ".3f")] + [(k, k, "") for k in KINDS]
+            ("false_per_good", "false/good", ".3f"), ("false_shown", "shown", ".3f")] + [(k, k, "") for k in KINDS]
 
 
 def _flat(row):
-    return {**{k: v for k, v in row.items() if k != "per_kind"},
+    return {**{k: v for k, v in row.items() if k not in ("per_kind", "matched")},
             **{k: f"{v['found']}/{v['defects']} found, {v['typed']} typed" for k, v in row["per_kind"].items()
                if k in KINDS}}
 

@@ -369,10 +369,13 @@ def test_score_writes_the_defect_regions_and_judges_a_tolerance(workdir, tmp_pat
     assert main(["calibrate", "--model", str(model), "--data", str(workdir / "tree.h5"), "--alpha", "0.3",
                  "--quiet"]) == 0
     out = tmp_path / "results"
+    features = tmp_path / "features.csv"
+    features.write_text("name,x,y,z\nnear,0,0,0\nfar,1000,1000,1000\n")
     assert main(["score", "--model", str(model), "--data", str(workdir / "tree.h5"), "--out", str(out), "--maps",
-                 "all", "--tolerance", "0.001mm", "--quiet"]) == 0
+                 "all", "--tolerance", "0.001mm", "--features", str(features), "--quiet"]) == 0
     rows = list(csv.DictReader(open(out / "scores.csv")))
     defects = list(csv.DictReader(open(out / "defects.csv")))
+    assert defects and {d["feature"] for d in defects} == {"near"}
     assert tuple(csv.reader(open(out / "defects.csv")).__next__()) == DEFECT_COLUMNS
     summary = json.loads((out / "summary.json").read_text())
     assert summary["regions"]["level"] > 0 and summary["regions"]["n_regions"] == len(defects)
@@ -387,3 +390,6 @@ def test_score_writes_the_defect_regions_and_judges_a_tolerance(workdir, tmp_pat
             assert r["verdict"] == "defective" and r["decided_by"] in ("tolerance", "both")
     assert main(["score", "--model", str(model), "--data", str(workdir / "tree.h5"), "--out", str(tmp_path / "x"),
                  "--tolerance", "wide"]) != 0  # a tolerance that is not one: one line, before any work
+    features.write_text("name,x,y\nnear,0,0\n")
+    assert main(["score", "--model", str(model), "--data", str(workdir / "tree.h5"), "--out", str(tmp_path / "y"),
+                 "--features", str(features)]) != 0

@@ -178,6 +178,28 @@ def test_report_renders_in_headless_chromium(results):
     assert shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+@pytest.mark.skipif(_chromium() is None, reason="no Chromium on this machine: `make test` installs Debian's chromium "
+                                                 "where apt and root are available; elsewhere apt-get install chromium")
+def test_a_defect_region_is_listed_and_selected_in_the_3d_view(results):
+    """The regions' table links every region of defects.csv; the page's address #region=<scan>|<id> (what a click
+    on a row does) draws that region's points over its scan in headless Chromium."""
+    defects = list(csv.DictReader(open(results / "defects.csv")))
+    assert defects, "the dented test scans have defect regions"
+    text = (results / "report.html").read_text()
+    for d in defects:
+        assert f'data-name="{d["name"]}" data-region="{d["region"]}"' in text
+    exe = _chromium()
+    first = defects[0]
+    url = (results / "report.html").resolve().as_uri() + f"#region={first['name']}|{first['region']}"
+    dom = _headless(exe, "--dump-dom", url).stdout
+    import html
+
+    status = json.loads(html.unescape(re.search(r'<pre id="report-status">(.*?)</pre>', dom, re.S).group(1)))
+    assert status["errors"] == [] and status["ready"] is True, status
+    view = status["plots"]["view3d"]
+    assert view["scan"] == first["name"] and view["region"] == int(first["region"]) and view["region_points"] > 0
+
+
 def test_report_html_escapes_scan_names():
     rows = [{"name": "<script>alert(1)</script>", "split": "", "label": "unknown", "defect": "", "score": 1.0,
              "p_value": 0.5, "verdict": "good", "flagged": False, "reason": ""}]

@@ -241,3 +241,23 @@ def test_point_areas_sum_to_the_surface():
 
     inner = np.all(np.abs(points[:, :2]) < 0.8, axis=1)  # away from the border, where neighbours lie one side only
     assert point_areas(points)[inner].sum() == pytest.approx(1.6 ** 2, rel=0.1)
+
+
+def test_features_are_read_and_name_the_nearest_region(tmp_path, level):
+    from inspection.regions import read_features
+
+    good = tmp_path / "features.csv"
+    good.write_text("name,x,y,z\nleft flange,0.1,-0.2,0\nboss,-0.8,0.8,0\n")
+    features = read_features(good)
+    assert list(features) == ["left flange", "boss"] and features["boss"] == pytest.approx([-0.8, 0.8, 0])
+    points, deviation = dented_plane(smooth_bump, -DEPTH)
+    (dent,) = find_regions(evidence_of(points, deviation), level, features=features)[0]
+    assert dent.feature == "left flange"
+    for text, problem in (("name,x,y\na,1,2\n", "header"), ("name,x,y,z\na,1,2,zz\n", "line 2"),
+                          ("name,x,y,z\n", "header")):
+        bad = tmp_path / "bad.csv"
+        bad.write_text(text)
+        with pytest.raises(ValueError, match=problem):
+            read_features(bad)
+    with pytest.raises(ValueError, match="cannot read"):
+        read_features(tmp_path / "none.csv")

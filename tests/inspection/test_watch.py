@@ -73,6 +73,12 @@ def test_once_scores_each_file_and_a_bad_file_is_one_error_line(model, tmp_path)
     assert w.counts["error"] == 3 and said[-1].startswith("watch: 6 file(s) scored")
     table = (out / TABLE).read_text().splitlines()
     assert len(table) == 7 and table[0].startswith("name,split,label")
+    # the defect regions of each file not told good, named by the file, as its row counts them
+    import csv
+
+    regions = list(csv.DictReader(open(out / "defects.csv")))
+    for e in lines:
+        assert sum(d["name"] == e["file"] for d in regions) == (e.get("regions") or 0)
     # a second run finds everything recorded; a file that changes (a rescan under the same name) is scored again
     assert sum(watch(model, drop, out, once=True, settle=0, echo=None).counts.values()) == 0
     _drop(drop, "s1", seed=7)
