@@ -52,7 +52,10 @@ def run(args):
             rows.append({"part": part, "seed": seed, **region_figures(runs)})
             print(format_table([_flat(rows[-1])], _COLUMNS), flush=True)
     print(format_table([_flat(r) for r in rows], _COLUMNS))
-    return {"runs": rows}
+    rules = type_rules(rows)
+    print("type accuracy of the found defects under other rules (the regions' own: fill + aspect >= 1.25):")
+    print(format_table(rules, [("rule", "rule", "")] + [(p, p, ".3f") for p in rules[0] if p != "rule"]))
+    return {"runs": rows, "type_rules": rules}
 
 
 def _tree(part, seed, args):
@@ -66,6 +69,35 @@ def _tree(part, seed, args):
         return trees[0], cache.trained_model(trees[0], root=args.cache, seed=0)
     data = cache.synth_collection(part, seed, root=args.cache, progress=args.progress, **cache.COLLECTION_DEFAULTS)
     return data, cache.trained_model(data, root=args.cache, seed=seed)
+
+
+# other ways to tell a smooth displacement from a part with walls, on a found region's fill and aspect (depth over
+# its footprint's radius): what the regions' rule (inspection.regions.region_type) was chosen against
+_RULES = {"fill >= 0.6": lambda fill, aspect: fill >= 0.6, "aspect >= 0.7": lambda fill, aspect: aspect >= 0.7,
+          **{f"fill + aspect >= {t}": (lambda t: lambda fill, aspect: fill + aspect >= t)(t)
+             for t in (1.1, 1.15, 1.2, 1.25, 1.3)}}
+
+
+def type_rules(rows):
+    """Per rule of ``_RULES`` and part: the share of found defects typed right (the rays' share decides 'missing'
+    first, as the regions' rule does)."""
+    out = []
+    for name, sharp in _RULES.items():
+        line = {"rule": name}
+        for part in dict.fromkeys(r["part"] for r in rows):
+            found = [m for r in rows if r["part"] == part for m in r["matched"]]
+            right = [_typed(m, sharp) == m["defect"] for m in found]
+            line[part] = float(np.mean(right)) if right else float("nan")
+        out.append(line)
+    return out
+
+
+def _typed(match, sharp):
+    if match["ray_share"] >= 0.5:
+        return "missing"
+    aspect = abs(match["deviation"]) / np.sqrt(match["area"] / np.pi) if match["area"] > 0 else 0.0
+    walls = match["fill"] is not None and sharp(match["fill"], aspect)
+    return ("foreign" if walls else "bump") if match["deviation"] >= 0 else ("missing" if walls else "dent")
 
 
 def truth_size(deviation, labels, areas):
