@@ -251,7 +251,7 @@ class LocalReference:
         index, normals, _ = self._surface_tree()
         return None if normals is None else (index, normals)
 
-    def surface(self, points, normals=None, with_support=False):
+    def surface(self, points, normals=None, with_support=False, candidates=SURFACE_CANDIDATES):
         """Offsets of points from the good scans' surface, without any field.
 
         For each point p, the plane through its ``k`` nearest distinct surface points (``surface_points``, else the
@@ -272,6 +272,9 @@ class LocalReference:
 
         with_support : bool
             Also return ``supported``.
+        candidates : int >= 1
+            How many times k nearest points the side's points are sought among (``SURFACE_CANDIDATES``; more finds
+            a point's own side of a wall far thinner than the points' spacing, at a cost).
 
         Returns
         -------
@@ -291,10 +294,10 @@ class LocalReference:
         for start in range(0, len(points), QUERY_CHUNK):  # blocks keep a full-resolution scan's memory bounded
             block = slice(start, start + QUERY_CHUNK)
             offset[block], spread[block], supported[block] = self._surface_block(
-                points[block], None if normals is None else normals[block])
+                points[block], None if normals is None else normals[block], candidates)
         return (offset, spread, supported) if with_support else (offset, spread)
 
-    def _surface_block(self, points, normals):
+    def _surface_block(self, points, normals, candidates=SURFACE_CANDIDATES):
         """:meth:`surface` of one block of (b, 3) points (float64) and their normals (b, 3) or None: offset, spread,
         supported (b,) each."""
         tree, surface_normals, self_distance = self._surface_tree()
@@ -302,7 +305,7 @@ class LocalReference:
         if k < 3:
             raise ValueError(f"the reference surface needs >= 4 distinct points, got {tree.n}")
         sided = normals is not None and surface_normals is not None
-        wide = min(SURFACE_CANDIDATES * k + 1, tree.n) if sided else k + 1
+        wide = min(int(candidates) * k + 1, tree.n) if sided else k + 1
         offset, spread = np.empty(len(points)), np.empty(len(points))
         supported = np.ones(len(points), dtype=bool)
         todo = np.arange(len(points))

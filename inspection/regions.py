@@ -15,7 +15,8 @@ What is measured (:func:`measure_region`)
     negative inside: how far, its offset from the plane through the nearest good points on its side
     (:meth:`inspection.reference.LocalReference.surface`, the joint score's good points' term); which way, the sign
     of the field's first-order signed distance less what good scans show there (the field alone where no good scan
-    saw the point's side). Its standard deviation is that term's own denominator (the good points' spread about the
+    saw the point's side, sought among ``WIDE_CANDIDATES`` x k nearest good points: a dent pressed deeper than a thin
+    wall has the other face's points nearest). Its standard deviation is that term's own denominator (the good points' spread about the
     plane, the measurement noise). The
     deviations are averaged over each point's ``REGION_NEIGHBOURS`` nearest points (the noise of one point averaged
     down). A region's
@@ -40,9 +41,9 @@ Types (:func:`region_type`)
     hemispherical pit 0.67, a box on the surface 1) plus its aspect (depth over the footprint's radius: a smooth dent
     is wider than deep). At least ``SHARPNESS``: ``missing`` (in) or ``foreign`` (out). Chosen on the defects suite's
     regions of three parts, 3 seeds each (docs/results.md, "defects"; its record's ``type_rules``): the fill alone
-    typed 0.891 / 1.000 / 0.797 of the found defects of fandisk / the cup / the real bunny right (missing pits typed
-    dents), the aspect alone 0.964 / 0.930 / 0.984, their sum at 1.2 0.969 / 0.930 / 0.984, at 1.25 0.969 / 0.941 /
-    0.984, at 1.3 0.958 / 0.947 / 0.990: at least as good as 1.2 on every part, and the middle of the best.
+    typed 0.896 / 1.000 / 0.792 of the found defects of fandisk / the cup / the real bunny right (missing pits typed
+    dents), the aspect alone 0.964 / 0.995 / 0.984, their sum at 1.15 0.943 / 0.984 / 0.969, at 1.2 0.974 / 0.995 /
+    0.984, at 1.25 0.964 / 0.995 / 0.984, at 1.3 0.958 / 1.000 / 0.990.
 """
 from dataclasses import dataclass, field
 from typing import Optional
@@ -56,9 +57,12 @@ REGION_NEIGHBOURS = 8  # points per neighbourhood: the deviation's average, a po
 LINK_SPACINGS = 1.5  # the longest link between two points of a region, in median distances to that neighbour
 FOOTPRINT_FRACTION = 0.1  # a region's footprint: where the surface moved by at least this share of its deviation
 RAY_SHARE = 0.5  # a region whose rays carry at least this share of its evidence was seen through
-SHARPNESS = 1.25  # fill + depth / footprint radius at which a region has walls (a pit, an object), not a smooth slope
+SHARPNESS = 1.2  # fill + depth / footprint radius at which a region has walls (a pit, an object), not a smooth slope
 MIN_REGION_POINTS = 8  # a region holds at least this many points above the level (fewer: a few noisy returns)
 REGION_TYPES = ("bump", "dent", "missing", "foreign")
+# where a point's side of the surface had too few good points among the nearest (reference.SURFACE_CANDIDATES x k),
+# they are sought among this many times k: a dent pressed deeper than a thin wall has the far face's points nearest
+WIDE_CANDIDATES = 16
 _MAX_EXTENT_POINTS = 600  # the extent's pairwise distances on at most this many footprint points
 
 
@@ -482,6 +486,11 @@ def region_evidence(result, settings, reference):
     # up to twice, its gradient fading off the surface); which way: the field's. The field's distance where no good
     # scan saw the point's side.
     offset, spread, supported = reference.surface(ev.points, ev.normals, with_support=True)
+    if ev.normals is not None and not supported.all():  # a dent deeper than a thin wall: its side, sought farther
+        again = np.flatnonzero(~supported)
+        far = reference.surface(ev.points[again], ev.normals[again], with_support=True,
+                                candidates=WIDE_CANDIDATES)
+        offset[again], spread[again], supported[again] = far
     field_deviation = np.asarray(ev.value, np.float64) - m_ref
     deviation = np.where(supported, np.abs(offset) * np.where(field_deviation < 0, -1.0, 1.0), field_deviation)
     variance = np.where(supported, total_variance(spread, 0.0, noise ** 2, ev.grazing, 0.0, reference.grazing_scale),

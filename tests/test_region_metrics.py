@@ -202,12 +202,12 @@ def test_the_defects_suite_measures_the_truth_as_the_regions_measure_a_footprint
     assert defects.truth_size(np.zeros(5), labels, areas) == (None, None)
 
 
-def test_the_defects_suites_rule_at_1_25_is_the_regions_own():
-    """The suite's alternative rules are weighed against the regions' own: at fill + aspect >= 1.25 they agree."""
+def test_the_defects_suites_rule_at_1_2_is_the_regions_own():
+    """The suite's alternative rules are weighed against the regions' own: at fill + aspect >= 1.2 they agree."""
     from benchmarks.suites import defects
     from inspection.regions import SHARPNESS, DefectRegion, region_type
 
-    assert SHARPNESS == 1.25
+    assert SHARPNESS == 1.2
     rng = np.random.default_rng(0)
     for _ in range(300):
         area, deviation = rng.uniform(0.5, 2.0), rng.uniform(-1.5, 1.5)
@@ -215,4 +215,4 @@ def test_the_defects_suites_rule_at_1_25_is_the_regions_own():
         region = DefectRegion(0, "", np.arange(3), 5.0, deviation, 0.1, area, area, area, 1.0, None, None,
                               np.zeros(3), np.zeros(3), ray_share=rays, fill=fill)
         match = {"deviation": deviation, "area": area, "fill": fill, "ray_share": rays}
-        assert defects._typed(match, defects._RULES["fill + aspect >= 1.25"]) == region_type(region)
+        assert defects._typed(match, defects._RULES["fill + aspect >= 1.2"]) == region_type(region)

@@ -53,7 +53,7 @@ def run(args):
             print(format_table([_flat(rows[-1])], _COLUMNS), flush=True)
     print(format_table([_flat(r) for r in rows], _COLUMNS))
     rules = type_rules(rows)
-    print("type accuracy of the found defects under other rules (the regions' own: fill + aspect >= 1.25):")
+    print("type accuracy of the found defects under other rules (the regions' own: fill + aspect >= 1.2):")
     print(format_table(rules, [("rule", "rule", "")] + [(p, p, ".3f") for p in rules[0] if p != "rule"]))
     return {"runs": rows, "type_rules": rules}
 

@@ -282,3 +282,20 @@ def test_queries_in_blocks_give_the_answer_of_one_block(monkeypatch):
     for a, b in zip(whole, blocked):
         np.testing.assert_array_equal(a[0], b[0])
         np.testing.assert_array_equal(a[1], b[1])
+
+
+def test_a_point_pressed_through_a_thin_wall_finds_its_own_side_among_more_candidates():
+    """A sheet 0.004 thick of two faces (normals up and down), points 0.005 apart: a point of the upper face pressed
+    0.1 down lies nearer the lower face's points, and its own side is found only among more candidates; then its
+    offset is its depth."""
+    g = np.arange(-0.15, 0.1501, 0.005)
+    xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    top, bottom = np.c_[xy, np.full(len(xy), 0.002)], np.c_[xy, np.full(len(xy), -0.002)]
+    up = np.tile([0.0, 0.0, 1.0], (len(xy), 1))
+    sheet = np.r_[top, bottom]
+    ref = LocalReference(sheet, np.zeros(len(sheet)), k=8, surface_points=sheet, surface_normals=np.r_[up, -up])
+    pressed = np.array([[0.0011, 0.0009, 0.002 - 0.1]])
+    offset, _, supported = ref.surface(pressed, up[:1], with_support=True)
+    assert not supported[0]
+    offset, _, supported = ref.surface(pressed, up[:1], with_support=True, candidates=16)
+    assert supported[0] and abs(offset[0]) == pytest.approx(0.1, abs=1e-6)
