@@ -258,10 +258,9 @@ class LocalReference:
         reference points), p itself left out when it is one of them (a calibration view of a template shares its
         points with the reference's views of that template; a point is not evidence for itself), and, when both p's
         normal and ``surface_normals`` are known, only points whose normal faces the same side as p's (the nearest
-        of ``SURFACE_CANDIDATES`` x k; all of them when fewer than 3 agree): across a wall thinner than the points'
-        spacing the nearest points lie on both faces, and a plane through both would sit inside the wall. The plane:
-        centroid c, unit normal n (the direction of least spread), and the points' variance along n, which holds
-        their noise and the surface's curvature within the neighbourhood.
+        of ``candidates`` x k; all when fewer than 3 agree): across a wall thinner than the points' spacing the
+        nearest points lie on both faces, and a plane through both would sit inside the wall. The plane: centroid c,
+        normal n (least spread), the points' variance along n (their noise and the surface's curvature).
 
         Parameters
         ----------
@@ -269,12 +268,10 @@ class LocalReference:
             Model frame.
         normals : (m, 3) array, optional
             The points' outward normals (any length; only their sign against the surface normals is used).
-
         with_support : bool
             Also return ``supported``.
         candidates : int >= 1
-            How many times k nearest points the side's points are sought among (``SURFACE_CANDIDATES``; more finds
-            a point's own side of a wall far thinner than the points' spacing, at a cost).
+            The side's points are sought among ``candidates`` x k nearest (``SURFACE_CANDIDATES``, above).
 
         Returns
         -------
