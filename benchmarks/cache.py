@@ -438,3 +438,17 @@ def merged_collection(collections, root=CACHE):
                                           "frame": "each part in its own collection's unit-cube frame"})
 
     return cached_path("merged", fingerprints, build, root, label="+".join(collections)) / "tree.h5"
+
+
+def real_tree(seed, root=CACHE):
+    """The collection file of the real suite's bunny tree of ``seed`` cached under ``root`` (the first by key).
+    FileNotFoundError when there is none: the real suite builds it (``python -m benchmarks real --seed S``); other
+    suites read it from here, as suites do not import each other."""
+    import json
+
+    trees = [p.parent / "bunny.h5" for p in sorted((Path(root) / "real").glob("bunny_*/params.json"))
+             if json.loads(p.read_text())["params"].get("seed") == seed and (p.parent / "bunny.h5").exists()]
+    if not trees:
+        raise FileNotFoundError(f"no real bunny tree of seed {seed} in {root}/real: build it with "
+                                f"`python -m benchmarks real --seed {seed}`")
+    return trees[0]

@@ -9,6 +9,7 @@ Written against ``inspection.job.calibrate`` / ``inspection.run.score`` (what ``
 import csv
 import shutil
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -321,11 +322,12 @@ def point_maps(model_path, data_path, split="test", fields=False, neighbours=())
     for s in scans:
         r = insp.inspect(s)
         settings = insp.for_scan(s).settings_
-        one = {"score": float(r.score), "point_scores": np.asarray(r.point_scores),
-               "map": map_values(settings, s, r)[0]}
+        one = {"score": float(r.score), "point_scores": np.asarray(r.full(r.point_scores)),
+               "map": r.full(map_values(settings, r.scored(s), r)[0])}
         if neighbours:
-            one["maps"] = {k: map_values(settings, s, r, k)[0] for k in neighbours}
-            one["patch_maps"] = {k: map_values(settings, s, r, k, rays=False)[0] for k in neighbours}
+            one["maps"] = {k: r.full(map_values(settings, r.scored(s), r, k)[0]) for k in neighbours}
+            one["patch_maps"] = {k: r.full(map_values(settings, r.scored(s), r, k, rays=False)[0])
+                                 for k in neighbours}
         if fields:
             one["field"] = r.field
         results.append(one)
@@ -403,23 +405,34 @@ def fit_inspector(model_path, data_path, progress=False):
         return Inspector(handle.model, verbose=progress).fit(c)
 
 
-def timed_inspect(inspector, scan):
-    """One scan through ``inspector.inspect`` with its per-stage timings.
+@contextmanager
+def every_point_scored():
+    """Within it every scan is scored on all its points (``inspection.resolution.SAMPLE_BELOW`` 0), as before dense
+    scans were thinned to the training density: the latency suite's "before"."""
+    from inspection import resolution
 
-    Returns
-    -------
-    score : float
-    point_scores : (m,) array
-    timings : dict of str -> float
-        Seconds per stage (``Inspector.inspect``'s ``timings``: load, projection, field, grazing, stray, reference,
-        aggregate, rays, combine), and ``total`` (the whole call).
-    """
-    import time
+    kept, resolution.SAMPLE_BELOW = resolution.SAMPLE_BELOW, 0.0
+    try:
+        yield
+    finally:
+        resolution.SAMPLE_BELOW = kept
+
+
+def timed_inspect(inspector, scan):
+    """One scan through ``inspector.inspect``: (score, the scored points' scores (k,), timings): the seconds of its
+    stages (``Inspector.inspect``'s: sample, load, projection, field, grazing, stray, reference, aggregate, rays,
+    combine), ``total`` (the call), ``map`` (then the anomaly map of every point, what a PLY map shows) and
+    ``points_scored``."""
+    from inspection.maps import map_values
 
     timings = {}
     t0 = time.perf_counter()
     result = inspector.inspect(scan, timings=timings)
     timings["total"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    result.full(map_values(inspector.for_scan(scan).settings_, result.scored(scan), result)[0])
+    timings["map"] = time.perf_counter() - t0
+    timings["points_scored"] = len(result.point_scores)
     return float(result.score), np.asarray(result.point_scores), timings
 
 

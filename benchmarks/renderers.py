@@ -218,13 +218,18 @@ def latency_lines(figures, record=None):
     """Seconds per scan and per stage at each scan size, the baseline's, peak memory; the throughput of `score`."""
     sizes = figures["sizes"]
     stages = list(dict.fromkeys(k for one in sizes.values() for k in one.get("stages", {})))
-    rows = [{"points": f"{one['points']:,.0f}", "scans": one["scans"], "s": one["seconds_per_scan"],
+    rows = [{"points": f"{one['points']:,.0f}", "scored": markdown_cell(one.get("points_scored"), ",.0f"),
+             "as": one.get("scored_as", "every point"),
+             "scans": one["scans"], "s": one["seconds_per_scan"],
              "max": one.get("seconds_max"), **one.get("stages", {}), "other": one.get("other"),
-             "nn": one.get("nn_seconds_per_scan"), "mb": one.get("peak_rss_mb")} for one in sizes.values()]
+             "map": one.get("map_seconds"), "nn": one.get("nn_seconds_per_scan"), "mb": one.get("peak_rss_mb")}
+            for one in sizes.values()]
     lines = [f"{figures.get('part')}, calibrated in {markdown_cell(figures.get('calibrate_seconds'), '.1f')} s, "
              f"{figures.get('threads')} torch thread(s); seconds per scan:", ""]
-    lines += markdown_table(rows, [("points", "points", ""), ("scans", "scans", "d"), ("s", "s/scan", ".3f"),
-                                   ("max", "max", ".3f"), *[(k, k, ".3f") for k in stages], ("other", "other", ".3f"),
+    lines += markdown_table(rows, [("points", "points", ""), ("scored", "points scored", ""), ("as", "scored as", ""),
+                                   ("scans", "scans", "d"),
+                                   ("s", "s/scan", ".3f"), ("max", "max", ".3f"), *[(k, k, ".3f") for k in stages],
+                                   ("other", "other", ".3f"), ("map", "map of every point s", ".3f"),
                                    ("nn", "nearest-neighbour s/scan", ".4f"), ("mb", "peak MB", ".0f")])
     throughput = figures.get("throughput")
     if throughput:
@@ -234,6 +239,20 @@ def latency_lines(figures, record=None):
                                 [("jobs", "--jobs", ""), ("seconds", "seconds", ".1f"),
                                  ("scans_per_second", "scans/s", ".2f")])
     return lines
+
+
+@renderer("training")
+def training_lines(figures, record=None):
+    """Per part and epoch budget: a training's wall time and its stages (seconds), its final loss."""
+    stages = ("family", "pose", "read", "targets", "epochs")
+    rows = [{"part": one["part"], "budget": f"{one['epochs']} ({one.get('epochs_run', '-')})",
+             "scans": one.get("scans"), "total": one["seconds"], **one.get("stages", {}), "other": one.get("other"),
+             "loss": one.get("loss")} for one in figures.get("runs", [])]
+    lines = [f"Seed {figures.get('seed')}; seconds per stage of one training, one thread:", ""]
+    return lines + markdown_table(rows, [("part", "part", ""), ("budget", "epochs (run)", ""),
+                                         ("scans", "scans", "d"), ("total", "total s", ".1f"),
+                                         *[(k, k, ".1f") for k in stages], ("other", "other", ".1f"),
+                                         ("loss", "final loss", ".4g")])
 
 
 @renderer("fewscans")

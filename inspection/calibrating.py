@@ -31,7 +31,7 @@ from .loading import reading_of
 from .reference import REFERENCE_QUANTITY, LocalReference, fit_noise_model
 from .regions import good_map_maxima
 from .scores import POINT_SCORES, WEIGHED_SCORES, fit_term_variances, noise_floor, reference_terms
-from .scoring import aligned, scan_evidence, score_evidence, sized
+from .scoring import aligned, scan_evidence, score_evidence, sized, thinned
 from .selection import model_parts, select_scans
 
 # points of the good scans' own surface kept in a reference (LocalReference.surface), at most: every training scan of
@@ -131,8 +131,9 @@ def calibrate_selection(model, selection, config, origins_everywhere, cross_fit=
     if needs_reference:
         reference, crossed = fit_reference(model, _progress(selection.reference, verbose, f"reference{desc}"),
                                            selection.surface, settings)
+    calibration = (thinned(model, s)[0] for s in _progress(selection.calibration, verbose, f"calibrate{desc}"))
     held = [scan_evidence(model, aligned(aligner, s)[0] if settings.align is True else s, i, settings, reference)
-            for i, s in enumerate(_progress(selection.calibration, verbose, f"calibrate{desc}"))]
+            for i, s in enumerate(calibration)]  # dense scans at the training density, as new scans are scored
     coverage, uncovered_share = decide_coverage(settings.coverage, reference, held)
     settings = replace(settings, coverage=coverage)
     folded = fold_evidence(model, selection, settings, verbose, desc) if cross_fit else None

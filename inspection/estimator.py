@@ -246,8 +246,9 @@ class Inspector(VerdictMixin, RegionMixin, BaseEstimator):
     def inspect(self, scan, index=0, timings=None):
         """Register, project and score one scan (:func:`inspection.scoring.score_scan`) under its part's
         inspector: a :class:`ScanResult`; with rays its score is the combination, which needs calibration.
-        ``timings`` (a dict) receives the seconds of each stage (``align``, ``load``, ``projection``, ``field``,
-        ``grazing``, ``stray``, ``reference``, ``aggregate``, ``rays``, ``combine``)."""
+        ``timings`` (a dict) receives the seconds of each stage (``sample``, ``align``, ``load``, ``projection``,
+        ``field``, ``grazing``, ``stray``, ``reference``, ``aggregate``, ``rays``, ``combine``). A scan much denser
+        than the training scans is scored on a subset at their density: the result's ``sample``."""
         one = self.for_scan(scan)
         combination = one._combination() if one._settings().rays else None  # before the work: fail fast
         result = one.inspect_components(scan, index, timings)
@@ -271,21 +272,24 @@ class Inspector(VerdictMixin, RegionMixin, BaseEstimator):
     def anomaly_map(self, scan):
         """The scan's anomaly map (m,): each point's patch residual, with its ray's evidence where the calibration
         scores rays, in standard deviations (higher = more anomalous; :mod:`inspection.maps`), what the PLY maps and
-        the report show. The points' own scores are ``inspect_components(scan).point_scores``. Works unfitted."""
+        the report show. The points' own scores are ``inspect_components(scan).point_scores``. Works unfitted. A scan
+        much denser than the training scans is scored on a subset at their density (:mod:`inspection.resolution`):
+        its map still has a value for every point, each scored point's carried to those nearest it."""
         from .maps import map_values
 
         one = self.for_scan(scan)
         result = one.inspect_components(scan)
         if one._settings().rays and getattr(one, "combination_", None) is not None:
             weigh_rays(result, one.combination_)
-        return map_values(one._settings(), scan, result)[0]
+        return result.full(map_values(one._settings(), result.scored(scan), result)[0])
 
     def ray_map(self, scan):
         """Per-point ray scores (m,) in [0, 1] of one scan (with rays; see :mod:`inspection.ray_evidence`)."""
         one = self.for_scan(scan)
         if not one._settings().rays:
             raise ValueError("ray_map needs an Inspector that scores the rays (rays=True, or 'auto' decided on)")
-        return one.inspect_components(scan).rays.point_map
+        result = one.inspect_components(scan)
+        return result.full(result.rays.point_map)
 
     # ------------------------------------------------------------------------------------ sklearn outlier API
     def score_samples(self, scans):

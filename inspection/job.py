@@ -354,6 +354,7 @@ def inspect_scan(insp, scan, i=0, maps="none", maps_dir=None, uncertain=True, to
     """
     from .html_report import scan_view
     from .maps import map_values
+    from .regions import Units
     from .tolerance import judged
 
     if maps not in ("none", "flagged", "all") or (maps != "none" and maps_dir is None):
@@ -387,14 +388,20 @@ def inspect_scan(insp, scan, i=0, maps="none", maps_dir=None, uncertain=True, to
     out["defects"] = [{"name": scan.name, **r.row()} for r in regions]
     if scan.point_labels is not None:
         out["region_ids"] = region_ids
+    if res.sample is not None:  # a scan denser than the training scans: scored at their density
+        row.update(points_scored=len(res.sample.kept),
+                   spacing=res.sample.spacing / Units.of(one.model).length_scale)
+        region_ids = res.full(region_ids)
+        if scan.point_labels is not None:
+            out["region_ids"] = region_ids
     mapped = maps == "all" or (maps == "flagged" and verdict != "good")
-    if scan.point_labels is not None or mapped:
-        values, ray_values = map_values(one.settings_, scan, res)
+    if scan.point_labels is not None or mapped:  # every point's: each scored point's carried to those nearest it
+        values, ray_values = (res.full(v) for v in map_values(one.settings_, res.scored(scan), res))
     if scan.point_labels is not None:  # the point metrics are those of the map a user sees
         out.update(point_labels=scan.point_labels, point_map=values, ray_map=ray_values)
     if mapped:
-        write_scan_maps(scan, values, ray_values, maps_dir, None if res.coverage is None else res.coverage.covered,
-                        region_ids)
+        write_scan_maps(scan, values, ray_values, maps_dir,
+                        None if res.coverage is None else res.full(res.coverage.covered), region_ids)
         out["view"] = scan_view(scan.name, scan.points, values, ray_values, seed=i,
                                 regions=region_ids)  # report.html's 3D view
     return out

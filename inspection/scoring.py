@@ -10,11 +10,14 @@ from dataclasses import dataclass
 import numpy as np
 from sklearn.exceptions import NotFittedError
 
+from datasets.validation import points_and_normals
+
 from .aggregates import aggregate as aggregate_scores
 from .coverage import MIN_COVERED_POINTS, Coverage, coverage_radius, covered_points
 from .evidence import ScanEvidence, gather_evidence, kept_points, stage
 from .loading import signed_for_scoring
 from .reference import REFERENCE_QUANTITY
+from .resolution import EvidenceSample, evidence_sample, sampled_scan, training_spacing
 from .scores import POINT_SCORES, noise_floor, point_scores, reference_scores
 
 
@@ -36,6 +39,9 @@ class ScanResult:
     lengthscale) says which points lie on surface the good scans covered: ``score`` and ``components["points"]``
     count those (``components["points_all"]`` every point), the point scores and the maps every point.
     ``evidence``: the :class:`inspection.evidence.ScanEvidence` it was scored from (the defect regions measure it).
+    ``sample``: for a scan much denser than the training scans, which of its points were scored at their density
+    (:class:`inspection.resolution.EvidenceSample`); then every per-point array here (and ``evidence``) is over
+    those points, and ``sample.full`` carries one to every point of the scan. None: every point was scored.
     """
 
     score: float
@@ -48,11 +54,24 @@ class ScanResult:
     ray_point_nats: np.ndarray = None
     coverage: Coverage = None
     evidence: ScanEvidence = None
+    sample: EvidenceSample = None
+
+    def scored(self, scan):
+        """``scan`` (as given to the inspection) as it was scored: itself, or with ``sample`` its scored points only,
+        in the order of every per-point array here."""
+        return scan if self.sample is None else sampled_scan(scan, self.sample.kept)
+
+    def full(self, values):
+        """Per-point ``values`` over the scored points (``point_scores``, a map) for every point of the scan: as
+        they are, or with ``sample`` each point's nearest scored point's (None stays None)."""
+        return values if self.sample is None or values is None else self.sample.full(values)
 
 
 def score_scan(model, scan, index, settings, reference=None, aligner=None, timings=None):
     """A scan registered as the settings say, projected and scored: a :class:`ScanResult` whose ``score`` is the
-    point scores' aggregate (the rays, if scored, not yet weighed: :func:`weigh_rays`).
+    point scores' aggregate (the rays, if scored, not yet weighed: :func:`weigh_rays`). A scan much denser than the
+    model's training scans is scored on a random subset at their density (:mod:`inspection.resolution`; the
+    result's ``sample``).
 
     Parameters
     ----------
@@ -69,17 +88,27 @@ def score_scan(model, scan, index, settings, reference=None, aligner=None, timin
     aligner : inspection.align.Aligner or None
         The registration target (needed with ``settings.align is True``).
     timings : dict, optional
-        Receives the seconds of each stage: ``align``, those of :func:`inspection.evidence.gather_evidence` and of
-        :func:`score_evidence`.
+        Receives the seconds of each stage: ``sample``, ``align``, those of
+        :func:`inspection.evidence.gather_evidence` and of :func:`score_evidence`.
     """
     if POINT_SCORES[settings.point_score].reference and reference is None:
         raise NotFittedError(f"point_score {settings.point_score!r} needs the per-location reference: call "
                              "fit(good_scans) with the model's training scans among them first")
+    with stage(timings, "sample"):
+        scan, sample = thinned(model, scan)
     scan, transform = registered(model, scan, settings.align, aligner, timings)
     result = score_evidence(scan_evidence(model, scan, index, settings, reference, timings=timings), reference,
                             settings, timings)
-    result.transform = transform
+    result.transform, result.sample = transform, sample
     return result
+
+
+def thinned(model, scan):
+    """(``scan`` as it is scored under ``model``, its :class:`inspection.resolution.EvidenceSample` or None): a scan
+    much denser than the model's training scans on a random subset at their density (:mod:`inspection.resolution`),
+    any other as it is. New scans and the calibration's held-back scans are thinned alike."""
+    sample = evidence_sample(points_and_normals(scan)[0], training_spacing(model))
+    return (scan if sample is None else sampled_scan(scan, sample.kept)), sample
 
 
 def registered(model, scan, align, aligner, timings=None):

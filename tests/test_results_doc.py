@@ -258,7 +258,16 @@ def test_the_suites_renderers_know_their_figures():
         "per_type": [{"run": "a/defaults", "patch": 32, "overall": 0.99, "bump": 0.98}]})
     _renders_itself("latency", {"part": "builtin", "threads": 1, "calibrate_seconds": 20.0, "sizes": {"4000": {
         "scans": 12, "points": 4000.0, "seconds_per_scan": 0.2, "seconds_max": 0.3, "stages": {"rays": 0.03},
-        "other": 0.01, "nn_seconds_per_scan": 0.007, "peak_rss_mb": 900.0}}})
+        "other": 0.01, "nn_seconds_per_scan": 0.007, "peak_rss_mb": 900.0}}})  # a record from before issue 51
+    body = _renders_itself("latency", {"part": "builtin", "threads": 1, "calibrate_seconds": 20.0, "sizes": {
+        "1000000": {"scans": 8, "points": 1e6, "points_scored": 7200.0, "scored_as": "defaults",
+                    "seconds_per_scan": 0.6, "seconds_max": 0.7, "stages": {"sample": 0.18}, "other": 0.01,
+                    "map_seconds": 0.04, "nn_seconds_per_scan": 0.6, "peak_rss_mb": 1000.0}}})
+    assert "| 1,000,000 | 7,200 | defaults | 8 | 0.600 | 0.700 | 0.180 | 0.010 | 0.040 | 0.6000 | 1000 |" in body
+    body = _renders_itself("training", {"seed": 0, "runs": [
+        {"part": "fandisk", "epochs": "450", "epochs_run": 450, "scans": 26, "seconds": 200.0, "loss": 0.0066,
+         "stages": {"family": 19.0, "pose": 8.0, "read": 0.1, "targets": 1.5, "epochs": 170.0}, "other": 1.4}]})
+    assert "| fandisk | 450 (450) | 26 | 200.0 | 19.0 | 8.0 | 0.1 | 1.5 | 170.0 | 1.4 | 0.0066 |" in body
 
 
 def test_the_fewscans_renderer_sums_over_the_seeds_and_shows_the_loop():

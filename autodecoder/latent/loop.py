@@ -70,7 +70,9 @@ class TrainingState:
     history : list of dict
         One log record (``LOG_COLUMNS``) per completed epoch.
     info : dict
-        Provenance: ``train_seconds``, ``targets_seconds``.
+        Provenance: ``train_seconds`` (the epochs), ``targets_seconds`` (the scans' GP targets), ``read_seconds``
+        (reading the scans, registering them onto a common frame when the run has one) and, from
+        :func:`autodecoder.latent.train.train_collection`, ``decision_seconds`` (the family and pose decisions).
     """
 
     config: dict
@@ -154,13 +156,16 @@ def start_run(scans, names, options, *, resume=None, frame=None, fingerprint="",
     n_scans = len(names)
     local = list(range(rank, n_scans, world))  # this rank's scans
     progress = bool(progress) and rank == 0
+    t_read = time.perf_counter()
     local_scans = _read_local_scans(scans, names, local, world, progress)
+    read_seconds = time.perf_counter() - t_read
     part_ids = _part_ids({i: str(getattr(s, "part_id", "")) for i, s in local_scans.items()}, n_scans, world)
     options, config = _resolve_options(options, resume, fingerprint, names, world, count_parts(part_ids))
     if config is None:
         config = _new_config(options, scans, n_scans, local_scans, world, distributed)
 
     state = _initial_state(config, options, n_scans, local, rank, device)
+    state.info["read_seconds"] = read_seconds
     if resume is not None:
         restore_state(state, resume, local, rank, device)
     elif config.get("representation", "siren") == "grid":

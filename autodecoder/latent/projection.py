@@ -20,7 +20,7 @@ step's time on the few hundred points a step uses.
 """
 import time
 from dataclasses import dataclass, field, replace
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 import torch
@@ -105,7 +105,8 @@ class Projection:
     code : (L,) float32 tensor
     loss : float
         Projection loss (without the code prior) on all the scan's points (on a seeded subsample of
-        ``ProjectionOptions.loss_points`` of them for a larger scan projected down to one code).
+        ``ProjectionOptions.loss_points`` of them for a larger scan projected down to one code). Computed when first
+        read when one code was left (the inspection never reads it: a tenth of a scan's projection saved).
     field : StochasticField
         The field of the code (collection frame); with fine-tuned copies of the nets when ``finetune_steps > 0``.
     start : int
@@ -115,11 +116,18 @@ class Projection:
     """
 
     code: torch.Tensor
-    loss: float
+    loss_value: Optional[float]
     field: object
     start: int = -1
     seconds: float = 0.0
     info: dict = field(default_factory=dict)
+    loss_of: Optional[Callable] = field(default=None, repr=False)  # computes loss_value when it is None
+
+    @property
+    def loss(self):
+        if self.loss_value is None:
+            self.loss_value, self.loss_of = float(self.loss_of()), None
+        return self.loss_value
 
 
 def _prepare(scan_like, index):
@@ -397,12 +405,11 @@ def _project_batch(model, prepared, opts, seed):
         best = torch.topk(-score, starts, dim=1).indices  # (B, starts)
     z = torch.nn.Parameter(cand[best].clone())  # (B, starts, L)
     start_index = cand_index[best.numpy()]  # (B, starts)
-    opt = torch.optim.Adam([z], lr=opts.lr)
+    adam = _CodeAdam(z)
     explore = min(opts.explore, opts.steps) if starts > 1 else 0
     manual = _manual_path(net, caches)
     for step in range(opts.steps):
-        for grp in opt.param_groups:
-            grp["lr"] = opts.lr * cosine_decay(step, opts.steps, 0.1)
+        lr = opts.lr * cosine_decay(step, opts.steps, 0.1)
         k = z.shape[1]
         xs, ns, cs = subset(opts.sample)
         x = xs[:, None].expand(b, k, *xs.shape[1:]).reshape(b * k, -1, 3)
@@ -411,22 +418,19 @@ def _project_batch(model, prepared, opts, seed):
         if manual:
             data, grad = _data_loss_and_code_grad(net, x, n, o, z.detach().reshape(b * k, latent), lam_s, opts.trim)
             data = data.view(b, k)
-            z.grad = grad.view(b, k, latent) + 2.0 * lam_z * z.detach()
+            grad = grad.view(b, k, latent) + 2.0 * lam_z * z.detach()
         else:
             data = _data_loss(net, x, n, o, z.reshape(b * k, latent), lam_s, opts.trim, _expanded(cs, k)).view(b, k)
             loss = data.sum() + lam_z * z.square().sum()
-            opt.zero_grad(set_to_none=True)
+            z.grad = None
             loss.backward()
-        opt.step()
+            grad = z.grad
+        adam.step(grad, lr)
         if k > 1 and step + 1 == explore:  # keep each scan's best start, and its Adam moments
             keep = data.detach().argmin(1)  # (B,)
             rows = torch.arange(b)
-            state = opt.state[z]
             z = torch.nn.Parameter(z.detach()[rows, keep][:, None].clone())
-            new = torch.optim.Adam([z], lr=opts.lr)
-            new.state[z] = {"step": state["step"], "exp_avg": state["exp_avg"][rows, keep][:, None].clone(),
-                            "exp_avg_sq": state["exp_avg_sq"][rows, keep][:, None].clone()}
-            opt = new
+            adam = adam.kept(z, rows, keep)
             start_index = start_index[rows.numpy(), keep.numpy()][:, None]
     z = z.detach()
     rows = [None] * b  # the points of each scan's final loss (None: all)
@@ -439,20 +443,56 @@ def _project_batch(model, prepared, opts, seed):
     def rows_of(a, i):
         return a if rows[i] is None else a[rows[i]]
 
-    with torch.no_grad():  # final loss on all points (or the subsample), per start; keep the best
-        losses = torch.stack([_full_loss(net, rows_of(pts[i], i), rows_of(nrm[i], i), bool(oriented[i]), z[i], lam_s,
-                                         opts.trim, cache=None if caches is None else
-                                         {key: rows_of(v, i) for key, v in caches[i].items()})
-                              for i in range(b)])
-    keep = losses.argmin(1)
+    def final_losses(i):  # on all points (or the subsample), per start: (k,)
+        with torch.no_grad():
+            return _full_loss(net, rows_of(pts[i], i), rows_of(nrm[i], i), bool(oriented[i]), z[i], lam_s, opts.trim,
+                              cache=None if caches is None else {key: rows_of(v, i) for key, v in caches[i].items()})
+
+    picks = []  # per scan: (the start kept, its loss or None, what computes it)
+    for i in range(b):
+        if z.shape[1] == 1:  # one code: its loss only reports it, computed if read
+            picks.append((0, None, lambda i=i: final_losses(i)[0]))
+        else:  # the final loss picks the best start
+            losses = final_losses(i)
+            keep = int(losses.argmin())
+            picks.append((keep, float(losses[keep]), None))
     seconds = (time.perf_counter() - t0) / b
     out = []
-    for i in range(b):
-        code = z[i, keep[i]].clone()
-        out.append(Projection(code=code, loss=float(losses[i, keep[i]]), field=model.field(code),
-                              start=int(start_index[i, keep[i]]), seconds=seconds,
+    for i, (keep, loss, loss_of) in enumerate(picks):
+        code = z[i, keep].clone()
+        out.append(Projection(code=code, loss_value=loss, loss_of=loss_of, field=model.field(code),
+                              start=int(start_index[i, keep]), seconds=seconds,
                               info={"steps": opts.steps, "oriented": bool(oriented[i])}))
     return out
+
+
+class _CodeAdam:
+    """Adam on the codes z (B, k, L): step for step what ``torch.optim.Adam([z], lr)`` computes on a CPU tensor (its
+    single-tensor path: no weight decay, no amsgrad, default betas and eps; the same operations in the same order, so
+    the same codes to the bit), without the optimiser's per-step bookkeeping, which cost a tenth of a projection."""
+
+    BETA1, BETA2, EPS = 0.9, 0.999, 1e-8
+
+    def __init__(self, z, steps=0, exp_avg=None, exp_avg_sq=None):
+        self.z, self.steps = z, steps
+        self.exp_avg = torch.zeros_like(z.detach()) if exp_avg is None else exp_avg
+        self.exp_avg_sq = torch.zeros_like(z.detach()) if exp_avg_sq is None else exp_avg_sq
+
+    @torch.no_grad()
+    def step(self, grad, lr):
+        """One update of z with gradient ``grad`` (z's shape) at learning rate ``lr``."""
+        self.steps += 1
+        self.exp_avg.lerp_(grad, 1 - self.BETA1)
+        self.exp_avg_sq.mul_(self.BETA2).addcmul_(grad, grad, value=1 - self.BETA2)
+        step = float(self.steps)
+        step_size = lr / (1 - self.BETA1 ** step)
+        denom = (self.exp_avg_sq.sqrt() / (1 - self.BETA2 ** step) ** 0.5).add_(self.EPS)
+        self.z.addcdiv_(self.exp_avg, denom, value=-step_size)
+
+    def kept(self, z, rows, keep):
+        """The optimiser of ``z`` (B, 1, L), each scan's start ``keep`` (B,) of these codes, with its moments."""
+        return _CodeAdam(z, self.steps, self.exp_avg[rows, keep][:, None].clone(),
+                         self.exp_avg_sq[rows, keep][:, None].clone())
 
 
 def _full_loss(net, pts, nrm, oriented, z, lam_s, trim=0.0, chunk=8192, cache=None):
@@ -491,6 +531,6 @@ def _finetune(model, projection, prepared, opts, seed, quiet):
         net.requires_grad_(False)
     field = model.field(code, mean_net=mean_net, cov_net=cov_net,
                         info={**projection.info, "finetune_steps": opts.finetune_steps})
-    return Projection(code=code, loss=projection.loss, field=field, start=projection.start,
+    return Projection(code=code, loss_value=projection.loss, field=field, start=projection.start,
                       seconds=projection.seconds + time.perf_counter() - t0,
                       info={**projection.info, "finetune_steps": opts.finetune_steps})

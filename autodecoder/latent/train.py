@@ -16,6 +16,7 @@ collection (:mod:`~autodecoder.latent.collection_split`), checkpoints (:mod:`~au
 the log and loss plot (:mod:`~autodecoder.latent.history`).
 """
 import os
+import time
 from dataclasses import asdict
 from pathlib import Path
 
@@ -31,7 +32,7 @@ from autodecoder.latent.options import LatentOptions, TrainingInputError
 
 
 def train_latent(scans, out=None, options=None, *, names=None, frame=None, fingerprint="", calibration_names=(),
-                 resume=None, device="cpu", quiet=False, stop_after=None, family=None, **overrides):
+                 resume=None, device="cpu", quiet=False, stop_after=None, family=None, info=None, **overrides):
     """Train a latent model (autodecoder) over oriented scans, all in one collection frame.
 
     Parameters
@@ -62,6 +63,8 @@ def train_latent(scans, out=None, options=None, *, names=None, frame=None, finge
         No progress bars (reading the scans, their GP targets, the epochs).
     stop_after : int, optional
         End this run (with a checkpoint) once this many epochs are complete, as if interrupted there.
+    info : dict, optional
+        Provenance the checkpoint's ``info`` records beside the run's own (e.g. ``decision_seconds``).
 
     Returns
     -------
@@ -75,6 +78,7 @@ def train_latent(scans, out=None, options=None, *, names=None, frame=None, finge
     state, module, pools, scope, options = start_run(scans, names, options, resume=resume, frame=frame,
                                                      fingerprint=fingerprint, calibration_names=calibration_names,
                                                      device=device, family=family, progress=not quiet)
+    state.info.update(info or {})
     end_epoch = options.epochs if stop_after is None else min(options.epochs, int(stop_after))
     checkpoint = train_epochs(state, module, pools, scope, options, out, end_epoch, show=not quiet and scope.rank == 0)
     if checkpoint is None:  # nothing left to train (resumed a finished run)
@@ -165,18 +169,24 @@ def train_collection(data, out, *, split="train", calibration_fraction=0.2, resu
                                          f"training scans are of {len(parts)} part types ({parts})")
         if len(parts) > 1:  # several part types: their sizes differ by nature, not as a family's, and one part's
             family = pose = False  # scans are not to be registered onto another's (inspection registers per part)
+        decision_seconds = {}
         if checkpoint is None:
             seed = options.get("seed", LatentOptions.seed)
+            t0 = time.perf_counter()
             scans, family_frame = family_scans(scans, family, seed, quiet)
+            decision_seconds["family"] = time.perf_counter() - t0
             if family_frame is None:
+                t0 = time.perf_counter()
                 scans, family_frame = pose_scans(scans, pose, seed, quiet)
+                decision_seconds["pose"] = time.perf_counter() - t0
         elif checkpoint.get("family") is not None:
             scans = NormalisedScans(scans, FamilyFrame.from_dict(checkpoint["family"]))
         device, initialised = setup_distributed(device)
         try:
             return train_latent(scans, out, frame=collection.frame, fingerprint=collection.fingerprint(),
                                 calibration_names=calibration, resume=checkpoint, device=device, quiet=quiet,
-                                family=None if family_frame is None else family_frame.as_dict(), **options)
+                                family=None if family_frame is None else family_frame.as_dict(),
+                                info={"decision_seconds": decision_seconds} if decision_seconds else None, **options)
         except TrainingInputError:
             raise
         except ValueError as exc:

@@ -18,7 +18,6 @@ in real points), calibrated the README's way, every test scan's anomaly map and 
   as the toolkit shows them, on the good scans it does not call good (``shown``);
 - per type: found, typed right.
 """
-import json
 from pathlib import Path
 
 import numpy as np
@@ -61,12 +60,11 @@ def run(args):
 def _tree(part, seed, args):
     """(collection, model) of ``part`` at ``seed``: the inspection suite's synthetic tree, or the real suite's."""
     if part == "real":  # the real suite's tree (built by it: suites do not import each other)
-        trees = [p.parent / "bunny.h5" for p in sorted((Path(args.cache) / "real").glob("bunny_*/params.json"))
-                 if json.loads(p.read_text())["params"].get("seed") == seed and (p.parent / "bunny.h5").exists()]
-        if not trees:
-            raise SystemExit(f"defects: no real bunny tree of seed {seed} in {args.cache}/real: build it with "
-                             f"`python -m benchmarks real --seed {seed}`")
-        return trees[0], cache.trained_model(trees[0], root=args.cache, seed=0)
+        try:
+            tree = cache.real_tree(seed, args.cache)
+        except FileNotFoundError as exc:
+            raise SystemExit(f"defects: {exc}") from None
+        return tree, cache.trained_model(tree, root=args.cache, seed=0)
     data = cache.synth_collection(part, seed, root=args.cache, progress=args.progress, **cache.COLLECTION_DEFAULTS)
     return data, cache.trained_model(data, root=args.cache, seed=seed)
 

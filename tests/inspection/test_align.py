@@ -376,6 +376,10 @@ def test_training_on_scans_placed_by_hand_moves_them_into_one_pose(trained_in_on
     by_hand, scans, model = trained_in_one_pose
     fixture, _ = _corner_tree(tmp_path / "fixture", 0.0)
     assert model.family is not None and model.family.kind == "pose"
+    # where the training's time went (the training suite's stages): both decisions, reading, targets, epochs
+    assert set(model.info["decision_seconds"]) == {"family", "pose"}
+    assert all(model.info[k] > 0 for k in ("read_seconds", "targets_seconds", "train_seconds"))
+    assert all(v > 0 for v in model.info["decision_seconds"].values())
     loaded = load_model(by_hand / "model.pt")
     assert loaded.family.kind == "pose"
     new = _corner("test/good/x", "test", 30, rotation_deg=4.0, n=500)

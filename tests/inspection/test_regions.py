@@ -7,7 +7,7 @@ from inspection.maps import patch_residuals
 from inspection.regions import (FOOTPRINT_FRACTION, RegionEvidence, Units, find_regions, map_maximum,
                                 region_level)
 
-from .spheres import ScaledSphereField, ScaledSphereModel
+from .spheres import RobustSphereModel, ScaledSphereField, ScaledSphereModel, sphere_scan_with_dent
 
 DEPTH, RADIUS, NOISE = 0.05, 0.3, 0.005  # noise 1/10 of the depth, as the issue asks
 
@@ -143,39 +143,6 @@ def test_units_take_lengths_and_places_back_to_the_files():
 
 
 # -------------------------------------------------------------------------------------------------- end to end
-def sphere_scan_with_dent(n=3000, seed=0, depth=0.0, noise=0.003, arc=0.3):
-    """The upper half of a unit sphere (one view) with a paraboloid dent of ``depth`` and radius ``arc`` (radians)
-    at its pole; returns points, normals and the points' true signed deviation."""
-    rng = np.random.default_rng(seed)
-    d = rng.normal(size=(n, 3))
-    d[:, 2] = np.abs(d[:, 2])
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    theta = np.arccos(np.clip(d[:, 2], -1, 1))
-    moved = -depth * np.clip(1 - (theta / arc) ** 2, 0, None)
-    r = 1.0 + moved + noise * rng.normal(size=n)
-    return d * r[:, None], d, moved
-
-
-class RobustSphereModel(ScaledSphereModel):
-    """The sphere double whose projection leaves out the points more than 3 robust deviations off its fit, refitted
-    three times, as the toolkit's robust projection leaves out a defect's points: a dent does not pull the sphere
-    into itself."""
-
-    def project(self, points, normals=None, **options):
-        p = np.asarray(points, float)
-        field = super().project(p).field
-        for _ in range(3):
-            residual = field.mean(p)
-            spread = 1.4826 * np.median(np.abs(residual - np.median(residual)))
-            field = super().project(p[np.abs(residual - np.median(residual)) <= 3 * spread]).field
-
-        class Projection:
-            pass
-
-        Projection.field = ScaledSphereField(field.center, field.radius)
-        return Projection()
-
-
 @pytest.fixture(scope="module")
 def sphere_inspector():
     from inspection import Inspector

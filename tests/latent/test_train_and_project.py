@@ -416,3 +416,46 @@ def test_the_manual_code_gradient_is_autograds(trained, oriented, trim):
         proj._manual_path = proj_manual
     np.testing.assert_allclose(fast.code.numpy(), slow.code.numpy(), atol=1e-4)
     assert fast.start == slow.start and abs(fast.loss - slow.loss) <= 1e-4 * abs(slow.loss)
+
+
+def test_the_projections_adam_is_torchs_step_for_step():
+    """The projection's Adam on the codes gives torch.optim.Adam's codes to the bit: through a decaying learning
+    rate, and after keeping one start per scan with its moments (as the projection does at the end of exploring)."""
+    from autodecoder.latent.projection import _CodeAdam
+
+    rng = torch.Generator().manual_seed(0)
+    z0 = torch.randn(2, 3, 5, generator=rng)
+    grads = [torch.randn(2, 3, 5, generator=rng) for _ in range(40)]
+    ours, theirs = torch.nn.Parameter(z0.clone()), torch.nn.Parameter(z0.clone())
+    adam, opt = _CodeAdam(ours), torch.optim.Adam([theirs], lr=0.05)
+    rows, keep = torch.arange(2), torch.tensor([2, 0])
+    for step, grad in enumerate(grads):
+        lr = 0.05 * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * step / 40)))
+        adam.step(grad if step < 15 else grad[:, :1], lr)
+        for group in opt.param_groups:
+            group["lr"] = lr
+        theirs.grad = grad if step < 15 else grad[:, :1]
+        opt.step()
+        if step == 14:  # one start per scan kept, with its moments
+            ours = torch.nn.Parameter(ours.detach()[rows, keep][:, None].clone())
+            adam = adam.kept(ours, rows, keep)
+            state = opt.state[theirs]
+            theirs = torch.nn.Parameter(theirs.detach()[rows, keep][:, None].clone())
+            opt = torch.optim.Adam([theirs], lr=lr)
+            opt.state[theirs] = {"step": state["step"], "exp_avg": state["exp_avg"][rows, keep][:, None].clone(),
+                                 "exp_avg_sq": state["exp_avg_sq"][rows, keep][:, None].clone()}
+        assert torch.equal(ours, theirs), step
+
+
+def test_a_single_codes_loss_is_computed_when_first_read(trained):
+    """With one code left the projection's loss is computed only when read (inspection never reads it), and is then
+    what it always was; with several codes left it picks among them and is there at once."""
+    model, _ = trained
+    scan = sphere_scan("test/lazy", 0.25, seed=13)
+    one = model.project(scan.points, scan.normals, seed=0, steps=20, starts=2, explore=5)
+    assert one.loss_value is None and one.loss_of is not None
+    again = model.project(scan.points, scan.normals, seed=0, steps=20, starts=2, explore=5)
+    assert torch.equal(one.code, again.code) and np.isfinite(one.loss) and one.loss == again.loss
+    assert one.loss_value == one.loss and one.loss_of is None
+    several = model.project(scan.points, scan.normals, seed=0, steps=0, starts=2)
+    assert several.loss_value is not None and several.loss_of is None
