@@ -85,6 +85,8 @@ def evidence_sample(points, spacing, seed=0):
     rng = np.random.default_rng(seed)
     probe = points if m <= SPACING_POINTS else points[rng.choice(m, SPACING_POINTS, replace=False)]
     own = point_spacing(probe) * np.sqrt(len(probe) / m)
+    if not own > 0:  # most points repeated: no density to speak of, every point scored
+        return None
     k = int(np.ceil(m * (own / float(spacing)) ** 2))
     if k >= SAMPLE_BELOW * m:
         return None

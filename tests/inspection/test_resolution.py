@@ -34,6 +34,7 @@ def test_a_scan_at_the_training_density_is_scored_on_every_point_and_a_dense_one
     assert np.array_equal(sample.full(values)[sample.kept], values)
     with pytest.raises(ValueError, match="scored points"):
         sample.full(values[:-1])
+    assert evidence_sample(np.repeat(dense[:100], 600, axis=0), spacing) is None  # repeated points: no density
     kept_points, kept_normals = sampled_scan((dense, normals), sample.kept)
     assert np.array_equal(kept_points, dense[sample.kept]) and np.array_equal(kept_normals, normals[sample.kept])
 
