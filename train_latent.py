@@ -80,8 +80,9 @@ def build_parser():
     p.add_argument("--threads", type=int, default=None,
                    help="torch CPU threads of this process (0: torch's own choice, one per core). A latent training "
                         "step is many small tensor operations, which one thread runs faster than two on a 2-core "
-                        "CPU (docs/results.md#latent-training-in-two-minutes-issue-19); use more cores with "
-                        "torchrun processes (default: the trainer's TRAINING_THREADS, one)")
+                        "CPU (docs/results.md#latent-training-in-two-minutes-issue-19); a second core draws the next "
+                        "step's targets meanwhile, and the family and pose decisions register scans on every core; "
+                        "use more cores with torchrun processes (default: the trainer's TRAINING_THREADS, one)")
     p.add_argument("--family", choices=("auto", "on", "off"), default="auto",
                    help="bring the training scans to one size first: for a product family whose members differ in "
                         "length or width (every scan inspected later is registered the same way); 'auto': when "

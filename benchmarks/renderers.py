@@ -248,7 +248,7 @@ def training_lines(figures, record=None):
     rows = [{"part": one["part"], "budget": f"{one['epochs']} ({one.get('epochs_run', '-')})",
              "scans": one.get("scans"), "total": one["seconds"], **one.get("stages", {}), "other": one.get("other"),
              "loss": one.get("loss")} for one in figures.get("runs", [])]
-    lines = [f"Seed {figures.get('seed')}; seconds per stage of one training, one thread:", ""]
+    lines = [f"Seed {figures.get('seed')}; seconds per stage of one training, one torch thread:", ""]
     return lines + markdown_table(rows, [("part", "part", ""), ("budget", "epochs (run)", ""),
                                          ("scans", "scans", "d"), ("total", "total s", ".1f"),
                                          *[(k, k, ".1f") for k in stages], ("other", "other", ".1f"),

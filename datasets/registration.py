@@ -36,6 +36,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
+from datasets.parallel import parallel_map
 from datasets.validation import points_and_normals
 
 DEFAULT_LEVELS = (4.0, 2.0, 1.0)  # ICP voxel sizes in multiples of the target's point spacing, coarse to fine
@@ -457,10 +458,8 @@ def _rigid_group(points, names, rounds, seed, tick):
     for _ in range(int(rounds)):
         owners = np.concatenate([np.full(len(p), n) for p, n in zip(points, names)])
         target = Aligner(np.concatenate(points), owners=owners, seed=seed)
-        steps = []  # all onto the same round's poses
-        for p, n in zip(points, names):
-            steps.append(target.without(n).transform(p))
-            tick()
+        # all onto the same round's poses, side by side (datasets.parallel)
+        steps = parallel_map(lambda i: target.without(names[i]).transform(points[i]), range(len(points)), tick)
         motion_sizes = []
         for i, T in enumerate(steps):
             moved = points[i] @ T[:3, :3].T + T[:3, 3]
@@ -491,16 +490,16 @@ def _scaled_group(points, names, rounds, seed, tick):
     for _ in range(int(rounds)):
         owners = np.concatenate([np.full(len(p), n) for p, n in zip(moved, names)])
         target = Aligner(np.concatenate(moved), owners=owners, seed=seed, motion="scaled", scale_centre=expected)
-        steps = []
-        for i, (p, n) in enumerate(zip(raw, names)):
-            aligner = target.without(n)
-            start = states[i]
+
+        def register(i, target=target):  # onto the same round's target, side by side (datasets.parallel)
+            aligner, start = target.without(names[i]), states[i]
             if start is None:  # the extent's size, about the scans' centre, in this aligner's parameters
                 S = np.diag(factors[i])
                 start = (np.eye(3), (np.eye(3) - S) @ (centre - aligner.centre), np.log(factors[i]))
-            state = aligner.scaled_state(p, start)
-            steps.append((state, aligner.scaled_matrix(*state)))
-            tick()
+            state = aligner.scaled_state(raw[i], start)
+            return state, aligner.scaled_matrix(*state)
+
+        steps = parallel_map(register, range(len(raw)), tick)
         motion_sizes = []
         for i, (state, T) in enumerate(steps):
             now = raw[i] @ T[:3, :3].T + T[:3, 3]
@@ -575,20 +574,18 @@ def pose_spread(scans, max_scans=AUTO_SCANS, seed=0, tick=None):
         return 1.0
     aligner = Aligner.from_scans(scans, seed=seed)
     pick = np.unique(np.linspace(0, len(scans) - 1, min(max_scans, len(scans))).round().astype(int))
-    ratios = []
-    for i in pick:
-        scan = scans[i]
-        others = aligner.without(str(getattr(scan, "name", "") or f"scan {i}"))
-        pts = np.asarray(points_and_normals(scan)[0], dtype=np.float64).reshape(-1, 3)
+
+    def ratio(i):  # one scan's residual before over after its registration (None: too few matched points)
+        others = aligner.without(str(getattr(scans[i], "name", "") or f"scan {i}"))
+        pts = np.asarray(points_and_normals(scans[i])[0], dtype=np.float64).reshape(-1, 3)
         T = others.transform(pts)
-        if tick is not None:
-            tick()
         residuals = []
         for p in (pts, pts @ T[:3, :3].T + T[:3, 3]):
             ok, distances = others.plane_distances(p, 12.0 * others.spacing)
             if ok.sum() < 10:
-                break
+                return None
             residuals.append(np.median(distances))
-        if len(residuals) == 2 and residuals[1] > 0:
-            ratios.append(residuals[0] / residuals[1])
+        return residuals[0] / residuals[1] if residuals[1] > 0 else None
+
+    ratios = [r for r in parallel_map(ratio, pick, tick) if r is not None]  # side by side (datasets.parallel)
     return float(np.median(ratios)) if ratios else 1.0

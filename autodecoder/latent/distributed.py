@@ -63,7 +63,9 @@ def setup_distributed(device="auto"):
 # torch CPU threads of a training run (train_latent.py --threads, inspection.training.train_model): a step is many
 # small tensor operations, which one thread ran faster than two on the 2-core machine (103 s against 139 s for the
 # default run on fandisk's 26 scans, docs/results.md#latent-training-in-two-minutes-issue-19); more cores are used by
-# torchrun processes, one thread each.
+# torchrun processes, one thread each. Beside them: one thread draws each step's targets while the step before runs
+# (autodecoder.latent.loop._train_epoch), and the family and pose decisions register scans on every core
+# (datasets.parallel).
 TRAINING_THREADS = 1
 
 

@@ -81,11 +81,12 @@ def _axis_spreads(logs):
 def union_residual(scans, motion="rigid", seed=0):
     """How sharp registered scans' union is: the median over the scans of each one's median point-to-plane distance
     to the others (:meth:`datasets.registration.Aligner.without`), in the others' point spacings."""
+    from datasets.parallel import parallel_map
     from datasets.registration import Aligner
 
     target = Aligner.from_scans(scans, max_scans=len(scans), seed=seed, motion=motion)
-    return float(np.median([target.without(str(s.name))._residual(np.asarray(s.points, dtype=np.float64))
-                            / target.spacing for s in scans]))
+    return float(np.median(parallel_map(lambda s: target.without(str(s.name))._residual(
+        np.asarray(s.points, dtype=np.float64)) / target.spacing, scans)))
 
 
 def size_reproducibility(moved, transforms, seed=0, tick=None):
@@ -99,6 +100,7 @@ def size_reproducibility(moved, transforms, seed=0, tick=None):
     registration); the sizes given to smooth views that do not pin theirs depend on which scans they meet (0.13-0.78
     on the real bunny's range scans; docs/results.md). nan for fewer than 5 scans. ``tick`` (optional): called
     once per registration."""
+    from datasets.parallel import parallel_map
     from datasets.registration import Aligner
     from datasets.validation import points_and_normals
 
@@ -107,17 +109,17 @@ def size_reproducibility(moved, transforms, seed=0, tick=None):
     logs = np.log(np.maximum(np.abs([np.diag(np.asarray(T)[:3, :3]) for T in transforms]), 1e-12))
     spreads = _axis_spreads(logs)
     axis = int(np.argmax(spreads))
-    differences = []
-    for i, scan in enumerate(moved):
-        others = [m for j, m in enumerate(moved) if j != i]
-        points = np.asarray(points_and_normals(scan)[0], dtype=np.float64).reshape(-1, 3)
-        sizes = []
-        for half in (others[0::2], others[1::2]):
-            aligner = Aligner.from_scans(half, max_scans=len(half), seed=seed, motion="scaled")
-            sizes.append(np.log(abs(aligner.transform(points)[axis, axis])))
-            if tick is not None:
-                tick()
-        differences.append(abs(sizes[0] - sizes[1]))
+
+    def log_size(pair):  # scan i registered onto one half of the others (alternate scans): its log size on the axis
+        i, half = pair
+        others = [m for j, m in enumerate(moved) if j != i][half::2]
+        points = np.asarray(points_and_normals(moved[i])[0], dtype=np.float64).reshape(-1, 3)
+        aligner = Aligner.from_scans(others, max_scans=len(others), seed=seed, motion="scaled")
+        return np.log(abs(aligner.transform(points)[axis, axis]))
+
+    pairs = [(i, half) for i in range(len(moved)) for half in (0, 1)]
+    sizes = np.reshape(parallel_map(log_size, pairs, tick), (len(moved), 2))  # side by side (datasets.parallel)
+    differences = np.abs(sizes[:, 0] - sizes[:, 1])
     return float(np.quantile(differences, 0.75) / max(spreads[axis], 1e-12))
 
 
@@ -298,18 +300,25 @@ class NormalisedScans:
     ``MOVED_KEPT`` are kept, not all (a collection streams)."""
 
     def __init__(self, scans, frame):
+        import threading
+
         self.scans, self.frame = scans, frame
         names = getattr(scans, "names", None)
         self.names = list(names) if names is not None else [s.name for s in scans]
 
         self._moved = {}
+        self._lock = threading.Lock()  # scans may be read from several threads at once (the trainer's reading)
 
     def __len__(self):
         return len(self.scans)
 
     def __getitem__(self, i):
-        if i not in self._moved:
-            if len(self._moved) >= MOVED_KEPT:
+        with self._lock:
+            if i in self._moved:
+                return self._moved[i]
+        moved = self.frame.normalise(self.scans[i])  # outside the lock: registrations run side by side
+        with self._lock:
+            if i not in self._moved and len(self._moved) >= MOVED_KEPT:
                 self._moved.pop(next(iter(self._moved)))  # the oldest
-            self._moved[i] = self.frame.normalise(self.scans[i])
-        return self._moved[i]
+            self._moved[i] = moved
+        return moved

@@ -3,9 +3,11 @@ shared level) and its epochs and steps.
 
 One step takes a batch of S scans and, for each, samples of its GP posterior targets (the targets themselves,
 a KD-tree and the lumped diagonal per scan, are built once and cached; the samples come from per-scan pools that
-serve ``target_passes`` epochs, see :mod:`autodecoder.latent.pools`); the NSSPR losses are computed for the S
-scans in one forward pass with a code per sample (z: (S * n, L)). The covariance net sees the codes detached: the
-codes are shaped by the mean (geometry) loss only, and the covariance net learns the uncertainty given the code.
+serve ``target_passes`` epochs, see :mod:`autodecoder.latent.pools`; the next step's are drawn in a worker thread
+while a step runs); the NSSPR losses are computed for the S scans in one forward pass per net with a code per sample
+(z: (S * n, L)). The covariance net sees the codes detached: the codes are shaped by the mean (geometry) loss only,
+and the covariance net learns the uncertainty given the code; its graph shares nothing with the mean net's, and on a
+CPU it runs in a second thread beside it (:func:`_train_step`), the same to the bit as one backward pass.
 """
 import math
 import time
@@ -38,15 +40,25 @@ class _NetPair(nn.Module):
         self.screening_weight, self.box_volume = float(screening_weight), float(box_volume)
 
     def forward(self, x, z_x, mu, omega, screen, z_screen, pair_x, z_pair, sigma, weights):
+        return torch.cat([self.mean_terms(x, z_x, mu, omega, screen, z_screen),
+                          self.covariance_terms(screen, z_screen, pair_x, z_pair, sigma, weights)])
+
+    def mean_terms(self, x, z_x, mu, omega, screen, z_screen):
+        """The mean net's two terms (2,): its graph reaches the mean net and the codes only."""
         s, n = mu.shape[:2]
         _, grad = self.mean_net.value_and_gradient(x, z_x)  # (S n, 3)
         mean_dir = mean_dirichlet_loss(grad.view(s, n, 3), mu, omega, self.box_volume)
         mean_scr = screening_loss(self.mean_net(screen, z_screen), self.screening_weight)
+        return torch.stack([mean_dir, mean_scr])
+
+    def covariance_terms(self, screen, z_screen, pair_x, z_pair, sigma, weights):
+        """The covariance net's two terms (2,): it sees the codes detached, so its graph reaches the covariance net
+        only (what lets :func:`_train_step` run the two graphs side by side)."""
+        s, m = sigma.shape[:2]
         _, jac = self.cov_net.features_and_jacobian(pair_x, z_pair)  # (S m, 3, K)
-        m = sigma.shape[1]
         cov_dir = covariance_dirichlet_loss_features(jac.view(s, m, 3, -1), sigma, weights)
         cov_scr = screening_loss(self.cov_net.variance(screen, z_screen.detach()), self.screening_weight)
-        return torch.stack([mean_dir, mean_scr, cov_dir, cov_scr])
+        return torch.stack([cov_dir, cov_scr])
 
 
 @dataclass
@@ -185,20 +197,28 @@ def start_run(scans, names, options, *, resume=None, frame=None, fingerprint="",
     return state, module, pools, scope, options
 
 
-def _bar(items, progress, desc):
-    """``items`` under a progress bar when ``progress`` (tqdm.auto, as the epochs' bar)."""
+def _bar(items, progress, desc, total=None):
+    """``items`` under a progress bar when ``progress`` (tqdm.auto, as the epochs' bar); ``items`` None: the bar
+    alone (of ``total`` scans; None without ``progress``), updated by its owner."""
     if not progress:
         return items
     from tqdm.auto import tqdm
 
-    return tqdm(items, desc=desc, unit="scan", dynamic_ncols=True)
+    return tqdm(items, desc=desc, total=total, unit="scan", dynamic_ncols=True)
 
 
 def _read_local_scans(scans, names, local, world, progress=False):
-    """{index: Scan} of this rank's scans (``local``), each checked to have at least 10 points."""
+    """{index: Scan} of this rank's scans (``local``), each checked to have at least 10 points. Read side by side
+    (:mod:`datasets.parallel`): a scan read from a common frame (:class:`autodecoder.latent.family.NormalisedScans`)
+    is registered onto it."""
+    from datasets.parallel import parallel_map
+
     if not local:
         raise ValueError(f"{world} processes but only {len(names)} training scans: every process needs one")
-    local_scans = {i: scans[i] for i in _bar(local, progress, "reading scans")}
+    bar = _bar(None, progress, "reading scans", total=len(local))
+    local_scans = dict(zip(local, parallel_map(scans.__getitem__, local, tick=None if bar is None else bar.update)))
+    if bar is not None:
+        bar.close()
     for i, s in local_scans.items():
         if len(s.points) < 10:
             raise ValueError(f"scan {names[i]!r} has {len(s.points)} points; at least 10 needed")
@@ -362,18 +382,41 @@ def train_epochs(state, module, pools, scope, options, out, end_epoch, show):
 
 
 def _train_epoch(state, module, pools, scope, options, epoch, steps_per_epoch, batch, total_steps):
-    """One pass over this rank's scans (ranks with fewer scans wrap around); returns the epoch's log record."""
+    """One pass over this rank's scans (ranks with fewer scans wrap around); returns the epoch's log record.
+
+    Each step's targets (:func:`autodecoder.latent.pools.stack_inputs`) are drawn by one worker thread while the
+    step before is computed: they do not depend on the nets, their draws follow each other in the same order from
+    ``state.rng`` as when drawn in the step itself, so the run is the same to the bit; and the worker's numpy and
+    KD-tree work runs on a core the single-threaded step leaves idle (docs/results_archive.md, "Speed"). Nothing is
+    drawn beyond the epoch, so a checkpoint's ``rng`` is where a resumed run continues."""
+    from concurrent.futures import ThreadPoolExecutor
+
     t0 = time.perf_counter()
     order = state.rng.permutation(len(scope.local))
     order = np.resize(order, steps_per_epoch * batch)
+    positions = [order[k * batch:(k + 1) * batch] for k in range(steps_per_epoch)]
+
+    def draw(pos):
+        return stack_inputs([pools[scope.local[p]] for p in pos], epoch, options.screen_samples, state.rng,
+                            scope.device)
+
     sums = torch.zeros(6, dtype=torch.float64)
-    for k in range(steps_per_epoch):
-        f = cosine_decay(epoch * steps_per_epoch + k, total_steps, options.final_lr_fraction)
-        for g in state.opt_nets.param_groups:
-            g["lr"] = g.get("peak_lr", options.lr) * f
-        for g in state.opt_codes.param_groups:
-            g["lr"] = options.code_lr * f
-        sums += _train_step(state, module, pools, scope, options, epoch, order[k * batch:(k + 1) * batch])
+    # the covariance net's graph beside the mean net's: on a CPU, where one process is not spread over processes
+    # (DDP's hooks need the wrapped module's own forward)
+    split = module is state.nets and scope.device.type == "cpu"
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="targets") as worker, \
+            ThreadPoolExecutor(max_workers=1 if split else None, thread_name_prefix="covariance") as beside:
+        drawn = worker.submit(draw, positions[0])
+        for k in range(steps_per_epoch):
+            inputs = drawn.result()
+            if k + 1 < steps_per_epoch:
+                drawn = worker.submit(draw, positions[k + 1])
+            f = cosine_decay(epoch * steps_per_epoch + k, total_steps, options.final_lr_fraction)
+            for g in state.opt_nets.param_groups:
+                g["lr"] = g.get("peak_lr", options.lr) * f
+            for g in state.opt_codes.param_groups:
+                g["lr"] = options.code_lr * f
+            sums += _train_step(state, module, inputs, options, positions[k], beside if split else None)
     sums /= steps_per_epoch
     if scope.distributed:
         import torch.distributed as dist
@@ -387,21 +430,39 @@ def _train_epoch(state, module, pools, scope, options, epoch, steps_per_epoch, b
                                   options.lr * f, seconds]))
 
 
-def _train_step(state, module, pools, scope, options, epoch, pos):
-    """One optimisation step on the scans at local positions ``pos`` (S,); returns (loss, the four NSSPR terms,
-    the code regulariser) (6,) float64."""
-    device = scope.device
-    inputs = stack_inputs([pools[scope.local[p]] for p in pos], epoch, options.screen_samples, state.rng, device)
+def _train_step(state, module, inputs, options, pos, beside=None):
+    """One optimisation step on the scans at local positions ``pos`` (S,) with their targets ``inputs``
+    (:func:`autodecoder.latent.pools.stack_inputs`); returns (loss, the four NSSPR terms, the code regulariser) (6,)
+    float64.
+
+    ``beside`` (an executor of one thread, or None): the covariance net's terms and their gradients are computed in
+    it while this thread computes the mean net's. The two graphs share nothing (the covariance net sees the codes
+    detached, :meth:`_NetPair.covariance_terms`), so every parameter gets the gradient the one backward pass of their
+    sum gives, to the bit, and the two run on two cores."""
+    device = state.codes.device
     z = state.codes[torch.as_tensor(pos, device=device)]  # (S, L)
     n, m, q = options.mean_samples, inputs["sigma"].shape[1], inputs["screen"].shape[0] // len(pos)
-    terms = module(inputs["x"], z.repeat_interleave(n, 0), inputs["mu"], inputs["omega"], inputs["screen"],
-                   z.repeat_interleave(q, 0), inputs["pair_x"], z.detach().repeat_interleave(m, 0),
-                   inputs["sigma"], inputs["weights"])
+    mean_inputs = (inputs["x"], z.repeat_interleave(n, 0), inputs["mu"], inputs["omega"], inputs["screen"],
+                   z.repeat_interleave(q, 0))
+    cov_inputs = (inputs["pair_x"], z.detach().repeat_interleave(m, 0), inputs["sigma"], inputs["weights"])
     reg = options.code_reg * z.square().sum(1).mean()
-    loss = terms.sum() + reg
     state.opt_nets.zero_grad(set_to_none=True)
     state.opt_codes.zero_grad(set_to_none=True)
-    loss.backward()
+    if beside is None:
+        terms = module(*mean_inputs, *cov_inputs)
+        loss = terms.sum() + reg
+        loss.backward()
+    else:
+        def covariance():
+            cov_terms = state.nets.covariance_terms(mean_inputs[4], mean_inputs[5], *cov_inputs)
+            cov_terms.sum().backward()
+            return cov_terms.detach()
+
+        running = beside.submit(covariance)
+        mean_terms = state.nets.mean_terms(*mean_inputs)
+        (mean_terms.sum() + reg).backward()
+        terms = torch.cat([mean_terms.detach(), running.result()])
+        loss = terms.sum() + reg.detach()
     state.opt_nets.step()
     state.opt_codes.step()
     return torch.cat([loss.detach().reshape(1), terms.detach(), reg.detach().reshape(1)]).double().cpu()

@@ -1,10 +1,11 @@
-"""Where a training's time goes: seconds per stage of the trainer at its defaults (one thread), per part.
+"""Where a training's time goes: seconds per stage of the trainer at its defaults (one torch thread), per part.
 
 Each part's collection (the inspection suite's cached synthetic trees, :func:`benchmarks.cache.synth_collection`; a
 stretched product family, :func:`benchmarks.cache.family_collection`; 'real': the real suite's bunny tree,
 :func:`benchmarks.cache.real_tree`; any collection file given as ``--collection NAME=PATH``) is trained from scratch into ``--work`` with
-:func:`autodecoder.latent.folds.train_collection_with_folds` on one thread (what ``nsspr-train`` runs: 32 good scans,
-26 trained on), once per value of
+:func:`autodecoder.latent.folds.train_collection_with_folds` with the trainer's one torch thread (what ``nsspr-train``
+runs: 32 good scans, 26 trained on; the next step's targets are drawn beside it on another core, and the decisions'
+registrations run on every core, :mod:`datasets.parallel`), once per value of
 ``--epochs`` ('default': the trainer's own; a number: that many, e.g. 450, the default before issue 51). The stages
 come from the checkpoint's provenance (``autodecoder.latent.loop.TrainingState.info``): the family and pose
 decisions, reading the scans, their GP targets, the epochs; ``other`` is the rest of the wall time (the checkpoint,
@@ -16,7 +17,7 @@ from pathlib import Path
 from benchmarks import cache
 from benchmarks.table import format_table
 
-DESCRIPTION = "seconds per stage of a training at the defaults (one thread), per part and epoch budget"
+DESCRIPTION = "seconds per stage of a training at the defaults (one torch thread), per part and epoch budget"
 STAGES = ("family", "pose", "read", "targets", "epochs")
 
 

@@ -459,3 +459,47 @@ def test_a_single_codes_loss_is_computed_when_first_read(trained):
     assert one.loss_value == one.loss and one.loss_of is None
     several = model.project(scan.points, scan.normals, seed=0, steps=0, starts=2)
     assert several.loss_value is not None and several.loss_of is None
+
+
+def test_the_steps_parallel_pieces_give_the_run_of_one_thread(tmp_path, monkeypatch):
+    """The training draws each step's targets in a worker thread while the step before runs, and computes the
+    covariance net's terms and gradients in another thread beside the mean net's (autodecoder.latent.loop): the
+    same run to the bit as every piece in the calling thread (an executor that runs each piece when submitted),
+    and as the one graph of all four terms with one backward pass (no thread beside)."""
+    import concurrent.futures
+
+    import autodecoder.latent.loop as loop
+
+    class AtOnce:  # an executor that runs each piece when it is submitted, in the calling thread
+        def __init__(self, *args, **kwargs):
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def submit(self, fn, *args):
+            future = concurrent.futures.Future()
+            future.set_result(fn(*args))
+            return future
+
+    scans = sphere_scans(radii=(0.2, 0.3, 0.25))
+    kw = dict(epochs=3, seed=5, quiet=True, **{**TINY, "batch": 1})
+    runs = {"threads": train_latent(scans, tmp_path / "threads.pt", **kw)}
+    with monkeypatch.context() as patch:
+        patch.setattr(concurrent.futures, "ThreadPoolExecutor", AtOnce)
+        runs["at_once"] = train_latent(scans, tmp_path / "at_once.pt", **kw)
+    one_graph = loop._train_step
+    monkeypatch.setattr(loop, "_train_step", lambda state, module, inputs, options, pos, beside=None:
+                        one_graph(state, module, inputs, options, pos, None))
+    runs["one_graph"] = train_latent(scans, tmp_path / "one_graph.pt", **kw)
+    a = read_checkpoint(tmp_path / "threads.pt")
+    for other in ("at_once", "one_graph"):
+        b = read_checkpoint(tmp_path / f"{other}.pt")
+        for key in ("mean_state", "cov_state"):
+            for name, value in a[key].items():
+                assert torch.equal(value, b[key][name]), (other, key, name)
+        assert torch.equal(runs["threads"].codes, runs[other].codes), other
+        assert [r["loss"] for r in a["info"]["history"]] == [r["loss"] for r in b["info"]["history"]], other
