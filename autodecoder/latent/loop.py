@@ -390,6 +390,9 @@ def _train_epoch(state, module, pools, scope, options, epoch, steps_per_epoch, b
     KD-tree work runs on a core the single-threaded step leaves idle (docs/results_archive.md, "Speed"). Nothing is
     drawn beyond the epoch, so a checkpoint's ``rng`` is where a resumed run continues."""
     from concurrent.futures import ThreadPoolExecutor
+    from contextlib import nullcontext
+
+    from datasets.parallel import usable_cores
 
     t0 = time.perf_counter()
     order = state.rng.permutation(len(scope.local))
@@ -401,11 +404,11 @@ def _train_epoch(state, module, pools, scope, options, epoch, steps_per_epoch, b
                             scope.device)
 
     sums = torch.zeros(6, dtype=torch.float64)
-    # the covariance net's graph beside the mean net's: on a CPU, where one process is not spread over processes
-    # (DDP's hooks need the wrapped module's own forward)
-    split = module is state.nets and scope.device.type == "cpu"
+    # the covariance net's graph beside the mean net's: on a CPU of several cores, where one process is not spread
+    # over processes (DDP's hooks need the wrapped module's own forward)
+    split = module is state.nets and scope.device.type == "cpu" and usable_cores() > 1
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="targets") as worker, \
-            ThreadPoolExecutor(max_workers=1 if split else None, thread_name_prefix="covariance") as beside:
+            (ThreadPoolExecutor(max_workers=1, thread_name_prefix="covariance") if split else nullcontext()) as beside:
         drawn = worker.submit(draw, positions[0])
         for k in range(steps_per_epoch):
             inputs = drawn.result()
@@ -416,7 +419,7 @@ def _train_epoch(state, module, pools, scope, options, epoch, steps_per_epoch, b
                 g["lr"] = g.get("peak_lr", options.lr) * f
             for g in state.opt_codes.param_groups:
                 g["lr"] = options.code_lr * f
-            sums += _train_step(state, module, inputs, options, positions[k], beside if split else None)
+            sums += _train_step(state, module, inputs, options, positions[k], beside)
     sums /= steps_per_epoch
     if scope.distributed:
         import torch.distributed as dist

@@ -485,6 +485,9 @@ def test_the_steps_parallel_pieces_give_the_run_of_one_thread(tmp_path, monkeypa
             future.set_result(fn(*args))
             return future
 
+    import datasets.parallel
+
+    monkeypatch.setattr(datasets.parallel, "usable_cores", lambda: 2)  # the threads' path on a machine of any size
     scans = sphere_scans(radii=(0.2, 0.3, 0.25))
     kw = dict(epochs=3, seed=5, quiet=True, **{**TINY, "batch": 1})
     runs = {"threads": train_latent(scans, tmp_path / "threads.pt", **kw)}
