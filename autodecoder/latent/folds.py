@@ -207,7 +207,8 @@ def train_folds(checkpoint, collection_path, k=SUGGESTED_FOLDS, jobs=None, threa
         Its training collection (same fingerprint).
     k : int >= 2
     jobs : int, optional
-        Worker processes (default: min(k, CPU cores)); 1 trains in this process.
+        Worker processes (default: min(k, the cores this process may use, ``datasets.parallel.usable_cores``));
+        1 trains in this process.
     threads : int, optional
         torch threads per fold training (default: the trainer's ``TRAINING_THREADS``).
     progress : callable, optional
@@ -220,6 +221,7 @@ def train_folds(checkpoint, collection_path, k=SUGGESTED_FOLDS, jobs=None, threa
         the training scans outside fold j and the held-back scans (``FOLD_RULE``).
     """
     from datasets.collection import ScanCollection
+    from datasets.parallel import usable_cores
 
     with ScanCollection(collection_path) as collection:
         if checkpoint.get("fingerprint") and collection.fingerprint() != checkpoint["fingerprint"]:
@@ -228,7 +230,7 @@ def train_folds(checkpoint, collection_path, k=SUGGESTED_FOLDS, jobs=None, threa
     train_names = list(checkpoint["train_names"])
     folds = assign_folds(train_names, checkpoint.get("train_part_ids"), k, int(checkpoint["config"].get("seed", 0)))
     options = fold_options(checkpoint["config"])
-    jobs = min(len(folds), os.cpu_count() or 1) if jobs is None else max(1, int(jobs))
+    jobs = min(len(folds), usable_cores()) if jobs is None else max(1, int(jobs))
     with ScanCollection(collection_path) as collection:
         present = set(collection.names)
     held = [n for n in checkpoint.get("calibration_names", []) if n in present]
