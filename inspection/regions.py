@@ -5,9 +5,10 @@ What a region is
     The scan's points whose anomaly map value (:mod:`inspection.maps`, standard deviations) exceeds the **region
     level**, linked into connected parts (two points are linked when one is among the other's ``REGION_NEIGHBOURS``
     nearest points and they are closer than ``LINK_SPACINGS`` times the scan's median point spacing). The level is
-    drawn from the good calibration scans' maps exactly as the verdict's threshold is drawn from their scores
-    (:func:`region_level`: each good scan's largest map value, at the calibration's false-alarm rate), so a good scan
-    shows a region at about the stated rate. Points the score leaves out (stray returns; surface no good scan
+    drawn from the good calibration scans' maps as the verdict's threshold is drawn from their scores
+    (:func:`inspection.region_level.region_level`: each good scan's largest map value, at the calibration's
+    false-alarm rate, its tail Pareto where the scans are too few for an exact level), so a good scan shows a region
+    at about the stated rate. Points the score leaves out (stray returns; surface no good scan
     covered, :mod:`inspection.coverage`) are in no region.
 
 What is measured (:func:`measure_region`)
@@ -52,6 +53,7 @@ import numpy as np
 
 from .evidence import kept_points
 from .maps import MAP_NEIGHBOURS
+from .region_level import region_level
 
 REGION_NEIGHBOURS = 8  # points per neighbourhood: the deviation's average, a point's area, the links' length
 LINK_SPACINGS = 1.5  # the longest link between two points of a region, in median distances to that neighbour
@@ -198,18 +200,6 @@ class Units:
             t = np.asarray(self.transform, dtype=np.float64)
             p = (p - t[:3, 3]) @ np.linalg.inv(t[:3, :3]).T
         return p / self.frame_scale + self.center
-
-
-def region_level(maxima, alpha, roles=None):
-    """The region level from good calibration scans' largest map values (n,): the threshold of
-    :func:`inspection.threshold.fit_threshold` at ``alpha`` with the scans' ``roles``, so that a good scan's map
-    exceeds it anywhere at about rate ``alpha`` (+inf: too few scans to allow any region)."""
-    from .threshold import fit_threshold
-
-    maxima = np.asarray(maxima, dtype=np.float64).reshape(-1)
-    if len(maxima) == 0 or not np.all(np.isfinite(maxima)):
-        raise ValueError(f"region_level needs finite map maxima of good scans, got {maxima!r}")
-    return float(fit_threshold(np.maximum(maxima, 1e-6), alpha, roles).value)
 
 
 def map_maximum(evidence: RegionEvidence, geometry=None):
