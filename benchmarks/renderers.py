@@ -319,14 +319,17 @@ def defects_lines(figures, record=None):
                 for key in total:
                     total[key] += counts[key]
         rows.append({"part": part, "seeds": ", ".join(str(r["seed"]) for r in sorted(group, key=lambda r: r["seed"])),
-                     **{k: mean(group, k) for k in ("au_pro", "found", "typed", "depth_error", "area_error",
-                                                     "false_per_good", "false_shown")},
+                     **{k: mean(group, k) for k in ("au_pro", "found", "below", "typed", "depth_error",
+                                                     "area_error", "false_per_good", "false_shown")},
                      "kinds": ", ".join(f"{k} {c['typed']}/{c['found']}/{c['defects']}" for k, c in sorted(kinds.items()))})
     columns = [("part", "part", ""), ("seeds", "seeds", ""), ("au_pro", "AU-PRO (0.3 FPR)", ".3f"),
-               ("found", "found (IoU >= 0.3)", ".3f"), ("typed", "type right", ".3f"),
+               ("found", "found (IoU >= 0.3)", ".3f"), ("below", "of them below the level", ".3f"),
+               ("typed", "type right", ".3f"),
                ("depth_error", "depth error (median)", ".3f"), ("area_error", "area error (median)", ".3f"),
-               ("false_per_good", "false regions / good scan (all / shown)", ".3f"), ("false_shown", "", ".3f"),
+               ("false_per_good", "false regions / good scan (above the level / shown)", ".3f"),
+               ("false_shown", "", ".3f"),
                ("kinds", "per type: typed right / found / defects", "")]
     lines = markdown_table(rows, columns)
-    lines[0] = lines[0].replace("| false regions / good scan (all / shown) |  |", "| false regions / good scan, all | shown |")
+    lines[0] = lines[0].replace("| false regions / good scan (above the level / shown) |  |",
+                                "| false regions / good scan, above the level | shown |")
     return lines

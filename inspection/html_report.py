@@ -235,11 +235,13 @@ def _regions_html(defects, viewed):
                 f'{_e(name)} #{int(d["region"])}</a>' if name in viewed else f'{_e(name)} #{int(d["region"])}')
         cells = "".join(f"<td>{_e(d[k])}</td>" if k == "type" else f'<td class="num">{_num(d.get(k), 4)}</td>'
                         for k, _ in cols)
-        body.append(f"<tr><td>{link}</td>{cells}</tr>")
+        below = " (below the level)" if d.get("above_level") is False else ""
+        body.append(f"<tr><td>{link}{below}</td>{cells}</tr>")
     head = "".join(f"<th>{h}</th>" for h in ["region"] + [h for _, h in cols])
     return ('<section id="regions"><h2>Defect regions</h2><p class="note">Lengths, areas and volumes in the scans\' '
             'own units (deviation: from where good parts put the surface, + outside); x, y, z: the centroid in the '
-            'part\'s frame. Click a region to show it in the 3D view.</p>'
+            'part\'s frame. A scan called defective whose map passes the region level nowhere shows its strongest '
+            'region, "below the level". Click a region to show it in the 3D view.</p>'
             f'<table id="region-table"><thead><tr>{head}</tr></thead><tbody>{"".join(body)}</tbody></table>'
             '</section>')
 

@@ -381,7 +381,7 @@ def inspect_scan(insp, scan, i=0, maps="none", maps_dir=None, uncertain=True, to
     out["row"] = row
     regions, region_ids = [], None
     if verdict != "good" or maps == "all" or tolerance is not None:
-        regions, region_ids = one.regions_of_result(scan, res, features)
+        regions, region_ids = one.regions_of_result(scan, res, features, defective=verdict == "defective")
         row["regions"] = len(regions) if region_ids is not None else None
     row.update(judged(verdict, why, regions, tolerance))
     verdict = row["verdict"]

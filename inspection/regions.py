@@ -8,7 +8,8 @@ What a region is
     drawn from the good calibration scans' maps as the verdict's threshold is drawn from their scores
     (:func:`inspection.region_level.region_level`: each good scan's largest map value, at the calibration's
     false-alarm rate, its tail Pareto where the scans are too few for an exact level), so a good scan shows a region
-    at about the stated rate. Points the score leaves out (stray returns; surface no good scan
+    at about the stated rate; a scan the statistics call defective that shows none shows its strongest one, marked
+    below the level (:func:`strongest_region`). Points the score leaves out (stray returns; surface no good scan
     covered, :mod:`inspection.coverage`) are in no region.
 
 What is measured (:func:`measure_region`)
@@ -124,6 +125,9 @@ class DefectRegion:
         ``volume`` / (``area`` x |``deviation``|) (None without a volume).
     feature : str
         The nearest named feature ('' when none were given).
+    above_level : bool
+        False for the strongest region of a scan called defective that shows none above the region level
+        (:meth:`RegionMixin.regions_of_result`): where its evidence lies, below the level good scans pass at alpha.
     """
 
     id: int
@@ -143,6 +147,7 @@ class DefectRegion:
     ray_share: float = 0.0
     fill: Optional[float] = None
     feature: str = ""
+    above_level: bool = True
 
     @property
     def radius(self):
@@ -157,7 +162,7 @@ class DefectRegion:
                 "volume": self.volume, "volume_sd": self.volume_sd, "points": int(len(self.points)),
                 "peak": self.peak, "x": part[0], "y": part[1], "z": part[2],
                 "scan_x": scan[0], "scan_y": scan[1], "scan_z": scan[2], "fill": self.fill, "ray_share": self.ray_share,
-                "feature": self.feature}
+                "feature": self.feature, "above_level": self.above_level}
 
 
 @dataclass
@@ -274,6 +279,18 @@ def find_regions(evidence: RegionEvidence, level, units=None, features=None):
             where = np.array([features[n] for n in names], dtype=np.float64).reshape(-1, 3)
             region.feature = names[int(np.argmin(np.linalg.norm(where - region.centroid_part, axis=1)))]
     return measured, labels
+
+
+def strongest_region(evidence: RegionEvidence, floor, units=None, features=None):
+    """The region of largest peak among the scan's regions above ``floor`` (:func:`find_regions`), alone, its id 0
+    and ``above_level`` False: ``([region], labels)``, or ``([], labels)`` when none rises above ``floor``."""
+    regions, labels = find_regions(evidence, floor, units, features)
+    if not regions:
+        return [], labels
+    top = regions[0]
+    labels = np.where(labels == top.id, 0, -1)
+    top.id, top.above_level = 0, False
+    return [top], labels
 
 
 def point_areas(points):
@@ -557,16 +574,23 @@ class RegionMixin:
             one._region_level_cache = cached
         return cached[1]
 
-    def regions_of_result(self, scan, result, features=None):
+    def regions_of_result(self, scan, result, features=None, defective=False):
         """The defect regions (:func:`find_regions`) of ``scan`` already inspected into ``result``
         (:meth:`inspect`): ``(regions, labels)``; ``([], None)`` when its calibration has no region level or its
-        point score measures no deviation."""
+        point score measures no deviation. A scan the statistics call ``defective`` that shows no region above the
+        level shows its strongest one (:func:`strongest_region`, ``above_level`` False) down to the map value half
+        the good calibration scans reach somewhere (the median of their map maxima): the verdict says there is a
+        defect, the region where its evidence lies (a hole whose rays' evidence stays below the level, say)."""
         one = self.for_scan(scan)
         level = one.region_level(scan)
         evidence = None if level is None else region_evidence(result, one.settings_, one.reference_)
         if evidence is None:
             return [], None
-        return find_regions(evidence, level, Units.of(one.model, result.transform), features)
+        units = Units.of(one.model, result.transform)
+        regions, labels = find_regions(evidence, level, units, features)
+        if regions or not defective:
+            return regions, labels
+        return strongest_region(evidence, float(np.median(one.region_maxima_)), units, features)
 
     def defect_regions(self, scan, index=0, features=None):
         """Inspect ``scan`` and return its defect regions and each point's region id: ``(regions, labels)``

@@ -23,7 +23,7 @@ CSV_COLUMNS = ("name", "split", "label", "defect", "score", "p_value", "verdict"
 # defects.csv: one row per defect region (inspection.regions.DefectRegion.row), lengths in the scans' units
 DEFECT_COLUMNS = ("name", "region", "type", "deviation", "deviation_sd", "area", "area_low", "area_high", "extent",
                   "volume", "volume_sd", "fill", "points", "peak", "x", "y", "z", "scan_x", "scan_y", "scan_z",
-                  "feature")
+                  "feature", "above_level")
 # with rays: the score's two components (the point score; the rays' surprisal aggregate in nats, as the field gives
 # it), the rays' evidence that entered the score (nats, as good scans weigh it: inspection.ray_calibration) and the
 # share of the scan's returned rays that passed through its own surface (not tested: its sensor origin is off)

@@ -285,13 +285,13 @@ def test_the_fewscans_renderer_sums_over_the_seeds_and_shows_the_loop():
 
 def test_the_defects_renderer_lists_each_run_and_sums_the_types():
     kinds = {"bump": {"defects": 16, "found": 16, "typed": 15}, "dent": {"defects": 16, "found": 14, "typed": 14}}
-    runs = [{"part": "fandisk", "seed": s, "au_pro": 0.95, "found": 0.9, "typed": 0.95, "depth_error": 0.1,
-             "area_error": 0.05, "false_per_good": 0.0625, "false_shown": 0.0, "per_kind": kinds, "matched": []}
-            for s in (0, 1)]
+    runs = [{"part": "fandisk", "seed": s, "au_pro": 0.95, "found": 0.9, "below": 0.1 * s, "typed": 0.95,
+             "depth_error": 0.1, "area_error": 0.05, "false_per_good": 0.0625, "false_shown": 0.0, "per_kind": kinds,
+             "matched": []} for s in (0, 1)]
     body = _renders_itself("defects", {"runs": runs})
-    assert "| fandisk | 0, 1 | 0.950 | 0.900 | 0.950 | 0.100 | 0.050 | 0.062 | 0.000 | bump 30/32/32, dent 28/28/32 |" \
-        in body
-    assert "| false regions / good scan, all | shown |" in body
+    assert ("| fandisk | 0, 1 | 0.950 | 0.900 | 0.050 | 0.950 | 0.100 | 0.050 | 0.062 | 0.000 | bump 30/32/32, dent "
+            "28/28/32 |") in body
+    assert "| false regions / good scan, above the level | shown |" in body
 
 
 def test_the_generic_renderer_shows_the_figures_tables_within_bounds():

@@ -14,8 +14,11 @@ in real points), calibrated the README's way, every test scan's anomaly map and 
   of its points that moved by at least ``FOOTPRINT_FRACTION`` of it, each point's area as the regions measure it
   (the same definition of a footprint as the regions', applied to the truth). Defects whose points did not move
   (seen through a hole onto good surface behind) have no depth and are left out of both;
-- **false / good scan**: regions on good test scans per good scan, looked for on every scan (``false/good``) and
-  as the toolkit shows them, on the good scans it does not call good (``shown``);
+- **below**: the share of true defects found only by the strongest region of a scan called defective that passes
+  the region level nowhere (``DefectRegion.above_level`` False);
+- **false / good scan**: regions above the region level on good test scans per good scan, looked for on every scan
+  (``false/good``: the level's own rate), and the regions the toolkit shows on the good scans it does not call
+  good, a defective one's strongest region below the level included (``shown``);
 - per type: found, typed right.
 """
 from pathlib import Path
@@ -140,7 +143,8 @@ def region_figures(runs):
                 depth_err.append(abs(abs(region["deviation"]) - depth) / depth)
                 area_err.append(abs(region["area"] - area) / area if area > 0 else np.nan)
         matched.append({"defect": scan["defect"], "truth_depth": depth, "truth_area": area, "iou": match["iou"],
-                        **{k: region[k] for k in ("type", "deviation", "area", "fill", "ray_share", "peak")}})
+                        **{k: region[k] for k in ("type", "deviation", "area", "fill", "ray_share", "peak",
+                                                  "above_level")}})
     good = [i for i, r in enumerate(scored) if r["label"] == "good"]
     told = [i for i in good if scored[i]["verdict"] != "good"]  # the good scans whose regions a user is shown
     found = sum(k["found"] for k in per_kind.values())
@@ -148,13 +152,22 @@ def region_figures(runs):
             found if found else float("nan"),
             "depth_error": float(np.nanmedian(depth_err)) if depth_err else float("nan"),
             "area_error": float(np.nanmedian(area_err)) if area_err else float("nan"), "measured": len(depth_err),
-            "false_per_good": metrics.false_regions_per_scan([ids[i] for i in good], [labels[i] for i in good])
-            if good else float("nan"),
+            "below": sum(m["above_level"] is False for m in matched) / len(overlap["matches"])
+            if overlap["matches"] else float("nan"),
+            "false_per_good": metrics.false_regions_per_scan([_above_level(scored[i], ids[i]) for i in good],
+                                                             [labels[i] for i in good]) if good else float("nan"),
             "false_shown": sum(int(np.max(ids[i], initial=-1)) + 1 for i in told) / len(good) if good else float("nan"),
             "good_scans": len(good), "per_kind": per_kind, "matched": matched}
 
 
+def _above_level(scan, ids):
+    """A scan's region ids (m,) with its regions below the region level (a defective scan's strongest) set to -1."""
+    below = [g["region"] for g in scan["regions"] if g.get("above_level") is False]
+    return np.where(np.isin(ids, below), -1, ids)
+
+
 _COLUMNS = [("part", "part", ""), ("seed", "seed", ">"), ("au_pro", "AU-PRO", ".3f"), ("found", "found", ".3f"),
+            ("below", "below", ".3f"),
             ("typed", "type", ".3f"), ("depth_error", "depth err", ".3f"), ("area_error", "area err", ".3f"),
             ("false_per_good", "false/good", ".3f"), ("false_shown", "shown", ".3f")] + [(k, k, "") for k in KINDS]
 

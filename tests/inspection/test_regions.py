@@ -6,7 +6,7 @@ import pytest
 from inspection.maps import patch_residuals
 from inspection.region_level import pareto_tail_level
 from inspection.regions import (FOOTPRINT_FRACTION, RegionEvidence, Units, find_regions, map_maximum,
-                                region_level)
+                                region_level, strongest_region)
 from inspection.threshold import conformal_threshold, lognormal_threshold
 
 from .spheres import RobustSphereModel, ScaledSphereField, ScaledSphereModel, sphere_scan_with_dent
@@ -161,6 +161,27 @@ def test_the_region_level_is_exact_conformal_with_enough_held_back_maxima():
         region_level([1.0, np.nan, 2.0], 0.05)
 
 
+def test_a_defective_scan_below_the_level_shows_its_strongest_region_marked_so(level):
+    # a dent of 6 noise deviations and a shallower bump elsewhere; a level above both (a calibration whose good maps
+    # reach higher): no region passes it, and the strongest region down to the floor is the dent alone
+    depth = 0.03
+    points, deviation = dented_plane(smooth_bump, -depth)
+    bump = np.linalg.norm(points[:, :2] - [-0.6, 0.6], axis=1) < 0.2
+    points[bump, 2] += 0.015 * (1 - (np.linalg.norm(points[bump, :2] - [-0.6, 0.6], axis=1) / 0.2) ** 2) ** 2
+    evidence = evidence_of(points, points[:, 2].copy())
+    above = map_maximum(evidence)
+    assert find_regions(evidence, above + 0.5)[0] == []
+    (region,), labels = strongest_region(evidence, level)
+    assert region.kind == "dent" and region.id == 0 and region.above_level is False
+    assert region.row()["above_level"] is False
+    assert abs(abs(region.deviation) - depth) <= 0.2 * depth
+    assert np.array_equal(np.flatnonzero(labels == 0), np.sort(region.points)) and set(np.unique(labels)) == {-1, 0}
+    assert not np.any(labels[bump] == 0)
+    assert len(find_regions(evidence, level)[0]) == 2  # both pass the floor: only the strongest is shown
+    none, labels = strongest_region(evidence, above + 0.5)
+    assert none == [] and np.all(labels == -1)
+
+
 def test_no_level_no_regions():
     points, rng = plane_points(n=500)
     regions, labels = find_regions(evidence_of(points, rng.normal(0, NOISE, 500)), np.inf)
@@ -207,6 +228,19 @@ def test_a_dent_on_a_curved_surface_is_one_dent_of_its_depth_and_radius(sphere_i
     assert abs(dent.radius - expected) <= 0.15 * expected
     shown = [len(sphere_inspector.defect_regions(sphere_scan_with_dent(seed=200 + s)[:2])[0]) > 0 for s in range(20)]
     assert sum(shown) <= 3  # good scans at the calibration's alpha of 0.05: one expected
+
+
+def test_an_inspector_shows_a_defective_scans_strongest_region_below_the_level(sphere_inspector, monkeypatch):
+    depth = 0.03
+    points, normals, _ = sphere_scan_with_dent(seed=98, depth=depth)
+    result = sphere_inspector.inspect((points, normals))
+    (above,), _ = sphere_inspector.regions_of_result((points, normals), result)
+    assert above.above_level
+    monkeypatch.setattr(sphere_inspector, "region_level", lambda scan=None: above.peak + 1.0)  # a level it misses
+    assert sphere_inspector.regions_of_result((points, normals), result)[0] == []
+    (region,), labels = sphere_inspector.regions_of_result((points, normals), result, defective=True)
+    assert region.kind == "dent" and not region.above_level and abs(abs(region.deviation) - depth) <= 0.15 * depth
+    assert set(np.flatnonzero(labels == 0)) == set(region.points)
 
 
 def test_the_region_level_survives_the_calibration_record(sphere_inspector):
