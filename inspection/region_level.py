@@ -14,7 +14,7 @@ A predictive Pareto tail when there are not (:func:`pareto_tail_level`)
     A map maximum is the largest of many correlated point values: most good scans' lie in a narrow bulk, a few
     reach far above it where a view saw surface the model knows less well. Their logarithm is still right-skewed, so
     the verdict's log-normal tail (:mod:`inspection.threshold`) under-states the rate: over nine runs (three parts,
-    three seeds), held-out good scans passed it 4.2-5.4 % of the time at a stated 2 % (docs/results_archive.md,
+    three seeds), held-out good scans passed it 3.8-5.4 % of the time at a stated 2 % (docs/results_archive.md,
     "Region level"). The level models the upper half of the n maxima as Pareto: with k = n // 2 and u the (k+1)-th
     largest, the k log excesses y_i = log(x_i / u) are Exponential with an unknown rate a. With S = sum y_i and a's
     scale-invariant prior (1 / a), a new exceedance's log excess has the predictive tail P(Y > y) = (S / (S + y))^k;
@@ -25,8 +25,9 @@ A predictive Pareto tail when there are not (:func:`pareto_tail_level`)
     flags a new good scan with probability exactly alpha, averaged over calibration draws, when the maxima are Pareto
     above their median: the chance of passing u averages p_u and, independently of it (the Exponential's lack of
     memory), the chance of then passing the level averages E[exp(-a S c)] = (1 + c)^-k = alpha / p_u, aS being
-    Gamma(k, 1). The tail's weight is the data's own, not a fixed family's. Every role's maxima enter it: a cross-fitted training scan's
-    map maximum was measured no lower than a held-back scan's (the same archive section), unlike its score.
+    Gamma(k, 1). The tail's weight is the data's own, not a fixed family's. Every role's maxima enter it: a
+    cross-fitted training scan's map maximum was measured no lower than a held-back scan's (the same archive
+    section), unlike its score.
 """
 import math
 
