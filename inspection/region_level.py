@@ -71,6 +71,8 @@ def region_level(maxima, alpha, roles=None):
     if len(maxima) == 0 or not np.all(np.isfinite(maxima)):
         raise ValueError(f"region_level needs finite map maxima of good scans, got {maxima!r}")
     maxima = np.maximum(maxima, 1e-6)  # a scan too small to show any region has maximum 0
+    if roles is not None and len(list(roles)) != len(maxima):
+        raise ValueError(f"region_level needs one role per map maximum ({len(maxima)}), got {len(list(roles))}")
     out_of_sample = (np.ones(len(maxima), bool) if roles is None else np.isin(np.asarray(list(roles)), OUT_OF_SAMPLE))
     if allowed_exceedances(int(out_of_sample.sum()), alpha) >= 0 or len(maxima) < MIN_TAIL_MAXIMA:
         return float(fit_threshold(maxima, alpha, roles).value)

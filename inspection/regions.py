@@ -578,9 +578,8 @@ class RegionMixin:
         """The defect regions (:func:`find_regions`) of ``scan`` already inspected into ``result``
         (:meth:`inspect`): ``(regions, labels)``; ``([], None)`` when its calibration has no region level or its
         point score measures no deviation. A scan the statistics call ``defective`` that shows no region above the
-        level shows its strongest one (:func:`strongest_region`, ``above_level`` False) down to the map value half
-        the good calibration scans reach somewhere (the median of their map maxima): the verdict says there is a
-        defect, the region where its evidence lies (a hole whose rays' evidence stays below the level, say)."""
+        level shows its strongest one (:func:`strongest_region`, ``above_level`` False) down to the median of the
+        good calibration scans' map maxima: the verdict says there is a defect, the region says where."""
         one = self.for_scan(scan)
         level = one.region_level(scan)
         evidence = None if level is None else region_evidence(result, one.settings_, one.reference_)
@@ -594,5 +593,8 @@ class RegionMixin:
 
     def defect_regions(self, scan, index=0, features=None):
         """Inspect ``scan`` and return its defect regions and each point's region id: ``(regions, labels)``
-        (:meth:`regions_of_result`)."""
-        return self.regions_of_result(scan, self.inspect(scan, index), features)
+        (:meth:`regions_of_result`, ``defective`` from its verdict, as :func:`inspection.job.inspect_scan` has it)."""
+        one = self.for_scan(scan)
+        result = one.inspect(scan, index)
+        (verdict,), _ = one.verdicts_from_results([result], [scan])
+        return one.regions_of_result(scan, result, features, defective=verdict == "defective")

@@ -159,6 +159,8 @@ def test_the_region_level_is_exact_conformal_with_enough_held_back_maxima():
     assert region_level(maxima, 0.02, roles) == pytest.approx(pareto_tail_level(maxima, 0.02))
     with pytest.raises(ValueError, match="finite"):
         region_level([1.0, np.nan, 2.0], 0.05)
+    with pytest.raises(ValueError, match="one role per map maximum"):
+        region_level(maxima, 0.02, roles[:-1])
 
 
 def test_a_defective_scan_below_the_level_shows_its_strongest_region_marked_so(level):
@@ -241,6 +243,14 @@ def test_an_inspector_shows_a_defective_scans_strongest_region_below_the_level(s
     (region,), labels = sphere_inspector.regions_of_result((points, normals), result, defective=True)
     assert region.kind == "dent" and not region.above_level and abs(abs(region.deviation) - depth) <= 0.15 * depth
     assert set(np.flatnonzero(labels == 0)) == set(region.points)
+    # the Python API's defect_regions takes `defective` from the scan's verdict, as the command line's job does
+    (verdict,), _ = sphere_inspector.verdicts_from_results([result], [(points, normals)])
+    assert verdict == "uncertain"  # 30 calibration scans: its p-value lies in the threshold's own interval
+    assert sphere_inspector.defect_regions((points, normals))[0] == []
+    monkeypatch.setattr(sphere_inspector, "verdicts_from_results",
+                        lambda results, scans=None, uncertain=True: (["defective"], [""]))
+    (again,), _ = sphere_inspector.defect_regions((points, normals))
+    assert not again.above_level and set(again.points) == set(region.points)
 
 
 def test_the_region_level_survives_the_calibration_record(sphere_inspector):
