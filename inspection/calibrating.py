@@ -28,6 +28,7 @@ from .calibration import FittedState
 from .coverage import decide_coverage
 from .evidence import kept_points, scan_name
 from .loading import reading_of
+from .member_surface import fit_member_spread
 from .reference import REFERENCE_QUANTITY, LocalReference, fit_noise_model
 from .regions import good_map_maxima
 from .scores import POINT_SCORES, WEIGHED_SCORES, fit_term_variances, noise_floor, reference_terms
@@ -268,7 +269,8 @@ def fit_reference(model, scans, surface_scans, settings, max_points=60000, seed=
     Returns
     -------
     reference : LocalReference
-        Its points subsampled to ``max_points`` (seeded); its noise model and term variances not yet fitted.
+        Its points subsampled to ``max_points`` (seeded), with how much the good scans' members differ in shape
+        (:func:`inspection.member_surface.fit_member_spread`); its noise model and term variances not yet fitted.
     evidence : list of ScanEvidence
         The scans' evidence (for cross-fitting).
     """
@@ -282,6 +284,7 @@ def fit_reference(model, scans, surface_scans, settings, max_points=60000, seed=
         surface_scans = [_Named(g.name, g.points, g.normals) for g in goods]
     reference.surface_points, reference.surface_owners, reference.surface_normals = _surface_points(
         surface_scans, names, seed)
+    reference.member_spread = fit_member_spread(reference, goods, seed)
     return reference, goods
 
 
@@ -346,7 +349,7 @@ def fit_term_variances_on(goods, references, uncovered, noise=None):
     of them part of the reference it is compared with. ``uncovered``: per scan, (m,) bool or None
     (:func:`uncovered_points`); ``noise``: the settings' noise floor. Returns each scan's two terms (computed once)."""
     terms = [reference_terms(reference, good.points, good.value, good.variance, noise_floor(good.field, noise),
-                             good.grazing, good.normals, out)
+                             good.grazing, good.normals, out, good.field)
              for good, reference, out in zip(goods, references, uncovered)]
     kept = [kept_points(good.stray, len(good.points)) for good in goods]
     variances = fit_term_variances(np.concatenate([t[0][k] for t, k in zip(terms, kept)]),

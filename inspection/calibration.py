@@ -18,7 +18,8 @@ CALIBRATION_KEY = "calibration"
 # decided, and its per-location reference complete (version 1 records may lack any of these: :func:`migrate`);
 # 3: its settings hold ``coverage`` (a version 2 record scored every point: coverage 0)
 # 4: ``extra['regions']``, the good calibration scans' largest map values (:mod:`inspection.regions`)
-CALIBRATION_VERSION = 4
+# 5: the reference's ``member_spread`` (:mod:`inspection.member_surface`)
+CALIBRATION_VERSION = 5
 EXTRA_KEYS = ("config", "reading", "parts", "level_rendered", "reference", "rays", "align", "regions")
 
 
@@ -297,8 +298,18 @@ def _from_version_3(record):
     return {**record, "version": 4, "extra": {**record["extra"], "regions": None}}
 
 
+def _from_version_4(record):
+    """Version 4 -> 5: the reference gets ``member_spread`` None (a version 4 calibration did not measure how its
+    good scans' members differ): its good points' term compares with the surface as the good scans left it, as
+    calibrated."""
+    extra = dict(record["extra"])
+    if extra["reference"] is not None:
+        extra["reference"] = {**extra["reference"], "member_spread": None}
+    return {**record, "version": 5, "extra": extra}
+
+
 # version -> the function that upgrades a record of that version to the next
-_UPGRADES = {1: _from_version_1, 2: _from_version_2, 3: _from_version_3}
+_UPGRADES = {1: _from_version_1, 2: _from_version_2, 3: _from_version_3, 4: _from_version_4}
 
 
 def read_calibration(path):

@@ -180,12 +180,24 @@ def describe_calibration(insp, info):
     elif frame is not None:
         aligned.append("note: the model was trained on scans moved into one common pose (their poses spread): every "
                        "scan is registered onto it before it is scored")
+    aligned += _member_note(insp)
     plain, stats = describe_decision(t.as_dict())  # the threshold in plain words first, the statistics after
     lines = [f"threshold {t.value:.4g} at alpha={t.alpha:g}: {plain}",
              f"calibrated on {info['n']} scans ({info['how']}): {what}", stats]
     if getattr(insp, "combination_", None) is not None:  # how much the rays count, as the good scans' rays say
         lines.append(insp.combination_.rays.describe())
     return lines + aligned
+
+
+def _member_note(insp):
+    """[] or, when the good scans' members differ in shape (:mod:`inspection.member_surface`), one note saying so and
+    what the good points' term then compares."""
+    spread = getattr(getattr(insp, "reference_", None), "member_spread", None)
+    if spread is None or not spread.differs:
+        return []
+    return [f"note: the good scans differ in shape over {100 * spread.share:.0f} % of their surface, more than "
+            f"partial views of one part do (members of a family): each scan's good points' term compares it with "
+            f"the good surface carried to its own member"]
 
 
 def _term_spread(insp):

@@ -11,6 +11,8 @@ import numpy as np
 from datasets.local_planes import smallest_eigenpairs
 from datasets.neighbours import NearestNeighbours
 
+from .member_spread import MemberSpread
+
 REFERENCE_NEIGHBOURS = 16
 # |grad E f| is unitless (~1 on the mean surface of a well-fitted field, -> 0 far from it, where E f saturates); the
 # floor keeps E f / |grad E f| finite there while still growing well past the saturation distance
@@ -67,6 +69,42 @@ def _plane(points, nb, valid, k):
     cov = np.matmul((weight[:, :, None] * centred).transpose(0, 2, 1), centred) / count[:, None, None]
     spread, normal = smallest_eigenpairs(cov)
     return np.einsum("mi,mi->m", normal, points - centroid), np.maximum(spread, 0.0)
+
+
+def _surface_block(surface, k, points, normals, candidates=SURFACE_CANDIDATES):
+    """:meth:`LocalReference.surface` of one block of (b, 3) points (float64) and their normals (b, 3) or None,
+    against ``surface`` (the reference's ``_surface_tree()``) with ``k`` plane neighbours: offset, spread,
+    supported (b,) each."""
+    tree, surface_normals, self_distance = surface
+    k = min(k, tree.n - 1)
+    if k < 3:
+        raise ValueError(f"the reference surface needs >= 4 distinct points, got {tree.n}")
+    sided = normals is not None and surface_normals is not None
+    wide = min(int(candidates) * k + 1, tree.n) if sided else k + 1
+    offset, spread = np.empty(len(points)), np.empty(len(points))
+    supported = np.ones(len(points), dtype=bool)
+    todo = np.arange(len(points))
+    # the k + 1 nearest first: where k of them are valid and on the point's side (most points, away from thin
+    # walls), they are the first k such of the wide query too, which only the other points then need
+    for width in ((k + 1, wide) if wide > k + 1 else (wide,)):
+        if len(todo) == 0:
+            break
+        dist, idx = tree.query(points[todo], width)  # (t, width)
+        valid = dist > self_distance
+        if sided:
+            same = np.einsum("mj,mkj->mk", normals[todo], surface_normals[idx]) > 0
+            agree = (valid & same).sum(1)
+            if width < wide:
+                rows = agree >= k
+                done = todo[rows]
+                offset[done], spread[done] = _plane(points[done], tree.data[idx[rows]],
+                                                    (valid & same)[rows], k)
+                todo = todo[~rows]
+                continue
+            supported[todo] = agree >= 3
+            valid &= same | ~(agree >= 3)[:, None]
+        offset[todo], spread[todo] = _plane(points[todo], tree.data[idx], valid, k)
+    return offset, spread, supported
 
 
 def checked_term_variances(variances):
@@ -136,11 +174,15 @@ class LocalReference:
         Whether the joint score takes the field's term for the good points' where no good scan saw the point's side
         of the surface (:func:`inspection.scores.reference_terms`); False is the reference of a calibration stored
         before that rule, which scores as it was calibrated.
+    member_spread : inspection.member_spread.MemberSpread, optional
+        How much the good scans' members differ in shape, place by place: where they do, the good points' term
+        compares a scan with the good surface carried to its own member (:mod:`inspection.member_surface`). None
+        (a calibration stored before it): the surface as the good scans left it.
     """
 
     def __init__(self, points, values, k=REFERENCE_NEIGHBOURS, quantity=REFERENCE_QUANTITY, variance_scale=0.0, owners=None,
                  grazing_scale=0.0, surface_points=None, surface_owners=None, surface_normals=None,
-                 term_variances=(1.0, 1.0), field_on_unseen_faces=True):
+                 term_variances=(1.0, 1.0), field_on_unseen_faces=True, member_spread=None):
         self.points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
         self.values = np.asarray(values, dtype=np.float32).reshape(-1)
         if len(self.points) != len(self.values) or len(self.points) < k:
@@ -156,6 +198,7 @@ class LocalReference:
         self.quantity = quantity
         self.term_variances = checked_term_variances(term_variances)
         self.field_on_unseen_faces = bool(field_on_unseen_faces)
+        self.member_spread = member_spread
         self.variance_scale = float(variance_scale)
         self.grazing_scale = float(grazing_scale)
         self.owners = None if owners is None else np.asarray(owners, dtype=np.int64).reshape(-1)
@@ -197,7 +240,7 @@ class LocalReference:
             surface_normals = None if surface_normals is None else surface_normals[other]
         return LocalReference(self.points[keep], self.values[keep], self.k, self.quantity, self.variance_scale,
                               self.owners[keep], self.grazing_scale, surface, surface_owners, surface_normals,
-                              self.term_variances, self.field_on_unseen_faces)
+                              self.term_variances, self.field_on_unseen_faces, self.member_spread)
 
     @property
     def tree(self):
@@ -236,6 +279,11 @@ class LocalReference:
     def distinct_surface(self):
         """(index over the distinct surface points, their unit normals or None): what coverage measures against."""
         return self._surface_tree()[:2]
+
+    def self_distance(self):
+        """The distance (world units) within which a surface point is the scored point itself (``SELF_DISTANCE``
+        surface diagonals): :meth:`surface` leaves such a point out of the point's plane."""
+        return self._surface_tree()[2]
 
     def surface_distance(self, points):
         """(m,) distance of each of (m, 3) points to the nearest distinct surface point (the good scans' own
@@ -290,43 +338,9 @@ class LocalReference:
         supported = np.ones(len(points), dtype=bool)
         for start in range(0, len(points), QUERY_CHUNK):  # blocks keep a full-resolution scan's memory bounded
             block = slice(start, start + QUERY_CHUNK)
-            offset[block], spread[block], supported[block] = self._surface_block(
-                points[block], None if normals is None else normals[block], candidates)
+            offset[block], spread[block], supported[block] = _surface_block(
+                self._surface_tree(), self.k, points[block], None if normals is None else normals[block], candidates)
         return (offset, spread, supported) if with_support else (offset, spread)
-
-    def _surface_block(self, points, normals, candidates=SURFACE_CANDIDATES):
-        """:meth:`surface` of one block of (b, 3) points (float64) and their normals (b, 3) or None: offset, spread,
-        supported (b,) each."""
-        tree, surface_normals, self_distance = self._surface_tree()
-        k = min(self.k, tree.n - 1)
-        if k < 3:
-            raise ValueError(f"the reference surface needs >= 4 distinct points, got {tree.n}")
-        sided = normals is not None and surface_normals is not None
-        wide = min(int(candidates) * k + 1, tree.n) if sided else k + 1
-        offset, spread = np.empty(len(points)), np.empty(len(points))
-        supported = np.ones(len(points), dtype=bool)
-        todo = np.arange(len(points))
-        # the k + 1 nearest first: where k of them are valid and on the point's side (most points, away from thin
-        # walls), they are the first k such of the wide query too, which only the other points then need
-        for width in ((k + 1, wide) if wide > k + 1 else (wide,)):
-            if len(todo) == 0:
-                break
-            dist, idx = tree.query(points[todo], width)  # (t, width)
-            valid = dist > self_distance
-            if sided:
-                same = np.einsum("mj,mkj->mk", normals[todo], surface_normals[idx]) > 0
-                agree = (valid & same).sum(1)
-                if width < wide:
-                    rows = agree >= k
-                    done = todo[rows]
-                    offset[done], spread[done] = _plane(points[done], tree.data[idx[rows]],
-                                                        (valid & same)[rows], k)
-                    todo = todo[~rows]
-                    continue
-                supported[todo] = agree >= 3
-                valid &= same | ~(agree >= 3)[:, None]
-            offset[todo], spread[todo] = _plane(points[todo], tree.data[idx], valid, k)
-        return offset, spread, supported
 
     def surface_scores(self, points, noise, grazing=None, normals=None, with_support=False):
         """|offset| / sqrt(spread + noise^2 (1 + grazing_scale * g)) with offset, spread of :meth:`surface` (with the
@@ -369,7 +383,8 @@ class LocalReference:
         return {"points": torch.from_numpy(self.points.copy()), "values": torch.from_numpy(self.values.copy()),
                 "k": self.k, "quantity": self.quantity, "variance_scale": self.variance_scale,
                 "grazing_scale": self.grazing_scale, "surface_points": surface, "surface_normals": normals,
-                "term_variances": list(self.term_variances), "field_on_unseen_faces": self.field_on_unseen_faces}
+                "term_variances": list(self.term_variances), "field_on_unseen_faces": self.field_on_unseen_faces,
+                "member_spread": None if self.member_spread is None else self.member_spread.as_dict()}
 
     @classmethod
     def from_dict(cls, d):
@@ -380,7 +395,8 @@ class LocalReference:
                    float(d["variance_scale"]), grazing_scale=float(d["grazing_scale"]),
                    surface_points=None if surface is None else np.asarray(surface),
                    surface_normals=None if normals is None else np.asarray(normals),
-                   term_variances=d["term_variances"], field_on_unseen_faces=bool(d["field_on_unseen_faces"]))
+                   term_variances=d["term_variances"], field_on_unseen_faces=bool(d["field_on_unseen_faces"]),
+                   member_spread=MemberSpread.from_dict(d["member_spread"]))
 
 
 def total_variance(reference_var, field_var, noise_var, grazing, variance_scale, grazing_scale):

@@ -232,7 +232,8 @@ def _paired(distance_scores, surface_scores, who):
     return a, b
 
 
-def reference_terms(reference, points, value, variance, noise, grazing=None, normals=None, uncovered=None):
+def reference_terms(reference, points, value, variance, noise, grazing=None, normals=None, uncovered=None,
+                    field=None):
     """The two terms (z_d, z_s) of ``'joint'`` for (m, 3) points (arguments as in :func:`reference_scores`), before
     their variances weigh them: the field's distance residual against good scans there, and the offset from the good
     scans' own surface; the field's term stands for the good points' where ``uncovered`` and where no good scan saw
@@ -245,10 +246,20 @@ def reference_terms(reference, points, value, variance, noise, grazing=None, nor
     defect's. The good points cannot speak where no good scan looked; the projected field, which saw this scan, can
     (as for a training scan left out of the reference, :func:`inspection.calibrating.uncovered_points`). Measured:
     docs/results.md, "Faces no good scan saw". A reference stored before this rule
-    (``reference.field_on_unseen_faces`` False) keeps the good points' term there, as it was calibrated. Returns
-    two (m,) float64 arrays."""
+    (``reference.field_on_unseen_faces`` False) keeps the good points' term there, as it was calibrated.
+
+    ``field``: the scan's projected field. Where the reference's good scans are members of a family that differ in
+    shape (``reference.member_spread``), the good points' term compares with their surface carried to this scan's
+    member by it (:mod:`inspection.member_surface`). Returns two (m,) float64 arrays."""
     distance = reference.standardized(points, value, variance, noise, grazing)
-    surface, supported = reference.surface_scores(points, noise, grazing, normals, with_support=True)
+    carried = None
+    if field is not None and getattr(reference, "member_spread", None) is not None:
+        from .member_surface import carried_surface_scores
+
+        carried = carried_surface_scores(reference, reference.member_spread, field, points, noise, grazing, normals)
+    if carried is None:
+        carried = reference.surface_scores(points, noise, grazing, normals, with_support=True)
+    surface, supported = carried
     unseen = ~supported if reference.field_on_unseen_faces else np.zeros(len(distance), dtype=bool)
     if uncovered is not None:
         unseen |= np.asarray(uncovered, dtype=bool)
@@ -256,7 +267,7 @@ def reference_terms(reference, points, value, variance, noise, grazing=None, nor
 
 
 def reference_scores(reference, kind, points, value, variance, noise, grazing=None, normals=None, uncovered=None,
-                     terms=None):
+                     terms=None, field=None):
     """The per-location point score ``kind`` (``'distance'``, ``'joint'``, ``'agreement'`` or ``'surface'``) of (m, 3)
     points whose compared quantity (m,) and field variance (m,) are given, against ``reference`` (a
     :class:`inspection.reference.LocalReference`); ``grazing`` (m,) and the points' ``normals`` (m, 3) (for the
@@ -264,13 +275,14 @@ def reference_scores(reference, kind, points, value, variance, noise, grazing=No
     surface to compare with (a training scan left out of it, :func:`inspection.calibrating.uncovered_points`); there
     ``'joint'`` and ``'agreement'`` take the field's term for the good points' term. These two weigh their terms by
     the reference's ``term_variances`` (:func:`fit_term_variances`). ``terms``: (z_d, z_s) of
-    :func:`reference_terms` already computed for these points (``'joint'`` and ``'agreement'`` only). Returns (m,)
-    float64."""
+    :func:`reference_terms` already computed for these points (``'joint'`` and ``'agreement'`` only). ``field``: the
+    scan's projected field, whose member the good surface is carried to in those two (:func:`reference_terms`).
+    Returns (m,) float64."""
     if kind == "surface":
         return reference.surface_scores(points, noise, grazing, normals)
     if kind in WEIGHED_SCORES:
         if terms is None:
-            terms = reference_terms(reference, points, value, variance, noise, grazing, normals, uncovered)
+            terms = reference_terms(reference, points, value, variance, noise, grazing, normals, uncovered, field)
         combine = joint_score if kind == "joint" else agreement_score
         return combine(*terms, variances=reference.term_variances)
     return reference.standardized(points, value, variance, noise, grazing)

@@ -198,7 +198,8 @@ def score_evidence(evidence: ScanEvidence, reference, settings, timings=None, un
     with stage(timings, "reference"):
         if POINT_SCORES[settings.point_score].reference:
             values = reference_scores(reference, settings.point_score, evidence.points, evidence.value,
-                                      evidence.variance, noise, evidence.grazing, evidence.normals, uncovered, terms)
+                                      evidence.variance, noise, evidence.grazing, evidence.normals, uncovered, terms,
+                                      evidence.field)
         else:
             values = point_scores(evidence.field, evidence.points, kind=settings.point_score, noise=settings.noise)
     with stage(timings, "aggregate"):
