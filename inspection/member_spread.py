@@ -35,7 +35,7 @@ class MemberSpread:
                              f"{len(self.between)} variances")
         if not (np.isfinite(self.anchors).all() and np.isfinite(self.between).all() and (self.between >= 0).all()):
             raise ValueError("a member spread needs finite anchors and finite variances >= 0")
-        self._index = None
+        self._index = self._moving = None
 
     @property
     def share(self):
@@ -54,6 +54,15 @@ class MemberSpread:
         members' variance where it is widest (its 99th percentile over the anchors). A scanned point this much
         farther from the good points than their neighbourhood may still be among the members."""
         return 3.0 * float(np.sqrt(np.quantile(self.between, 0.99)))
+
+    def moving_index(self):
+        """A k-d tree (``scipy.spatial.cKDTree``) over the anchors where the members differ (variance > 0), built
+        once: every scan asks which of its points lie near them."""
+        from scipy.spatial import cKDTree
+
+        if self._moving is None:
+            self._moving = cKDTree(self.anchors[self.between > 0])
+        return self._moving
 
     def at(self, points):
         """tau^2 (m,) at (m, 3) points: the mean over their ``MEMBER_NEIGHBOURS`` nearest anchors."""

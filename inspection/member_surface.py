@@ -105,21 +105,26 @@ def fit_member_spread(reference, goods, seed=0, anchors=MEMBER_ANCHORS, floor=ME
     return MemberSpread(where, np.median(raw[nearest.reshape(len(where), -1)], axis=1))
 
 
-def _distance_and_foot(field, points, steps=FOOT_STEPS):
-    """The first-order distance (m,) of (m, 3) points to ``field``'s mean surface
-    (:func:`inspection.reference.field_quantity`) and where they land on it (m, 3): ``steps`` Newton steps along
-    its gradient."""
+def _first_order(field, points):
+    """The first-order distance (m,) of (m, 3) points to ``field``'s mean surface, E f / max(|grad E f|,
+    ``GRADIENT_FLOOR``) as :func:`inspection.reference.field_quantity` has it, and the unit gradient (m, 3) along
+    which it is measured, from one pass of the mean net."""
     mean, gradient = field.mean_and_gradient(points)
+    gradient = np.asarray(gradient, dtype=np.float64)
+    norm = np.linalg.norm(gradient, axis=1)
+    return (np.asarray(mean, dtype=np.float64) / np.maximum(norm, GRADIENT_FLOOR),
+            gradient / np.maximum(norm, 1e-12)[:, None])
+
+
+def _distance_and_foot(field, points, steps=FOOT_STEPS):
+    """The first-order distance (m,) of (m, 3) points to ``field``'s mean surface (:func:`_first_order`) and where
+    they land on it (m, 3): ``steps`` Newton steps along its gradient."""
     first = None
     foot = np.asarray(points, dtype=np.float64).copy()
-    for step in range(steps):
-        if step:
-            mean, gradient = field.mean_and_gradient(foot)
-        gradient = np.asarray(gradient, dtype=np.float64)
-        norm = np.linalg.norm(gradient, axis=1)
-        distance = np.asarray(mean, dtype=np.float64) / np.maximum(norm, GRADIENT_FLOOR)
+    for _ in range(steps):
+        distance, direction = _first_order(field, foot)
         first = distance if first is None else first
-        foot -= (distance / np.maximum(norm, 1e-12))[:, None] * gradient
+        foot -= distance[:, None] * direction
     return first, foot
 
 
@@ -163,13 +168,9 @@ def carried_surface(reference, spread, field, points):
     moving = np.flatnonzero(tau2 > 0)
     if len(moving) == 0:
         return None
-    mean, gradient = field.mean_and_gradient(good[moving])
-    gradient = np.asarray(gradient, dtype=np.float64)
-    norm = np.linalg.norm(gradient, axis=1)
-    scan_distance = np.asarray(mean, dtype=np.float64) / np.maximum(norm, GRADIENT_FLOOR)
+    scan_distance, direction = _first_order(field, good[moving])
     own_mean, own_std = reference.stats(good[moving])
     weight = tau2[moving] / (tau2[moving] + np.maximum(own_std**2, 1e-20))
-    direction = gradient / np.maximum(norm, 1e-12)[:, None]
     good[moving] -= (weight * (scan_distance - own_mean))[:, None] * direction
     extra = np.zeros(len(good))
     extra[moving] = weight * own_std**2
@@ -186,7 +187,6 @@ def carried_surface_scores(reference, spread, field, points, noise, grazing=None
     anchor where the members differ are scored against the carried surface; the others' good neighbours do not
     move, and keep the reference's own term (its cost is what a part of one shape pays)."""
     from datasets.neighbours import NearestNeighbours
-    from scipy.spatial import cKDTree
 
     lengthscale = getattr(field, "lengthscale", None)
     if spread is None or not spread.differs or not lengthscale:
@@ -194,8 +194,8 @@ def carried_surface_scores(reference, spread, field, points, noise, grazing=None
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     grazing = None if grazing is None else np.asarray(grazing, dtype=np.float64).reshape(-1)
     normals = None if normals is None else np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-    gap, _ = cKDTree(spread.anchors[spread.between > 0]).query(
-        points, 1, distance_upper_bound=AFFECTED_LENGTHSCALES * lengthscale + spread.extent)
+    gap, _ = spread.moving_index().query(points, 1,
+                                         distance_upper_bound=AFFECTED_LENGTHSCALES * lengthscale + spread.extent)
     affected = np.flatnonzero(np.isfinite(gap))
     carried = None if len(affected) == 0 else carried_surface(reference, spread, field, points[affected])
     if carried is None:
