@@ -182,7 +182,14 @@ def write_pcd(path, points):
 FAMILY_STRETCH = ((0.8, 0.9), (1.1, 1.2))
 # a second kind of variation (issue 32): the part bent along its longest axis by this many degrees end to end
 FAMILY_BEND = ((-12.0, -6.0), (6.0, 12.0))
-FAMILY_RANGES = {"stretch": FAMILY_STRETCH, "bend": FAMILY_BEND}
+# families whose features move or change (issue 52, item 2): a built-in part's holes moved by this many mm
+# (datasets.parts: the bracket's bolt holes towards its mid-line, the enclosure's round top hole along x), and its
+# sheet this many mm thick (the cup, the enclosure; nominal 1.5)
+FAMILY_HOLE = ((-4.0, -2.0), (2.0, 4.0))
+FAMILY_WALL = ((1.0, 1.25), (1.75, 2.0))
+FAMILY_RANGES = {"stretch": FAMILY_STRETCH, "bend": FAMILY_BEND, "hole": FAMILY_HOLE, "wall": FAMILY_WALL}
+# each kind's nominal member (the value a family's spread is measured from, family_ranges' scale)
+FAMILY_NOMINAL = {"stretch": 1.0, "bend": 0.0, "hole": 0.0, "wall": 1.5}
 FAMILY_VARIANTS = 8
 
 
@@ -226,15 +233,36 @@ def bent(mesh, degrees):
     return out
 
 
+# kinds that transform any part's mesh, and kinds that build a built-in part anew with one of its parameters
 VARIATIONS = {"stretch": stretched, "bend": bent}
+FEATURE_VARIATIONS = {"hole": ("hole_shift", ("builtin", "enclosure")), "wall": ("wall", ("cup", "enclosure"))}
+FAMILY_KINDS = tuple(FAMILY_RANGES)
+
+
+def member_mesh(part, kind, value, mesh=None):
+    """The mesh of ``part``'s family member ``value`` of ``kind``: ``part``'s mesh (``mesh``, or
+    :func:`part_mesh`) stretched or bent (:data:`VARIATIONS`), or the built-in part built with its feature's
+    parameter at ``value`` (:data:`FEATURE_VARIATIONS`: a ValueError for a part without that feature)."""
+    if kind in VARIATIONS:
+        return VARIATIONS[kind](part_mesh(part) if mesh is None else mesh, float(value))
+    if kind not in FEATURE_VARIATIONS:
+        raise ValueError(f"family kind must be one of {list(FAMILY_KINDS)}, got {kind!r}")
+    from datasets.parts import BUILTIN_PARTS
+
+    parameter, parts = FEATURE_VARIATIONS[kind]
+    if part not in parts:
+        raise ValueError(f"a {kind!r} family needs a built-in part with that feature ({', '.join(parts)}), got "
+                         f"{part!r}")
+    return BUILTIN_PARTS[part](**{parameter: float(value)})
 
 
 def family_ranges(kind, scale=1.0):
-    """The variants' ranges of a family of ``kind``, their spread about the nominal part times ``scale``: the
-    factors' distance from 1 (stretch) or the angles (bend)."""
+    """The variants' ranges of a family of ``kind``, their spread about the nominal part (``FAMILY_NOMINAL``) times
+    ``scale``: the factors' distance from 1 (stretch), the angles (bend), the holes' shifts (hole), the sheet's
+    thickness' distance from 1.5 mm (wall)."""
     if scale == 1:
         return FAMILY_RANGES[kind]
-    nominal = 1.0 if kind == "stretch" else 0.0
+    nominal = FAMILY_NOMINAL[kind]
     return tuple(tuple(nominal + scale * (x - nominal) for x in r) for r in FAMILY_RANGES[kind])
 
 
@@ -257,14 +285,14 @@ def family_collection(part, seed=0, root=CACHE, progress=False, test_stretch=1.0
     seed : int
     test_stretch : float
         The test variant's factor (stretch) or angle in degrees (bend).
-    kind : {'stretch', 'bend'}
+    kind : {'stretch', 'bend', 'hole', 'wall'}
     scale : float > 0
         The variants' spread about the nominal part (:func:`family_ranges`; 1: ``FAMILY_RANGES[kind]``).
     **params
         ``synthesise``'s keyword arguments (defaults: :data:`COLLECTION_DEFAULTS`).
     """
-    if kind not in VARIATIONS:
-        raise ValueError(f"family kind must be one of {sorted(VARIATIONS)}, got {kind!r}")
+    if kind not in FAMILY_RANGES:
+        raise ValueError(f"family kind must be one of {list(FAMILY_KINDS)}, got {kind!r}")
     if not float(scale) > 0:
         raise ValueError(f"family scale must be > 0, got {scale!r}")
     params = {**COLLECTION_DEFAULTS, **params}
@@ -281,7 +309,7 @@ def family_collection(part, seed=0, root=CACHE, progress=False, test_stretch=1.0
         from datasets.frame import Frame
         from datasets.synth import synthesise
 
-        mesh = part_mesh(part)
+        mesh = part_mesh(part) if kind in VARIATIONS else None
         factors = np.concatenate([np.linspace(lo, hi, FAMILY_VARIANTS // len(ranges)) for lo, hi in ranges])
         shares = np.diff(np.linspace(0, params["n_train"], len(factors) + 1).round().astype(int))
         groups = [(f, dict(params, n_train=int(n), n_test_good=0, n_test_defective=0))
@@ -289,8 +317,8 @@ def family_collection(part, seed=0, root=CACHE, progress=False, test_stretch=1.0
         groups.append((float(test_stretch), dict(params, n_train=0)))
         scans = []
         for k, (factor, options) in enumerate(groups):
-            variant, frame = synthesise(VARIATIONS[kind](mesh, factor), seed=seed * 1000 + k, progress=progress,
-                                        **options)
+            variant, frame = synthesise(member_mesh(part, kind, factor, mesh), seed=seed * 1000 + k,
+                                        progress=progress, **options)
             for s in variant:  # to file units, named after the variant
                 origin = None if s.sensor_origin is None else frame.to_file(s.sensor_origin)
                 head, tail = s.name.rsplit("/", 1)

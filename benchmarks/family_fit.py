@@ -2,7 +2,7 @@
 surface from the true surface of the member the scan is of, for the unseen member's good test scans against the
 trained members' held-back scans.
 
-For each scan: the member's mesh (:data:`benchmarks.cache.VARIATIONS` of the part by the factor in the scan's name,
+For each scan: the member's mesh (:func:`benchmarks.cache.member_mesh` of the part by the factor in the scan's name,
 ``.../stretch0.900_003``), in the collection frame and moved as the model moves the scan (its family registration,
 :meth:`autodecoder.latent.model.LatentModel.normalise`; none for a model of one size); the scan projected as
 inspection projects it; the first-order distance |g| / |grad g| of the projected mean at points of the true surface
@@ -19,7 +19,7 @@ import re
 
 import numpy as np
 
-FACTOR = re.compile(r"(stretch|bend)(-?[0-9.]+)_")
+FACTOR = re.compile(r"(stretch|bend|hole|wall)(-?[0-9.]+)_")
 
 
 def member_surface_error(model, scan, mesh_file, frame, samples=20000, seen=0.02, seed=0):
@@ -60,10 +60,10 @@ def family_fit(model_path, collection_path, part, kind, max_scans=8):
     from autodecoder.latent.model import load_model
     from datasets import ScanCollection
 
-    from .cache import VARIATIONS, part_mesh
+    from .cache import VARIATIONS, member_mesh, part_mesh
 
     model = load_model(model_path)
-    mesh = part_mesh(part)
+    mesh = None if kind not in VARIATIONS else part if hasattr(part, "vertices") else part_mesh(part)
     out = {}
     with ScanCollection(collection_path) as c:
         names = c.names
@@ -73,18 +73,19 @@ def family_fit(model_path, collection_path, part, kind, max_scans=8):
             errors = []
             for name in chosen:
                 factor = float(FACTOR.search(name).group(2))
-                errors.append(member_surface_error(model, c[names.index(name)], VARIATIONS[kind](mesh, factor),
-                                                   c.frame))
+                member = member_mesh(part, kind, factor, mesh)
+                errors.append(member_surface_error(model, c[names.index(name)], member, c.frame))
             out[role] = float(np.median(errors)) if errors else float("nan")
     out["scans"] = max_scans
     return out
 
 
 
-def paired_member_scans(mesh, kind, factors, frame, views=16, seed=7919, n_points=4000):
-    """Good scans of members of ``mesh``'s family from the same camera positions.
+def paired_member_scans(part, kind, factors, frame, views=16, seed=7919, n_points=4000):
+    """Good scans of members of ``part``'s family (a part's name, or a mesh for the kinds that transform one) from
+    the same camera positions.
 
-    Each member (:data:`benchmarks.cache.VARIATIONS` ``[kind](mesh, factor)``) is synthesised with the same ``seed``
+    Each member (:func:`benchmarks.cache.member_mesh` ``(part, kind, factor)``) is synthesised with the same ``seed``
     (its cameras depend on the seed alone, at distances in multiples of its own diagonal:
     :func:`datasets.synth.synthesise`), and its scans moved from file units into ``frame`` (the collection's) as
     :func:`benchmarks.cache.family_collection` moves a collection's; named ``paired/good/<kind><factor>_<view>``.
@@ -94,11 +95,12 @@ def paired_member_scans(mesh, kind, factors, frame, views=16, seed=7919, n_point
 
     from datasets.synth import synthesise
 
-    from .cache import VARIATIONS
+    from .cache import VARIATIONS, member_mesh, part_mesh
 
+    mesh = None if kind not in VARIATIONS else part if hasattr(part, "vertices") else part_mesh(part)
     out = {}
     for factor in factors:
-        member = VARIATIONS[kind](mesh, float(factor))
+        member = member_mesh(part, kind, float(factor), mesh)
         scans, own = synthesise(member, n_train=0, n_test_good=int(views), n_test_defective=0, n_points=n_points,
                                 seed=seed, progress=False)
         out[float(factor)] = member, [
@@ -124,16 +126,15 @@ def paired_family_fit(model_path, collection_path, part, kind, test_factor, scal
     from autodecoder.latent.model import load_model
     from datasets import ScanCollection
 
-    from .cache import COLLECTION_DEFAULTS, family_ranges, part_mesh
+    from .cache import COLLECTION_DEFAULTS, family_ranges
 
     ranges = family_ranges(kind, float(scale))
     lows, highs = [r for r in ranges if max(r) <= test_factor], [r for r in ranges if min(r) >= test_factor]
     trained = ([max(max(r) for r in lows)] if lows else []) + ([min(min(r) for r in highs)] if highs else [])
     model = load_model(model_path)
-    mesh = part_mesh(part)
     with ScanCollection(collection_path) as c:
         common = c.frame
-    members = paired_member_scans(mesh, kind, [float(test_factor)] + trained, common, views, seed,
+    members = paired_member_scans(part, kind, [float(test_factor)] + trained, common, views, seed,
                                   COLLECTION_DEFAULTS["n_points"])
     errors = {f: np.array([member_surface_error(model, s, member, common) for s in scans])
               for f, (member, scans) in members.items()}

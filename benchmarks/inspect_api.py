@@ -274,7 +274,8 @@ def read_scores(results_dir):
 def summary_figures(summary):
     """The figures of a summary: ``auroc`` (overall and per defect type), ``point_auroc``, ``flagged`` (fractions
     of defective and good test scans above the threshold; ``good_rejected``, the fraction of good ones whose verdict
-    is 'defective' rather than 'uncertain', None for a summary written before verdicts were counted),
+    is 'defective' rather than 'uncertain', ``defective_told`` the fraction of defective ones whose verdict is
+    'defective', each None for a summary written before verdicts were counted),
     ``threshold`` (value, basis, predicted false-alarm rate and its interval;
     None for a model of several parts, thresholded per part), ``point_score``, ``aggregate``, ``rays``,
     ``seconds_per_scan``, ``calibration_seconds`` (when timed), ``alpha``."""
@@ -284,13 +285,16 @@ def summary_figures(summary):
     threshold = None
     told = metrics.get("verdicts", {}).get("good")
     rejected = told["defective"] / sum(told.values()) if told and sum(told.values()) else None
+    told_bad = metrics.get("verdicts", {}).get("defective")
+    found = told_bad["defective"] / sum(told_bad.values()) if told_bad and sum(told_bad.values()) else None
     if decision is not None:
         threshold = {"value": decision.get("value"), "basis": decision.get("basis"),
                      "predicted_far": decision.get("predicted_far"), "far_interval": decision.get("far_interval")}
     return {"auroc": {"overall": metrics.get("auroc"), **metrics.get("auroc_per_defect", {})},
             "point_auroc": metrics.get("point_auroc"),
             "flagged": {"defective": metrics.get("detection_rate"), "good": metrics.get("false_alarm_rate"),
-                        "n_good": confusion.get("tn", 0) + confusion.get("fp", 0), "good_rejected": rejected},
+                        "n_good": confusion.get("tn", 0) + confusion.get("fp", 0), "good_rejected": rejected,
+                        "defective_told": found},
             "threshold": threshold, "point_score": summary.get("point_score"), "aggregate": summary.get("aggregate"),
             "rays": summary.get("rays") is not None, "seconds_per_scan": summary.get("seconds_per_scan"),
             "calibration_seconds": summary.get("calibration_seconds"),

@@ -43,7 +43,9 @@ def verdicts_table(rows):
     rows : list of dict
         ``part``, ``method``, ``auroc`` ({'overall', <type>: float}), ``flagged`` (:func:`benchmarks.metrics.flagged`),
         ``threshold`` (``basis``, ``predicted_far``, ``far_interval``; optional), ``oracle`` (the defective scans a
-        threshold just above the worst good test scan flags; optional), ``seconds_per_scan`` (optional).
+        threshold just above the worst good test scan flags; optional), ``seconds_per_scan`` (optional). Where the
+        verdicts were counted (``flagged['good_rejected']``, ``['defective_told']``): the good scans and the share of
+        defective ones whose verdict is 'defective' (not 'uncertain').
     """
     kinds = sorted({k for r in rows for k in r["auroc"] if k != "overall"})
     flat = []
@@ -51,13 +53,17 @@ def verdicts_table(rows):
         t = r.get("threshold") or {}
         far = rate_text(t.get("predicted_far"), t.get("far_interval")) if t.get("predicted_far") is not None else None
         f = r["flagged"]
+        rejected = f.get("good_rejected")
         flat.append({"part": r["part"], "method": r["method"], "auroc": r["auroc"]["overall"],
                      **{k: r["auroc"].get(k) for k in kinds}, "def": f["defective"],
                      "good": f"{round(f['good'] * f['n_good'])} of {f['n_good']}", "oracle": r.get("oracle"),
-                     "basis": t.get("basis"), "far": far, "sec": r.get("seconds_per_scan")})
+                     "told": None if rejected is None else f"{round(rejected * f['n_good'])} of {f['n_good']}",
+                     "def_told": f.get("defective_told"), "basis": t.get("basis"), "far": far,
+                     "sec": r.get("seconds_per_scan")})
     return format_table(flat, [("part", "part", ""), ("method", "method", ""), ("auroc", "AUROC", ".3f"),
                                *[(k, k, ".3f") for k in kinds], ("def", "def flagged", ".3f"),
-                               ("good", "good flagged", ">"), ("oracle", "oracle", ".3f"), ("basis", "basis", ">"),
+                               ("def_told", "def told def", ".3f"), ("good", "good flagged", ">"),
+                               ("told", "good told def", ">"), ("oracle", "oracle", ".3f"), ("basis", "basis", ">"),
                                ("far", "pred. FAR (90% int.)", ">"), ("sec", "s/scan", ".3f")])
 
 

@@ -6,11 +6,18 @@ import numpy as np
 MESH_SUFFIXES = (".obj", ".stl", ".ply", ".off")
 
 
-def builtin_part():
+def builtin_part(hole_shift=0.0):
     """A flanged bracket in millimetres, watertight and deterministic.
 
     A base plate (80 x 50 x 8) with four bolt holes, an upright web at one end, two triangular ribs bracing it, and a
     boss with a bore through the web; built from trimesh primitives with manifold3d booleans.
+
+    Parameters
+    ----------
+    hole_shift : float
+        The bolt holes (radius 4, centres at y = +-16) moved this many mm towards the plate's mid-line y = 0
+        (negative: towards its edges): a product family whose holes lie in different places. Within -4.5 .. 11.5
+        the holes stay clear of the plate's edges and of each other.
 
     Returns
     -------
@@ -19,6 +26,11 @@ def builtin_part():
     """
     import trimesh
     from trimesh.creation import box, cylinder
+
+    hole_shift = float(hole_shift)
+    if not -4.5 <= hole_shift <= 11.5:
+        raise ValueError(f"builtin_part: hole_shift must lie in [-4.5, 11.5] mm (the holes inside the plate, apart), "
+                         f"got {hole_shift}")
 
     def moved(mesh, offset):
         mesh.apply_translation(offset)
@@ -40,7 +52,7 @@ def builtin_part():
     boss = x_cylinder(12.0, 22.0, (-24.0, 0.0, 38.0))
     solid = trimesh.boolean.union([plate, web, boss, *ribs], engine="manifold")
     holes = [moved(cylinder(radius=4.0, height=12.0, sections=32), (x, y, 4.0))
-             for x in (17.0, 31.0) for y in (-16.0, 16.0)]
+             for x in (17.0, 31.0) for y in (-16.0 + hole_shift, 16.0 - hole_shift)]
     bore = x_cylinder(6.0, 40.0, (-24.0, 0.0, 38.0))
     part = trimesh.boolean.difference([solid, *holes, bore], engine="manifold")
     part.merge_vertices()
@@ -49,7 +61,7 @@ def builtin_part():
     return part
 
 
-def sheet_enclosure(size=(100.0, 70.0, 50.0), wall=1.5):
+def sheet_enclosure(size=(100.0, 70.0, 50.0), wall=1.5, hole_shift=0.0):
     """A sheet-metal enclosure cover in millimetres: a thin-walled box open at the bottom, with openings in its walls.
 
     The top has a rectangular vent (40 x 16) and a round hole (diameter 14); the two long side walls each have a
@@ -62,6 +74,9 @@ def sheet_enclosure(size=(100.0, 70.0, 50.0), wall=1.5):
         Outer extents (x, y, z) in mm.
     wall : float
         Sheet thickness in mm (walls and top alike).
+    hole_shift : float
+        The top's round hole (centre (28, -18)) moved this many mm along x (negative: towards the vent): a family
+        whose hole lies in different places. Within -20 .. 12 it stays clear of the vent and the top's edges.
 
     Returns
     -------
@@ -72,13 +87,18 @@ def sheet_enclosure(size=(100.0, 70.0, 50.0), wall=1.5):
     from trimesh.creation import box, cylinder
 
     sx, sy, sz = (float(s) for s in size)
+    hole_shift = float(hole_shift)
+    if not -20.0 <= hole_shift <= 12.0:
+        raise ValueError(f"sheet_enclosure: hole_shift must lie in [-20, 12] mm (clear of the vent and the edges), "
+                         f"got {hole_shift}")
     outer = box(extents=(sx, sy, sz), transform=_translation((0.0, 0.0, sz / 2)))
     # the cavity overshoots the bottom so the cover is open there
     inner = box(extents=(sx - 2 * wall, sy - 2 * wall, sz), transform=_translation((0.0, 0.0, sz / 2 - wall)))
     depth = 4.0 * wall  # cutting tools pass through the sheet with room to spare
     tools = [
         box(extents=(40.0, 16.0, depth), transform=_translation((-15.0, 10.0, sz - wall / 2))),
-        cylinder(radius=7.0, height=depth, sections=48, transform=_translation((28.0, -18.0, sz - wall / 2))),
+        cylinder(radius=7.0, height=depth, sections=48,
+                 transform=_translation((28.0 + hole_shift, -18.0, sz - wall / 2))),
         box(extents=(30.0, depth, 12.0), transform=_translation((-12.0, sy / 2 - wall / 2, sz / 2))),
         box(extents=(30.0, depth, 12.0), transform=_translation((18.0, -sy / 2 + wall / 2, sz / 2 + 6.0))),
         cylinder(radius=9.0, height=depth, sections=48,

@@ -19,7 +19,8 @@ CALIBRATION_KEY = "calibration"
 # 3: its settings hold ``coverage`` (a version 2 record scored every point: coverage 0)
 # 4: ``extra['regions']``, the good calibration scans' largest map values (:mod:`inspection.regions`)
 # 5: the reference's ``member_spread`` (:mod:`inspection.member_surface`)
-CALIBRATION_VERSION = 5
+# 6: the member spread's envelope of the trained members (``low``, ``high``, ``own``: :mod:`inspection.family_range`)
+CALIBRATION_VERSION = 6
 EXTRA_KEYS = ("config", "reading", "parts", "level_rendered", "reference", "rays", "align", "regions")
 
 
@@ -308,8 +309,20 @@ def _from_version_4(record):
     return {**record, "version": 5, "extra": extra}
 
 
+def _from_version_5(record):
+    """Version 5 -> 6: a member spread gets no envelope (``low``, ``high``, ``own`` None: a version 5 calibration
+    did not keep the trained members' range), so no scan is told it lies outside the trained family, as
+    calibrated."""
+    extra = dict(record["extra"])
+    reference = extra["reference"]
+    if reference is not None and reference.get("member_spread") is not None:
+        extra["reference"] = {**reference, "member_spread": {**reference["member_spread"], "low": None, "high": None,
+                                                             "own": None}}
+    return {**record, "version": 6, "extra": extra}
+
+
 # version -> the function that upgrades a record of that version to the next
-_UPGRADES = {1: _from_version_1, 2: _from_version_2, 3: _from_version_3, 4: _from_version_4}
+_UPGRADES = {1: _from_version_1, 2: _from_version_2, 3: _from_version_3, 4: _from_version_4, 5: _from_version_5}
 
 
 def read_calibration(path):

@@ -384,7 +384,8 @@ def inspect_scan(insp, scan, i=0, maps="none", maps_dir=None, uncertain=True, to
     row = {"name": scan.name, "split": scan.split, "label": scan.label, "defect": scan.defect,
            "score": res.score, "p_value": float(one.p_values_from_scores([res.score])[0]), "verdict": verdict,
            "reason": one.size_note(scan), "flagged": flagged, "why": why,
-           "uncovered": None if res.coverage is None else res.coverage.uncovered_share}
+           "uncovered": None if res.coverage is None else res.coverage.uncovered_share,
+           "beyond_family": None if res.family is None else res.family.share}
     if rays:
         through = res.rays.through_observed
         row.update(score_points=res.components["points"], score_rays=res.components["rays"],

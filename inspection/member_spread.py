@@ -22,10 +22,22 @@ class MemberSpread:
     anchors : (a, 3) float32 array
     between : (a,) float32 array
         The members' variance tau^2 of the surface's place along its normal (squared world units, >= 0).
+    low, high : (a,) float32 arrays or None
+        The trained members' envelope at each anchor: the least and the greatest first-order distance of the anchor
+        to a good scan's own field, over every reference scan's field (world units; NaN where fewer than
+        ``inspection.member_surface.MEMBER_MIN_SCANS`` scans saw the anchor). A scan's member whose field lies beyond it over
+        much of the surface where the members differ is outside the trained family (:mod:`inspection.family_range`).
+        None (a calibration of version 5 or older): not measured, and no scan is told it lies outside.
+    own : (a,) float32 array or None
+        The reference's own spread s_ref at each anchor (world units): how far good scans' fields miss their own
+        points there, the scale the envelope's margin is measured in. With ``low`` and ``high``.
     """
 
     anchors: np.ndarray
     between: np.ndarray
+    low: np.ndarray = None
+    high: np.ndarray = None
+    own: np.ndarray = None
 
     def __post_init__(self):
         self.anchors = np.asarray(self.anchors, dtype=np.float32).reshape(-1, 3)
@@ -35,6 +47,18 @@ class MemberSpread:
                              f"{len(self.between)} variances")
         if not (np.isfinite(self.anchors).all() and np.isfinite(self.between).all() and (self.between >= 0).all()):
             raise ValueError("a member spread needs finite anchors and finite variances >= 0")
+        envelope = [self.low, self.high, self.own]
+        if any(e is None for e in envelope) and not all(e is None for e in envelope):
+            raise ValueError("a member spread's envelope needs low, high and own together (or none of them)")
+        if self.low is not None:
+            self.low, self.high, self.own = (np.asarray(e, dtype=np.float32).reshape(-1) for e in envelope)
+            if any(len(e) != len(self.anchors) for e in (self.low, self.high, self.own)):
+                raise ValueError(f"a member spread's envelope needs one low, high and own per anchor "
+                                 f"({len(self.anchors)} anchors)")
+            measured = np.isfinite(self.low)
+            if not (np.array_equal(measured, np.isfinite(self.high)) and (self.high[measured] >= self.low[measured])
+                    .all() and np.isfinite(self.own).all() and (self.own >= 0).all()):
+                raise ValueError("a member spread's envelope needs high >= low (NaN together) and finite own >= 0")
         self._index = self._moving = None
 
     @property
@@ -74,18 +98,31 @@ class MemberSpread:
         _, idx = self._index.query(np.asarray(points, dtype=np.float64).reshape(-1, 3), k)
         return self.between[idx.reshape(len(idx), -1)].astype(np.float64).mean(1)
 
+    @property
+    def has_envelope(self):
+        """Whether the trained members' envelope was measured (``low``, ``high``, ``own``)."""
+        return self.low is not None
+
     def as_dict(self):
-        """Plain values (torch tensors) to store in a calibration record."""
+        """Plain values (torch tensors; the envelope's None where not measured) to store in a calibration record."""
         import torch
 
-        return {"anchors": torch.from_numpy(self.anchors.copy()), "between": torch.from_numpy(self.between.copy())}
+        def tensor(a):
+            return None if a is None else torch.from_numpy(a.copy())
+
+        return {"anchors": tensor(self.anchors), "between": tensor(self.between), "low": tensor(self.low),
+                "high": tensor(self.high), "own": tensor(self.own)}
 
     @classmethod
     def from_dict(cls, d):
-        """The spread :meth:`as_dict` stored, None for None; a ValueError for anything else."""
+        """The spread :meth:`as_dict` stored, None for None (a record of version 5 has no envelope: None); a
+        ValueError for anything else."""
         if d is None:
             return None
         try:
-            return cls(np.asarray(d["anchors"], dtype=np.float32), np.asarray(d["between"], dtype=np.float32))
-        except (KeyError, TypeError, IndexError) as exc:
+            envelope = [None if d.get(k) is None else np.asarray(d[k], dtype=np.float32)
+                        for k in ("low", "high", "own")]
+            return cls(np.asarray(d["anchors"], dtype=np.float32), np.asarray(d["between"], dtype=np.float32),
+                       *envelope)
+        except (KeyError, TypeError, IndexError, AttributeError) as exc:
             raise ValueError(f"damaged member_spread ({type(exc).__name__}: {exc})") from None

@@ -72,8 +72,6 @@ def fit_member_spread(reference, goods, seed=0, anchors=MEMBER_ANCHORS, floor=ME
     floor : float
         ``MEMBER_SPREAD_FLOOR``.
     """
-    from scipy.spatial import cKDTree
-
     from datasets.neighbours import NearestNeighbours
 
     usable = [g for g in goods if g.field is not None and g.normals is not None and len(g.points) > 0]
@@ -81,28 +79,54 @@ def fit_member_spread(reference, goods, seed=0, anchors=MEMBER_ANCHORS, floor=ME
     index, surface_normals = reference.distinct_surface()
     if len(usable) < MEMBER_MIN_SCANS or surface_normals is None or not lengthscale or not np.isfinite(lengthscale):
         return None
-    rng = np.random.default_rng(seed)
-    pick = np.sort(rng.choice(index.n, min(int(anchors), index.n), replace=False))
-    where, side = index.data[pick], surface_normals[pick]
-    distances = np.zeros((len(usable), len(where)))
-    saw = np.zeros((len(usable), len(where)), dtype=bool)
-    for j, good in enumerate(usable):
-        distances[j], landed = _distance_and_foot(good.field, where)
-        points = np.asarray(good.points, dtype=np.float64)
-        normals = np.asarray(good.normals, dtype=np.float64)
-        k = min(SIDE_CANDIDATES, len(points))
-        dist, idx = cKDTree(points).query(landed, k)
-        dist, idx = dist.reshape(len(where), k), idx.reshape(len(where), k)
-        same_side = np.einsum("akj,aj->ak", normals[idx], side) > 0
-        saw[j] = ((dist < lengthscale) & same_side).any(1)
+    where, side = _anchors(index, surface_normals, anchors, seed)
+    distances, saw, _ = seen_distances(usable, where, side, lengthscale)
     count = saw.sum(0)
     mean = (distances * saw).sum(0) / np.maximum(count, 1)
     variance = ((distances - mean) ** 2 * saw).sum(0) / np.maximum(count - 1, 1)
     _, own = reference.stats(where)
-    raw = np.where(count >= MEMBER_MIN_SCANS, np.maximum(variance - floor * own**2, 0.0), 0.0)
+    counted = count >= MEMBER_MIN_SCANS
+    raw = np.where(counted, np.maximum(variance - floor * own**2, 0.0), 0.0)
+    # the trained members' envelope (inspection.family_range): the least and greatest distance over every field, not
+    # only those whose scans saw the anchor: each code decodes a whole member, and a member between two others is
+    # seen at an anchor by scans of one side only as often as not (fandisk bent 24-48 degrees either way: the
+    # untrained member at 0 then lay beyond the counted fields' envelope as often as a member at 60 did)
+    low = np.where(counted, distances.min(0), np.nan)
+    high = np.where(counted, distances.max(0), np.nan)
     # members differ over areas, the fields' noise at places: each anchor takes the median of its nearest anchors'
     _, nearest = NearestNeighbours(where).query(where, min(SMOOTHING_ANCHORS, len(where)))
-    return MemberSpread(where, np.median(raw[nearest.reshape(len(where), -1)], axis=1))
+    return MemberSpread(where, np.median(raw[nearest.reshape(len(where), -1)], axis=1), low, high, own)
+
+
+def _anchors(index, surface_normals, anchors, seed):
+    """A seeded subsample of at most ``anchors`` of the reference's distinct surface points (a, 3) and their
+    normals (a, 3)."""
+    rng = np.random.default_rng(seed)
+    pick = np.sort(rng.choice(index.n, min(int(anchors), index.n), replace=False))
+    return index.data[pick], surface_normals[pick]
+
+
+def seen_distances(scans, anchors, side, lengthscale):
+    """For each scan (its ``field``, ``points``, ``normals``), the first-order distance of each anchor to its field's
+    mean surface and whether the scan saw the anchor's place on its own member: the anchor carried onto that surface
+    (:func:`_distance_and_foot`) has a point of the scan within ``lengthscale`` on the anchor's side (``side``, the
+    anchors' normals). Returns ((s, a) float64, (s, a) bool, and where the anchors landed, (s, a, 3) float64)."""
+    from scipy.spatial import cKDTree
+
+    distances = np.zeros((len(scans), len(anchors)))
+    saw = np.zeros((len(scans), len(anchors)), dtype=bool)
+    feet = np.zeros((len(scans), len(anchors), 3))
+    for j, scan in enumerate(scans):
+        distances[j], landed = _distance_and_foot(scan.field, anchors)
+        feet[j] = landed
+        points = np.asarray(scan.points, dtype=np.float64)
+        normals = np.asarray(scan.normals, dtype=np.float64)
+        k = min(SIDE_CANDIDATES, len(points))
+        dist, idx = cKDTree(points).query(landed, k)
+        dist, idx = dist.reshape(len(anchors), k), idx.reshape(len(anchors), k)
+        same_side = np.einsum("akj,aj->ak", normals[idx], side) > 0
+        saw[j] = ((dist < lengthscale) & same_side).any(1)
+    return distances, saw, feet
 
 
 def _first_order(field, points):

@@ -17,9 +17,11 @@ from datasets.atomic import atomic_path
 # the verdict in words (:meth:`inspection.Inspector.verdicts_from_results`), what report.html shows;
 # ``points_scored`` and ``spacing``: for a scan much denser than the training scans, how many of its points were
 # scored, a random subset at the training scans' point spacing ``spacing`` (the scans' units; inspection.resolution);
-# empty for a scan scored on every point
+# empty for a scan scored on every point; ``beyond_family``: for a model of a family whose members differ, the share
+# of the surface where they differ that the scan shows on which it lies beyond every trained member
+# (inspection.family_range; at 0.25 or more the scan is outside the trained family, 'uncertain'); empty otherwise
 CSV_COLUMNS = ("name", "split", "label", "defect", "score", "p_value", "verdict", "flagged", "reason", "uncovered",
-               "why", "regions", "tolerance", "decided_by", "points_scored", "spacing")
+               "why", "regions", "tolerance", "decided_by", "points_scored", "spacing", "beyond_family")
 # defects.csv: one row per defect region (inspection.regions.DefectRegion.row), lengths in the scans' units
 DEFECT_COLUMNS = ("name", "region", "type", "deviation", "deviation_sd", "area", "area_low", "area_high", "extent",
                   "volume", "volume_sd", "fill", "points", "peak", "x", "y", "z", "scan_x", "scan_y", "scan_z",
@@ -28,7 +30,8 @@ DEFECT_COLUMNS = ("name", "region", "type", "deviation", "deviation_sd", "area",
 # it), the rays' evidence that entered the score (nats, as good scans weigh it: inspection.ray_calibration) and the
 # share of the scan's returned rays that passed through its own surface (not tested: its sensor origin is off)
 RAY_CSV_COLUMNS = CSV_COLUMNS + ("score_points", "score_rays", "ray_nats", "rays_through")
-_FLOAT_COLUMNS = ("score", "score_points", "score_rays", "ray_nats", "rays_through", "uncovered", "spacing")
+_FLOAT_COLUMNS = ("score", "score_points", "score_rays", "ray_nats", "rays_through", "uncovered", "spacing",
+                  "beyond_family")
 ERROR_VERDICT = "error"
 UNCERTAIN_VERDICT = "uncertain"  # the score lies within the threshold's own uncertainty: rescan
 VERDICTS = ("defective", UNCERTAIN_VERDICT, "good", ERROR_VERDICT)  # in the order a quality engineer reads them

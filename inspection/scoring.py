@@ -15,6 +15,7 @@ from datasets.validation import points_and_normals
 from .aggregates import aggregate as aggregate_scores
 from .coverage import MIN_COVERED_POINTS, Coverage, coverage_radius, covered_points
 from .evidence import ScanEvidence, gather_evidence, kept_points, stage
+from .family_range import FamilyRange, family_range
 from .loading import signed_for_scoring
 from .reference import REFERENCE_QUANTITY
 from .resolution import EvidenceSample, evidence_sample, sampled_scan, training_spacing
@@ -42,6 +43,8 @@ class ScanResult:
     ``sample``: for a scan much denser than the training scans, which of its points were scored at their density
     (:class:`inspection.resolution.EvidenceSample`); then every per-point array here (and ``evidence``) is over
     those points, and ``sample.full`` carries one to every point of the scan. None: every point was scored.
+    ``family``: for a model of a family whose members differ, where the scan's member lies against the trained ones
+    (:class:`inspection.family_range.FamilyRange`: outside, its verdict is 'uncertain'); None: not judged.
     """
 
     score: float
@@ -55,6 +58,7 @@ class ScanResult:
     coverage: Coverage = None
     evidence: ScanEvidence = None
     sample: EvidenceSample = None
+    family: FamilyRange = None
 
     def scored(self, scan):
         """``scan`` (as given to the inspection) as it was scored: itself, or with ``sample`` its scored points only,
@@ -205,13 +209,14 @@ def score_evidence(evidence: ScanEvidence, reference, settings, timings=None, un
     with stage(timings, "aggregate"):
         kept = kept_points(evidence.stray, len(values))
         score = aggregate_scores(values[kept], settings.aggregate)
-        coverage = None
+        coverage = family = None
         if POINT_SCORES[settings.point_score].reference:
             coverage = scan_coverage(reference, evidence, settings.coverage, score)
+            family = family_range(reference, evidence.field, evidence.points, evidence.normals)
         if coverage is not None and not coverage.counted_all:
             score = aggregate_scores(values[kept & coverage.covered], settings.aggregate)
     result = ScanResult(score, values, evidence.field, components={"points": score}, stray=evidence.stray,
-                        coverage=coverage, evidence=evidence)
+                        coverage=coverage, evidence=evidence, family=family)
     if coverage is not None:
         result.components["points_all"] = coverage.score_all
     if settings.rays:

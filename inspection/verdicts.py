@@ -82,9 +82,12 @@ class VerdictMixin:
         """The verdicts and their reasons (two lists of str) of scans already inspected (their
         :class:`inspection.scoring.ScanResult`): :meth:`verdicts_from_scores` and :meth:`reasons_from_scores` of their
         scores, then what their coverage says (:func:`inspection.coverage.coverage_verdict`: a scan whose evidence
-        lies on surface no good scan saw is 'uncertain', never 'good'). ``uncertain=False``: the two classes, coverage
-        aside. Several part types: pass the ``scans``."""
+        lies on surface no good scan saw is 'uncertain', never 'good') and, for a family whose members differ, where
+        the scan's member lies (:func:`inspection.family_range.family_verdict`: outside the trained family,
+        'uncertain', never 'defective'). ``uncertain=False``: the two classes, coverage and the family aside.
+        Several part types: pass the ``scans``."""
         from .coverage import coverage_verdict
+        from .family_range import family_verdict
 
         results = list(results)
         scores = [r.score for r in results]
@@ -93,7 +96,8 @@ class VerdictMixin:
         if not uncertain:
             return verdicts, reasons
         ones = [self.for_scan(s) for s in scans] if getattr(self, "parts_", None) else [self] * len(results)
-        judged = [coverage_verdict(str(v), why, r.coverage, one.threshold_, r.score)
+        judged = [family_verdict(*coverage_verdict(str(v), why, r.coverage, one.threshold_, r.score),
+                                 getattr(r, "family", None))
                   for v, why, r, one in zip(verdicts, reasons, results, ones)]
         return [v for v, _ in judged], [why for _, why in judged]
 

@@ -429,6 +429,36 @@ def test_a_family_variant_is_bent_as_a_pure_bend():
     assert cache.family_ranges("stretch") is cache.FAMILY_STRETCH
 
 
+def test_a_family_whose_features_move_builds_the_part_with_its_feature_moved():
+    """benchmarks.cache.member_mesh (issue 52, item 2): a 'hole' member is the built-in part with its holes moved
+    by that many mm (the bracket's bolt holes towards its mid-line; the enclosure's top hole along x), a 'wall'
+    member the part with its sheet that thick; the nominal member is the part itself; a part without the feature,
+    or a value the part cannot take, is one clear error."""
+    from datasets.parts import builtin_part, open_cup
+
+    nominal = builtin_part()
+    np.testing.assert_array_equal(cache.member_mesh("builtin", "hole", 0.0).vertices, nominal.vertices)
+    moved = cache.member_mesh("builtin", "hole", 3.0)
+    assert moved.is_watertight and moved.volume == pytest.approx(nominal.volume, rel=1e-6)  # holes moved, not resized
+
+    def bolt_hole_rims(mesh):  # the holes' walls in the plate (4 < x < 36 mm, below its top at 8 mm)
+        v = mesh.vertices
+        rim = v[(v[:, 0] > 10) & (v[:, 0] < 38) & (v[:, 2] < 8.5) & (np.abs(v[:, 1]) < 24)]
+        return np.sort(np.unique(np.round(np.abs(rim[:, 1]), 3)))
+
+    # the rims' |y| reach 16 + 4 = 20 mm on the nominal part and 3 mm less with the holes moved 3 mm inward
+    assert bolt_hole_rims(nominal).max() == pytest.approx(20.0, abs=0.05)
+    assert bolt_hole_rims(moved).max() == pytest.approx(17.0, abs=0.05)
+    thick = cache.member_mesh("cup", "wall", 2.0)
+    assert thick.volume > open_cup().volume and thick.bounds == pytest.approx(open_cup().bounds, abs=1e-6)
+    with pytest.raises(ValueError, match="needs a built-in part with that feature"):
+        cache.member_mesh("fandisk", "hole", 1.0)
+    with pytest.raises(ValueError, match="hole_shift must lie"):
+        cache.member_mesh("builtin", "hole", 20.0)
+    assert cache.family_ranges("wall", 2.0) == ((0.5, 1.0), (2.0, 2.5))
+    assert cache.family_ranges("hole") is cache.FAMILY_HOLE
+
+
 def test_ray_targets_are_checked_as_the_issue_states(tmp_path, monkeypatch):
     """benchmarks/suites/rays.py (issue 46): the default against the points alone - 0.005, defective flagged within
     0.05 of the points-alone oracle where it is >= 0.9 at most 1 of 16 good scans flagged there, missing material

@@ -22,7 +22,9 @@ Two other regimes, as options:
   variants of the part, the test scans one variant that none showed; ``--family-kind stretch`` (the default):
   stretched along its longest axis (VALUE 1.0: the nominal part, inside the family's range of 0.8-0.9 and 1.1-1.2;
   1.3: outside it); ``bend``: bent along it (VALUE in degrees; 0: the nominal part, inside the range of 6-12 degrees
-  either way; 18: outside it); scored as above.
+  either way; 18: outside it); ``hole``: the built-in bracket's bolt holes or the enclosure's top hole moved by VALUE
+  mm (0 inside the range of 2-4 mm either way; 9 outside it); ``wall``: the cup's or the enclosure's sheet VALUE mm
+  thick (1.5 inside the range of 1.0-1.25 and 1.75-2.0; 3.0 outside it); scored as above.
 """
 import json
 import time
@@ -59,9 +61,11 @@ def add_arguments(p):
                    help="and the recorded axis turned by up to DEG degrees per scan (default: none)")
     p.add_argument("--defect-size", type=float, default=1.0, metavar="F",
                    help="every defect's width and depth times F (datasets.synth.synthesise's defect_size; default 1)")
-    p.add_argument("--family-kind", choices=("stretch", "bend"), default="stretch",
+    p.add_argument("--family-kind", choices=cache.FAMILY_KINDS, default="stretch",
                    help="--family: how the variants differ (default: %(default)s; bend: VALUE in degrees, the family "
-                        "bent by 6-12 degrees either way, 0 the nominal part inside, 18 outside)")
+                        "bent by 6-12 degrees either way, 0 the nominal part inside, 18 outside; hole: the holes "
+                        "moved by VALUE mm, 2-4 either way, parts builtin and enclosure; wall: the sheet VALUE mm "
+                        "thick, 1.0-1.25 and 1.75-2.0, parts cup and enclosure)")
     p.add_argument("--family-scale", type=float, default=1.0,
                    help="--family: the variants' spread about the nominal part times this (default 1; bend 4: "
                         "24-48 degrees either way)")

@@ -5,48 +5,19 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-import torch
 from scipy.spatial import cKDTree
 
-from autodecoder.field.protocol import Field
-from inspection.calibration import migrate
+from inspection.calibration import CALIBRATION_VERSION, migrate
 from inspection.evidence import ScanEvidence
 from inspection.member_spread import MEMBER_SHARE, MemberSpread
 from inspection.member_surface import MEMBER_SPREAD_FLOOR, SMOOTHING_ANCHORS, carried_surface, fit_member_spread
 from inspection.reference import LocalReference, field_quantity
 from inspection.scores import reference_terms
-
-LENGTHSCALE = 0.05
-NOISE = 0.001
-
-
-class Tilted(Field):
-    """f = (z - a x) / sqrt(1 + a^2): the signed distance to the plane z = a x (outward +z)."""
-
-    def __init__(self, slope):
-        self.slope, self.lengthscale = float(slope), LENGTHSCALE
-
-    def torch_mean(self, x):
-        return (x[:, 2] - self.slope * x[:, 0]) / np.sqrt(1 + self.slope**2)
-
-    def torch_covariance(self, a, b):
-        return torch.full((len(a),), 1e-6, dtype=a.dtype)
-
-
-def _member_scan(slope, seed, n=6000, dent=None):
-    """Points (n, 3) of the plane z = slope x over [-1, 1]^2 with noise, their normals, and (optionally) a dent of
-    depth ``dent`` over the disc of radius 0.15 around (0.7, 0)."""
-    rng = np.random.default_rng(seed)
-    xy = rng.uniform(-1, 1, (n, 2))
-    z = slope * xy[:, 0] + rng.normal(0, NOISE, n)
-    if dent is not None:
-        z -= dent * (np.hypot(xy[:, 0] - 0.7, xy[:, 1]) < 0.15)
-    normal = np.array([-slope, 0.0, 1.0]) / np.hypot(slope, 1.0)
-    return np.column_stack([xy, z]), np.tile(normal, (n, 1))
+from tests.inspection.planes import NOISE, Tilted, member_scan
 
 
 def _evidence(slope, seed, dent=None):
-    points, normals = _member_scan(slope, seed, dent=dent)
+    points, normals = member_scan(slope, seed, dent=dent)
     field = Tilted(slope)
     return ScanEvidence(f"a{slope}_{seed}", points, field, value=field_quantity(field, points),
                         variance=np.zeros(len(points)), normals=normals)
@@ -172,5 +143,5 @@ def test_a_version_4_calibration_scores_as_it_was_calibrated():
                         "align": None, "regions": None,
                         "reference": {"points": np.zeros((20, 3)), "values": np.zeros(20), "k": 16}}}
     upgraded = migrate(record)
-    assert upgraded["version"] == 5 and upgraded["extra"]["reference"]["member_spread"] is None
+    assert upgraded["version"] == CALIBRATION_VERSION and upgraded["extra"]["reference"]["member_spread"] is None
     assert "member_spread" not in record["extra"]["reference"]  # the record given is not modified
