@@ -6,13 +6,15 @@ Written against ``inspection.job.calibrate`` / ``inspection.run.score`` (what ``
 ``inspection.job.calibrated_inspector`` (a model file's calibrated inspector, as ``score`` builds it) and the files
 ``score`` writes (``scores.csv``, ``summary.json``).
 """
-import csv
 import shutil
 import time
 from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
+
+from benchmarks import metrics
+from benchmarks.metrics import read_scores  # noqa: F401 (the suites read a scored run's rows through this door)
 
 # the lines of the inspection's own output a benchmark repeats: what calibration did and any note on the threshold
 _ECHOED = ("note:", "threshold basis", "calibrated on", "part ", "the rays weighed")
@@ -152,8 +154,6 @@ def point_score_runs(model_path, data_path, work_dir, specs, align=None, progres
     """The same model calibrated and scored with each point score of ``specs`` (:func:`parse_point_scores`) alone:
     no ray score, folds off, no maps; one run folder each under ``work_dir``. Returns {spec text: figures of
     :func:`summary_figures` plus ``oracle``}."""
-    from benchmarks import metrics
-
     out = {}
     for name, agg in specs:
         text = name + (f":{agg}" if agg else "")
@@ -252,23 +252,12 @@ def _drop_folds(model_path):
         save_checkpoint(state, model_path)
 
 
-def read_scores(results_dir):
-    """The per-scan rows a scored run wrote (``results/scores.csv``), as arrays: ``name``, ``label``, ``defect``,
-    ``verdict`` ('good', 'defective', 'uncertain' (within the threshold's own uncertainty) or 'error': a scan that
-    could not be scored, score NaN), ``score``, ``flagged`` (bool: the score exceeds the threshold, whatever the
-    verdict) and, with rays, ``score_points``, ``score_rays`` (and where the run wrote them ``ray_nats``, the rays'
-    evidence that entered the score, and ``rays_through``)."""
-    with open(Path(results_dir) / "scores.csv", newline="") as fh:
-        rows = list(csv.DictReader(fh))
-    out = {k: np.array([r[k] for r in rows]) for k in ("name", "label", "defect")}
-    out["verdict"] = np.array([r["verdict"] for r in rows])
-    if rows and "why" in rows[0]:  # the verdict in words (runs scored since issue 48)
-        out["why"] = np.array([r["why"] for r in rows])
-    out["flagged"] = np.array([r["flagged"] == "true" for r in rows])
-    for k in ("score", "score_points", "score_rays", "ray_nats", "rays_through"):
-        if rows and k in rows[0]:
-            out[k] = np.array([float(r[k]) if r[k] not in ("", None) else np.nan for r in rows])
-    return out
+def outside_family_figures(results_dir):
+    """What the family's range decided in a scored run (:mod:`inspection.family_range`), from its scores.csv:
+    :func:`benchmarks.metrics.verdicts_turned` with the reason that rule gives (None for a run without reasons)."""
+    from inspection.family_range import OUTSIDE_FAMILY
+
+    return metrics.verdicts_turned(read_scores(results_dir), OUTSIDE_FAMILY)
 
 
 def summary_figures(summary):

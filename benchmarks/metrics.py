@@ -1,8 +1,12 @@
-"""The benchmarks' detection metrics: AUROC (objects and points, overall and per defect type) and flagged fractions.
+"""The benchmarks' detection metrics: AUROC (objects and points, overall and per defect type), flagged fractions,
+and a scored run's rows as the inspection wrote them (``read_scores``, ``verdicts_turned``).
 
 AUROC here is the Mann-Whitney statistic: the probability that a random defective item scores above a random good
 one, ties counting one half (what ``sklearn.metrics.roc_auc_score`` computes), from average ranks in O(n log n).
 """
+import csv
+from pathlib import Path
+
 import numpy as np
 
 GOOD = "good"
@@ -407,3 +411,41 @@ def false_regions_per_scan(predicted_regions, point_labels):
         ids = np.unique(predicted[predicted >= 0])
         false += len(np.setdiff1d(ids, predicted[on & (predicted >= 0)]))
     return false / len(predicted_regions)
+
+
+def read_scores(results_dir):
+    """The per-scan rows a scored run wrote (``results/scores.csv``), as arrays: ``name``, ``label``, ``defect``,
+    ``verdict`` ('good', 'defective', 'uncertain' (within the threshold's own uncertainty) or 'error': a scan that
+    could not be scored, score NaN), ``score``, ``flagged`` (bool: the score exceeds the threshold, whatever the
+    verdict) and, with rays, ``score_points``, ``score_rays`` (and where the run wrote them ``ray_nats``, the rays'
+    evidence that entered the score, and ``rays_through``)."""
+    with open(Path(results_dir) / "scores.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    out = {k: np.array([r[k] for r in rows]) for k in ("name", "label", "defect")}
+    out["verdict"] = np.array([r["verdict"] for r in rows])
+    if rows and "why" in rows[0]:  # the verdict in words (runs scored since issue 48)
+        out["why"] = np.array([r["why"] for r in rows])
+    out["flagged"] = np.array([r["flagged"] == "true" for r in rows])
+    for k in ("score", "score_points", "score_rays", "ray_nats", "rays_through"):
+        if rows and k in rows[0]:
+            out[k] = np.array([float(r[k]) if r[k] not in ("", None) else np.nan for r in rows])
+    return out
+
+
+def verdicts_turned(scored, reason):
+    """How a verdict rule that tells scans 'uncertain' with a reason starting ``reason`` turned a scored run's
+    verdicts (``scored``: :func:`read_scores`' arrays): per label ('good', and 'defective' for every other label),
+    ``n``, ``outside`` (scans told so), ``told`` (verdict 'defective') and ``told_without`` (scans whose verdict would
+    be 'defective' without the rule: told so, or told ``reason`` where their threshold said 'defective', 'above the
+    threshold' in their reason). None for a run without the verdicts' reasons."""
+    if "why" not in scored:
+        return None
+    why = scored["why"].astype(str)
+    outside = np.char.startswith(why, reason)
+    was_defective = outside & (np.char.find(why, "above the threshold") >= 0)
+    out = {}
+    for label, keep in (("good", scored["label"] == GOOD), ("defective", scored["label"] != GOOD)):
+        told = (scored["verdict"] == "defective") & keep
+        out[label] = {"n": int(keep.sum()), "outside": int((outside & keep).sum()), "told": int(told.sum()),
+                      "told_without": int((told | (was_defective & keep)).sum())}
+    return out

@@ -459,6 +459,28 @@ def test_a_family_whose_features_move_builds_the_part_with_its_feature_moved():
     assert cache.family_ranges("hole") is cache.FAMILY_HOLE
 
 
+def test_the_scans_told_outside_the_family_are_counted_from_their_reasons(tmp_path):
+    """benchmarks.inspect_api.outside_family_figures: scans told 'uncertain' for lying outside the trained family,
+    and which of them their threshold alone called 'defective', read from a run's scores.csv."""
+    from benchmarks.inspect_api import outside_family_figures
+    from inspection.family_range import OUTSIDE_FAMILY
+    from inspection.report import write_scores_csv
+
+    above, within = "score 9, threshold 5, p-value 0.001: above the threshold", "within the threshold's own uncertainty"
+    rows = [dict(name="g0", split="test", label="good", defect="", score=9.0, p_value=0.001, verdict="uncertain",
+                 flagged=True, why=f"{OUTSIDE_FAMILY}: 40 % ...; {above}"),
+            dict(name="g1", split="test", label="good", defect="", score=6.0, p_value=0.04, verdict="uncertain",
+                 flagged=True, why=f"{OUTSIDE_FAMILY}: 30 % ...; {within}"),
+            dict(name="g2", split="test", label="good", defect="", score=1.0, p_value=0.5, verdict="good",
+                 flagged=False, why="below the threshold"),
+            dict(name="d0", split="test", label="defective", defect="dent", score=20.0, p_value=0.0001,
+                 verdict="defective", flagged=True, why=above)]
+    write_scores_csv(tmp_path / "scores.csv", rows)
+    got = outside_family_figures(tmp_path)
+    assert got == {"good": {"n": 3, "outside": 2, "told": 0, "told_without": 1},
+                   "defective": {"n": 1, "outside": 0, "told": 1, "told_without": 1}}
+
+
 def test_ray_targets_are_checked_as_the_issue_states(tmp_path, monkeypatch):
     """benchmarks/suites/rays.py (issue 46): the default against the points alone - 0.005, defective flagged within
     0.05 of the points-alone oracle where it is >= 0.9 at most 1 of 16 good scans flagged there, missing material
