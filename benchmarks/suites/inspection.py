@@ -337,12 +337,6 @@ def _templates(part, args):
                                                   progress=args.progress, echo=lambda line: print(f"  {part}: {line}"))
         toolkit = inspect_api.summary_figures(summary)
         toolkit.update(_oracle(run_dir, toolkit["alpha"]), calibration_gap=_calibration_gap(run_dir))
-        if args.family is not None:  # issue 52, item 3: scans told outside the trained family
-            toolkit["outside"] = outside = inspect_api.outside_family_figures(run_dir / "results")
-            if outside is not None:
-                print("  " + part + ": told outside the trained family: " + ", ".join(
-                    f"{o['outside']} of {o['n']} {label} ({o['told_without']} -> {o['told']} told defective)"
-                    for label, o in outside.items()), flush=True)
         toolkit["method"] = f"toolkit {toolkit['point_score']}/{toolkit['aggregate']}" + ("" if folds else ", no folds")
         out["toolkit_summary" if folds else "toolkit_summary_nofolds"] = toolkit
         rows.append(dict(part=part, **toolkit))
