@@ -93,7 +93,7 @@ def family_range(reference, field, points, normals):
         return FamilyRange(0, 0)
     anchors = spread.anchors[box].astype(np.float64)
     scan = _Scan(field, points, np.asarray(normals, dtype=np.float64).reshape(-1, 3))
-    distance, saw, _ = (a[0] for a in seen_distances([scan], anchors, _anchor_sides(reference, anchors), lengthscale))
+    distance, saw = (a[0] for a in seen_distances([scan], anchors, spread.anchor_sides(reference)[box], lengthscale))
     margin = OUTSIDE_MARGIN * spread.own[box].astype(np.float64)
     beyond = (distance < spread.low[box] - margin) | (distance > spread.high[box] + margin)
     return FamilyRange(int(saw.sum()), int((saw & beyond).sum()))
@@ -106,14 +106,6 @@ class _Scan:
     field: object
     points: np.ndarray
     normals: np.ndarray
-
-
-def _anchor_sides(reference, anchors):
-    """The outward normals (k, 3) of (k, 3) anchors, points of ``reference``'s distinct surface (the side whose
-    scans the calibration counted there)."""
-    index, normals = reference.distinct_surface()
-    _, idx = index.query(anchors, 1)
-    return np.asarray(normals, dtype=np.float64)[np.asarray(idx).reshape(-1)]
 
 
 def family_verdict(verdict, reason, found):

@@ -25,8 +25,9 @@ class MemberSpread:
     low, high : (a,) float32 arrays or None
         The trained members' envelope at each anchor: the least and the greatest first-order distance of the anchor
         to a good scan's own field, over every reference scan's field (world units; NaN where fewer than
-        ``inspection.member_surface.MEMBER_MIN_SCANS`` scans saw the anchor). A scan's member whose field lies beyond it over
-        much of the surface where the members differ is outside the trained family (:mod:`inspection.family_range`).
+        ``inspection.member_surface.MEMBER_MIN_SCANS`` scans saw the anchor). A scan's member whose field lies beyond
+        it over much of the surface where the members differ is outside the trained family
+        (:mod:`inspection.family_range`).
         None (a calibration of version 5 or older): not measured, and no scan is told it lies outside.
     own : (a,) float32 array or None
         The reference's own spread s_ref at each anchor (world units): how far good scans' fields miss their own
@@ -59,7 +60,7 @@ class MemberSpread:
             if not (np.array_equal(measured, np.isfinite(self.high)) and (self.high[measured] >= self.low[measured])
                     .all() and np.isfinite(self.own).all() and (self.own >= 0).all()):
                 raise ValueError("a member spread's envelope needs high >= low (NaN together) and finite own >= 0")
-        self._index = self._moving = None
+        self._index = self._moving = self._sides = None
 
     @property
     def share(self):
@@ -97,6 +98,15 @@ class MemberSpread:
         k = min(MEMBER_NEIGHBOURS, self._index.n)
         _, idx = self._index.query(np.asarray(points, dtype=np.float64).reshape(-1, 3), k)
         return self.between[idx.reshape(len(idx), -1)].astype(np.float64).mean(1)
+
+    def anchor_sides(self, reference):
+        """The anchors' outward normals (a, 3): those of ``reference``'s distinct surface points, which the anchors
+        are (the side whose scans the calibration counted there); looked up once."""
+        if self._sides is None:
+            index, normals = reference.distinct_surface()
+            _, idx = index.query(self.anchors.astype(np.float64), 1)
+            self._sides = np.asarray(normals, dtype=np.float64)[np.asarray(idx).reshape(-1)]
+        return self._sides
 
     @property
     def has_envelope(self):

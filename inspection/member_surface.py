@@ -79,8 +79,10 @@ def fit_member_spread(reference, goods, seed=0, anchors=MEMBER_ANCHORS, floor=ME
     index, surface_normals = reference.distinct_surface()
     if len(usable) < MEMBER_MIN_SCANS or surface_normals is None or not lengthscale or not np.isfinite(lengthscale):
         return None
-    where, side = _anchors(index, surface_normals, anchors, seed)
-    distances, saw, _ = seen_distances(usable, where, side, lengthscale)
+    rng = np.random.default_rng(seed)
+    pick = np.sort(rng.choice(index.n, min(int(anchors), index.n), replace=False))
+    where, side = index.data[pick], surface_normals[pick]
+    distances, saw = seen_distances(usable, where, side, lengthscale)
     count = saw.sum(0)
     mean = (distances * saw).sum(0) / np.maximum(count, 1)
     variance = ((distances - mean) ** 2 * saw).sum(0) / np.maximum(count - 1, 1)
@@ -98,27 +100,17 @@ def fit_member_spread(reference, goods, seed=0, anchors=MEMBER_ANCHORS, floor=ME
     return MemberSpread(where, np.median(raw[nearest.reshape(len(where), -1)], axis=1), low, high, own)
 
 
-def _anchors(index, surface_normals, anchors, seed):
-    """A seeded subsample of at most ``anchors`` of the reference's distinct surface points (a, 3) and their
-    normals (a, 3)."""
-    rng = np.random.default_rng(seed)
-    pick = np.sort(rng.choice(index.n, min(int(anchors), index.n), replace=False))
-    return index.data[pick], surface_normals[pick]
-
-
 def seen_distances(scans, anchors, side, lengthscale):
     """For each scan (its ``field``, ``points``, ``normals``), the first-order distance of each anchor to its field's
     mean surface and whether the scan saw the anchor's place on its own member: the anchor carried onto that surface
     (:func:`_distance_and_foot`) has a point of the scan within ``lengthscale`` on the anchor's side (``side``, the
-    anchors' normals). Returns ((s, a) float64, (s, a) bool, and where the anchors landed, (s, a, 3) float64)."""
+    anchors' normals). Returns ((s, a) float64, (s, a) bool)."""
     from scipy.spatial import cKDTree
 
     distances = np.zeros((len(scans), len(anchors)))
     saw = np.zeros((len(scans), len(anchors)), dtype=bool)
-    feet = np.zeros((len(scans), len(anchors), 3))
     for j, scan in enumerate(scans):
         distances[j], landed = _distance_and_foot(scan.field, anchors)
-        feet[j] = landed
         points = np.asarray(scan.points, dtype=np.float64)
         normals = np.asarray(scan.normals, dtype=np.float64)
         k = min(SIDE_CANDIDATES, len(points))
@@ -126,7 +118,7 @@ def seen_distances(scans, anchors, side, lengthscale):
         dist, idx = dist.reshape(len(anchors), k), idx.reshape(len(anchors), k)
         same_side = np.einsum("akj,aj->ak", normals[idx], side) > 0
         saw[j] = ((dist < lengthscale) & same_side).any(1)
-    return distances, saw, feet
+    return distances, saw
 
 
 def _first_order(field, points):

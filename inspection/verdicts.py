@@ -97,7 +97,7 @@ class VerdictMixin:
             return verdicts, reasons
         ones = [self.for_scan(s) for s in scans] if getattr(self, "parts_", None) else [self] * len(results)
         judged = [family_verdict(*coverage_verdict(str(v), why, r.coverage, one.threshold_, r.score),
-                                 getattr(r, "family", None))
+                                 r.family)
                   for v, why, r, one in zip(verdicts, reasons, results, ones)]
         return [v for v, _ in judged], [why for _, why in judged]
 
