@@ -209,7 +209,7 @@ def ray_evidence(field, points, origin, n_rays=RAY_DEFAULTS["n_rays"], n_empty=R
         With ``surface``: only ray samples within ``band`` kernel lengthscales of a good scan's point are tested
         (:class:`autodecoder.scanning.free_space.SurfaceBand`): the rays show a wall missing where good parts have
         one, not the field's extrapolation where they have none.
-    surface : (n, 3) array or scipy.spatial.cKDTree over them, optional
+    surface : (n, 3) array, or a datasets.neighbours.NearestNeighbours (or scipy.spatial.cKDTree) over them, optional
         Points of good scans of the part (the model's training scans), the scan's frame.
     min_cos, grazing
         ``grazing`` (m,): 1 / cos^2 - 1 of the angle between each point's ray and its surface normal

@@ -212,7 +212,6 @@ class LocalReference:
         for name, a in (("surface_owners", self.surface_owners), ("surface_normals", self.surface_normals)):
             if a is not None and (self.surface_points is None or len(a) != len(self.surface_points)):
                 raise ValueError(f"{name} must have one entry per surface point")
-        self._tree = None
         self._neighbours = None
         self._surface = None
 
@@ -243,18 +242,9 @@ class LocalReference:
                               self.term_variances, self.field_on_unseen_faces, self.member_spread)
 
     @property
-    def tree(self):
-        """The KD-tree of the reference points (built once, on first use; the ray score's surface band shares it)."""
-        from scipy.spatial import cKDTree
-
-        if self._tree is None:
-            self._tree = cKDTree(self.points)
-        return self._tree
-
-    @property
     def neighbours(self):
         """The k-nearest-neighbour index of the reference points (:class:`datasets.neighbours.NearestNeighbours`;
-        built once, on first use) that :meth:`stats` queries."""
+        built once, on first use) that :meth:`stats` queries (the ray score's surface band shares it)."""
         if self._neighbours is None:
             self._neighbours = NearestNeighbours(self.points)
         return self._neighbours

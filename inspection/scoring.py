@@ -225,7 +225,7 @@ def score_evidence(evidence: ScanEvidence, reference, settings, timings=None, un
         with stage(timings, "rays"):
             band = reference if surface is None else surface
             result.rays = ray_evidence(evidence.field, evidence.points, evidence.origin,
-                                       surface=None if band is None else band.tree,
+                                       surface=None if band is None else band.neighbours,
                                        surface_normals=None if band is None else band.oriented_surface(),
                                        grazing=evidence.grazing, **settings.ray_options)
         result.components["rays"] = result.rays.score

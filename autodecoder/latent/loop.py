@@ -34,10 +34,12 @@ from autodecoder.latent.pools import ScanTargetPool, stack_inputs
 class _NetPair(nn.Module):
     """Both nets in one module whose forward returns the four NSSPR loss terms (what DDP wraps)."""
 
-    def __init__(self, mean_net, cov_net, screening_weight, box_volume):
+    def __init__(self, mean_net, cov_net, screening_weight, box_volume, cluster_size=None):
         super().__init__()
         self.mean_net, self.cov_net = mean_net, cov_net
         self.screening_weight, self.box_volume = float(screening_weight), float(box_volume)
+        # the covariance batches' clusters (the pairs inside them from each cluster's Gram matrix, losses.py)
+        self.cluster_size = cluster_size
 
     def forward(self, x, z_x, mu, omega, screen, z_screen, pair_x, z_pair, sigma, weights):
         return torch.cat([self.mean_terms(x, z_x, mu, omega, screen, z_screen),
@@ -56,7 +58,7 @@ class _NetPair(nn.Module):
         only (what lets :func:`_train_step` run the two graphs side by side)."""
         s, m = sigma.shape[:2]
         _, jac = self.cov_net.features_and_jacobian(pair_x, z_pair)  # (S m, 3, K)
-        cov_dir = covariance_dirichlet_loss_features(jac.view(s, m, 3, -1), sigma, weights)
+        cov_dir = covariance_dirichlet_loss_features(jac.view(s, m, 3, -1), sigma, weights, self.cluster_size)
         cov_scr = screening_loss(self.cov_net.variance(screen, z_screen.detach()), self.screening_weight)
         return torch.stack([cov_dir, cov_scr])
 
@@ -285,7 +287,7 @@ def _initial_state(config, options, n_scans, local, rank, device):
     """Nets, codes, optimisers and generators of a fresh run, all seeded (a run is reproducible)."""
     torch.manual_seed(options.seed)
     mean_net, cov_net = build_networks(config)
-    nets = _NetPair(mean_net, cov_net, options.screening_weight, _box(config).volume).to(device)
+    nets = _NetPair(mean_net, cov_net, options.screening_weight, _box(config).volume, options.cluster_size).to(device)
     gen = torch.Generator().manual_seed(options.seed + 1)
     all_codes = torch.randn(n_scans, options.latent_dim, generator=gen) * options.code_init_std
     codes = nn.Parameter(all_codes[local].clone().to(device))

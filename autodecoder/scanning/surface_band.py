@@ -13,9 +13,10 @@ class SurfaceBand:
 
     Parameters
     ----------
-    points : (n, 3) array, or a scipy.spatial.cKDTree built over them
-        Points of good scans of the part (e.g. the model's training scans), the field's frame. A tree is used as it
-        is (the caller may already hold one over these points: no second build for every scan inspected).
+    points : (n, 3) array, or a :class:`datasets.neighbours.NearestNeighbours` or scipy.spatial.cKDTree over them
+        Points of good scans of the part (e.g. the model's training scans), the field's frame. A
+        ``NearestNeighbours`` index is used as it is (the caller may already hold one over these points: no second
+        build for every scan inspected); otherwise one is built over the points.
     radius : float
         World units (> 0).
     normals : (index, (n2, 3) array), optional
@@ -30,15 +31,17 @@ class SurfaceBand:
     def __init__(self, points, radius, normals=None, min_cos=0.0):
         from scipy.spatial import cKDTree
 
+        from datasets.neighbours import NearestNeighbours
+
         if not float(radius) > 0:
             raise ValueError(f"SurfaceBand radius must be > 0 (world units), got {radius!r}")
         self.radius = float(radius)
-        if isinstance(points, cKDTree):
-            self._tree = points
+        if isinstance(points, NearestNeighbours):
+            self._index = points
             self.points = check_points(points.data, "surface points")
         else:
-            self.points = check_points(points, "surface points")
-            self._tree = cKDTree(self.points)
+            self.points = check_points(points.data if isinstance(points, cKDTree) else points, "surface points")
+            self._index = NearestNeighbours(self.points)
         if not 0 <= float(min_cos) < 1:
             raise ValueError(f"SurfaceBand min_cos must be in [0, 1), got {min_cos!r}")
         self.min_cos = float(min_cos)
@@ -56,7 +59,7 @@ class SurfaceBand:
     def contains(self, x):
         """(k, 3) points -> (k,) bool: within ``radius`` of a good scan's point."""
         x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
-        return np.isfinite(self._tree.query(x, k=1, distance_upper_bound=self.radius)[0])
+        return self._index.nearest_within(x, self.radius)[0]
 
     def skims(self, x, directions):
         """(k, 3) samples and the (k, 3) unit directions of their rays -> (k,) bool: the sample lies on the outer

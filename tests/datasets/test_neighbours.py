@@ -45,3 +45,27 @@ def test_non_finite_points_are_one_clear_error():
         NearestNeighbours(bad)
     with pytest.raises(ValueError, match="finite"):
         NearestNeighbours(cloud).query(bad, 2)
+
+
+def test_nearest_within_is_ckdtrees_distance_bounded_query():
+    """The registration's correspondences: which query points have an indexed point within the bound, and which
+    one, exactly as cKDTree's distance-bounded query (and brute force) gives them."""
+    rng = np.random.default_rng(4)
+    data = rng.uniform(size=(3000, 3))
+    x = np.r_[rng.uniform(-0.2, 1.2, size=(700, 3)), data[:50] + 1e-4]
+    index = NearestNeighbours(data)
+    for bound in (0.005, 0.02, 0.3):
+        found, rows = index.nearest_within(x, bound)
+        distance, expected_rows = cKDTree(data).query(x, distance_upper_bound=bound)
+        assert found.dtype == bool and found.shape == (len(x),)
+        np.testing.assert_array_equal(found, np.isfinite(distance))
+        np.testing.assert_array_equal(rows[found], expected_rows[found])
+        assert (rows[~found] == len(data)).all()
+        brute = np.linalg.norm(x[:, None] - data[None], axis=-1)
+        np.testing.assert_array_equal(found, brute.min(1) < bound)
+        if bound == 0.02:  # some query points with a neighbour within it, some without
+            assert 0 < found.sum() < len(x)
+    empty_found, empty_rows = index.nearest_within(np.zeros((0, 3)), 0.1)
+    assert empty_found.shape == (0,) and empty_rows.shape == (0,)
+    with pytest.raises(ValueError, match="finite"):
+        index.nearest_within(np.array([[np.nan, 0, 0]]), 0.1)

@@ -74,6 +74,38 @@ def test_covariance_loss_features_sparse_route_matches_dense_gram():
     torch.testing.assert_close(grads[0][1], grads[1][1], rtol=1e-9, atol=1e-12)
 
 
+def test_covariance_loss_features_cluster_blocks_match_dense_gram():
+    """With ``cluster_size`` the pairs inside each cluster come from the cluster's own Gram matrix and only the near
+    pairs across clusters are gathered: value and gradient equal the dense Gram matrix of every pair's D c (double
+    precision), on a batch with near pairs across clusters (clusters that overlap) as well as inside them; a
+    cluster size that does not divide the batch takes the pair-by-pair route, the same sum."""
+    from autodecoder.field.losses import _covariance_loss_dense
+
+    rng = np.random.default_rng(5)
+    box = Box(np.full(3, -0.5), np.full(3, 0.5))
+    x, w = sample_pair_clusters(box, 40, 4, 0.08, rng)
+    sigma = np.clip(1 - np.abs(x[:, None] - x[None]).max(-1) / 0.16, 0, None)
+    cluster = np.arange(len(x)) // 4
+    across = (sigma > 0) & (cluster[:, None] != cluster[None, :])
+    assert across.sum() > 20  # near pairs across clusters: the gathered part of the blocked route is exercised
+    jac0 = torch.randn(2, len(x), 3, 9, dtype=torch.float64)
+    sigma_t = torch.from_numpy(np.stack([sigma, 0.5 * sigma]))
+    w_t = torch.from_numpy(np.stack([w, 2 * w]).astype(np.float64))
+
+    def value_and_grad(**kwargs):
+        jac = jac0.clone().requires_grad_()
+        loss = (_covariance_loss_dense(jac, sigma_t, w_t) if kwargs.pop("dense", False) else
+                covariance_dirichlet_loss_features(jac, sigma_t, w_t, **kwargs))
+        loss.backward()
+        return loss.detach(), jac.grad
+
+    ref = value_and_grad(dense=True)
+    for kwargs in ({"cluster_size": 4}, {"cluster_size": 7}, {}):  # 7 does not divide 160
+        got = value_and_grad(**kwargs)
+        torch.testing.assert_close(got[0], ref[0], rtol=1e-10, atol=0)
+        torch.testing.assert_close(got[1], ref[1], rtol=1e-9, atol=1e-12)
+
+
 def test_covariance_loss_pairs_closed_form():
     sigma = torch.tensor([0.5, 2.0], dtype=torch.float64)
     w = torch.tensor([3.0, 0.25], dtype=torch.float64)

@@ -450,9 +450,14 @@ def test_surface_band_against_brute_force():
     np.testing.assert_array_equal(band.contains(x), brute)
     from scipy.spatial import cKDTree
 
-    shared = SurfaceBand(cKDTree(pts), 0.15)  # a tree the caller already holds (the point score's reference)
-    np.testing.assert_array_equal(shared.contains(x), brute)
-    np.testing.assert_array_equal(shared.points, pts)
+    from datasets.neighbours import NearestNeighbours
+
+    index = NearestNeighbours(pts)  # an index the caller already holds (the point score's reference): used as it is
+    shared = SurfaceBand(index, 0.15)
+    assert shared._index is index
+    for band in (shared, SurfaceBand(cKDTree(pts), 0.15)):
+        np.testing.assert_array_equal(band.contains(x), brute)
+        np.testing.assert_array_equal(band.points, pts)
     with pytest.raises(ValueError, match="radius"):
         SurfaceBand(pts, 0.0)
 
